@@ -1,0 +1,1 @@
+"""Acquisition: camera backends (live, playback, simulated), warm-up, calibration, guided capture."""

@@ -1,0 +1,1 @@
+"""The station as a whole: demo, viewer, comparison of result folders."""

@@ -1,0 +1,1 @@
+"""Evaluation: readers of captures into studies: checkerboard, reference scan, explain."""

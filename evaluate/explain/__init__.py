@@ -1,0 +1,1 @@
+"""Explain: locate sim-vs-real mismatches, attribute them to catalogue effects, refit, show."""
