@@ -25,7 +25,7 @@ class Intrinsics:
     coeffs: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     @property
-    def K(self) -> FloatArray:  # noqa: N802 - the usual name of the camera matrix
+    def K(self) -> FloatArray:
         """3x3 camera matrix."""
         return np.array([[self.fx, 0.0, self.ppx], [0.0, self.fy, self.ppy], [0.0, 0.0, 1.0]])
 
@@ -59,7 +59,7 @@ class Extrinsics:
     translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
-    def R(self) -> FloatArray:  # noqa: N802
+    def R(self) -> FloatArray:
         return np.asarray(self.rotation, dtype=np.float64).reshape(3, 3)
 
     @property

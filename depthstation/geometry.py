@@ -134,7 +134,8 @@ def inclination_deg(ray: NDArray[Any], normal: NDArray[Any]) -> FloatArray:
     return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
 
 
-def look_at(eye: NDArray[Any], target: NDArray[Any], up: NDArray[Any] = (0.0, 0.0, 1.0)) -> FloatArray:  # type: ignore[assignment]
+def look_at(eye: NDArray[Any], target: NDArray[Any],
+            up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> FloatArray:
     """Camera-to-world pose (4x4) of an OpenCV camera (x right, y down, z forward) at eye looking at target."""
     eye = np.asarray(eye, dtype=np.float64)
     z = np.asarray(target, dtype=np.float64) - eye

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
+
+import dataclasses
+import tomllib
 
 from depthstation.board import Board
 from depthstation.errors import ProtocolError
@@ -109,10 +111,11 @@ def _table(cls: type, data: Any, key: str, source: Path | None) -> Any:
         return cls()
     if not isinstance(data, dict):
         raise ProtocolError(source, f"[{key}] must be a table")
-    fields = cls.__dataclass_fields__
+    fields = dataclasses.fields(cls)
+    names = {f.name for f in fields}
     kwargs: dict[str, Any] = {}
     for k, v in data.items():
-        if k not in fields:
+        if k not in names:
             raise ProtocolError(source, f"unknown key '{key}.{k}'")
         default = getattr(cls(), k)
         try:

@@ -41,7 +41,7 @@ def test_librealsense_rotation_is_column_major() -> None:
     r = rodrigues([0.1, -0.2, 0.3])
     ext = Extrinsics.from_librealsense(r.T.ravel(), [0.05, 0, 0])
     np.testing.assert_allclose(ext.R, r, atol=1e-12)
-    rot, trans = ext.to_librealsense()
+    rot, _ = ext.to_librealsense()
     np.testing.assert_allclose(np.reshape(rot, (3, 3)).T, r, atol=1e-12)
     np.testing.assert_allclose(ext.inverse().apply(ext.apply(np.ones((1, 3)))), np.ones((1, 3)))
 
@@ -64,7 +64,8 @@ def test_plane_fit_recovers_normal_and_noise() -> None:
     n_true = np.array([0.0, -np.sin(0.5), -np.cos(0.5)])
     a, b = np.cross(n_true, [1, 0, 0]), np.cross(n_true, np.cross(n_true, [1, 0, 0]))
     s, t = rng.uniform(-0.5, 0.5, (2, 20000))
-    pts = np.array([0, 0, 2.0]) + np.outer(s, a) + np.outer(t, b) + np.outer(rng.normal(0, 0.002, s.size), n_true)
+    noise = np.outer(rng.normal(0, 0.002, s.size), n_true)
+    pts = np.array([0, 0, 2.0]) + np.outer(s, a) + np.outer(t, b) + noise
     c, n = fit_plane(pts)
     assert abs(abs(n @ n_true) - 1) < 1e-6
     rms = np.sqrt(np.mean(((pts - c) @ n) ** 2))
@@ -94,7 +95,7 @@ def test_real_board_json_loads(charuco_dir: Path) -> None:
 def test_board_errors_name_the_key(tmp_path: Path) -> None:
     p = tmp_path / "board.json"
     p.write_text('{"type": "circles"}')
-    with pytest.raises(InputError, match="board.type"):
+    with pytest.raises(InputError, match=r"board\.type"):
         load_board(p)
 
 
