@@ -136,7 +136,7 @@ def inclination_deg(ray: NDArray[Any], normal: NDArray[Any]) -> FloatArray:
 
 def look_at(eye: NDArray[Any], target: NDArray[Any],
             up: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> FloatArray:
-    """Camera-to-world pose (4x4) of an OpenCV camera (x right, y down, z forward) at eye looking at target."""
+    """Camera-to-world pose (4x4) of an OpenCV camera (x right, y down, z forward) looking at target."""
     eye = np.asarray(eye, dtype=np.float64)
     z = np.asarray(target, dtype=np.float64) - eye
     z /= np.linalg.norm(z)
