@@ -1,0 +1,95 @@
+"""The distance x inclination grid: Welford per cell, Chan merge, file round trip."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from depthstation.errors import InputError
+from evaluate.grid import Grid
+
+
+def _samples(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    d = rng.uniform(0.0, 1.0, n)
+    a = rng.uniform(0.0, 90.0, n)
+    x = 0.01 * d + rng.normal(0.0, 0.002, n) + 1.0  # offset tests the numerics of M2
+    return d, a, x
+
+
+def test_default_bins_follow_design() -> None:
+    g = Grid.empty()
+    assert g.shape == (1200, 900)
+    assert g.distance_edges_m[0] == 0.0 and g.distance_edges_m[-1] == pytest.approx(6.0)
+    assert np.diff(g.inclination_edges_deg) == pytest.approx(0.1)
+
+
+def test_cell_statistics_equal_numpy() -> None:
+    g = Grid.empty(distance_bin_m=0.25, inclination_bin_deg=30.0, distance_max_m=1.0)
+    d, a, x = _samples(20000, 1)
+    assert g.add(d, a, x) == d.size
+    kd = np.floor(d / 0.25).astype(int)
+    ka = np.floor(a / 30.0).astype(int)
+    for k in range(4):
+        for j in range(3):
+            sel = x[(kd == k) & (ka == j)]
+            assert g.count[k, j] == sel.size
+            assert g.mean_m[k, j] == pytest.approx(sel.mean(), abs=1e-12)
+            assert g.var[k, j] == pytest.approx(sel.var(ddof=1), rel=1e-9)
+
+
+def test_out_of_range_and_nan_are_skipped_and_top_edge_kept() -> None:
+    g = Grid.empty(distance_bin_m=0.5, inclination_bin_deg=45.0, distance_max_m=1.0)
+    n = g.add([-0.1, 1.5, np.nan, 0.2, 0.2], [10.0, 10.0, 10.0, 90.0, np.nan], [1, 2, 3, 4, 5])
+    assert n == 1
+    assert g.count[0, 1] == 1  # inclination exactly 90 lands in the last bin
+
+
+def test_merge_of_chunks_equals_single_pass() -> None:
+    d, a, x = _samples(30000, 2)
+    whole = Grid.empty(distance_bin_m=0.1, inclination_bin_deg=10.0, distance_max_m=1.0)
+    whole.add(d, a, x)
+    merged = whole.like()
+    for idx in np.array_split(np.arange(d.size), 7):
+        part = whole.like()
+        part.add(d[idx], a[idx], x[idx])
+        merged.merge(part)
+    np.testing.assert_array_equal(merged.count, whole.count)
+    np.testing.assert_allclose(merged.mean_m, whole.mean_m, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(merged.var, whole.var, rtol=1e-9)
+
+
+def test_merge_rejects_other_bins() -> None:
+    with pytest.raises(ValueError, match="different bins"):
+        Grid.empty().merge(Grid.empty(distance_bin_m=0.01))
+
+
+def test_save_load_roundtrip(tmp_path: Path) -> None:
+    g = Grid.empty(distance_bin_m=0.1, inclination_bin_deg=10.0, distance_max_m=1.0)
+    g.add(*_samples(5000, 3))
+    path = g.save(tmp_path / "grid.npz")
+    with np.load(path) as z:
+        assert {"distance_edges_m", "inclination_edges_deg", "count", "mean_m", "var_m2"} <= set(z.files)
+        assert z["count"].shape == (10, 9)
+    h = Grid.load(path)
+    np.testing.assert_array_equal(h.count, g.count)
+    np.testing.assert_array_equal(h.m2, g.m2)
+    assert h.summary() == g.summary()
+
+
+def test_load_rejects_non_grid(tmp_path: Path) -> None:
+    bad = tmp_path / "x.npz"
+    np.savez(bad, count=np.zeros((2, 2)))
+    with pytest.raises(InputError, match="missing"):
+        Grid.load(bad)
+
+
+def test_masked_views_hide_thin_cells() -> None:
+    g = Grid.empty(distance_bin_m=0.5, inclination_bin_deg=45.0, distance_max_m=1.0)
+    g.add([0.1] * 12 + [0.7] * 3, [10.0] * 15, np.arange(15.0))
+    count, mean, std = g.masked(min_count=10)
+    assert not mean.mask[0, 0] and mean.mask[1, 0]
+    assert std[0, 0] == pytest.approx(np.std(np.arange(12.0), ddof=1))
+    assert count[1, 0] == 3
