@@ -1,0 +1,100 @@
+"""Calibration flow: health bands (Intel), apply only on confirmation, tables recorded; live helpers."""
+
+from __future__ import annotations
+
+import base64
+
+import pytest
+
+from acquire.calibrate import GOOD, IMPROVABLE, REQUIRED, health_verdict, run_calibration
+from acquire.camera import CalibrationResult
+from acquire.live import LiveCamera, read_options, read_temperatures
+from depthstation.errors import InputError
+from depthstation.protocol import Calibration
+
+
+class FakeDevice:
+    """A device-side calibration engine: new tables differ from the current one by a counter."""
+
+    def __init__(self, health: float) -> None:
+        self.table = b"factory"
+        self.health = health
+        self.written = False
+
+    def calibration_table(self) -> bytes:
+        return self.table
+
+    def run_on_chip_calibration(self, timeout_s: float = 30.0) -> CalibrationResult:
+        return CalibrationResult("on_chip", self.table + b"+occ", (self.health, 0.0))
+
+    def run_tare_calibration(self, ground_truth_m: float, timeout_s: float = 30.0) -> CalibrationResult:
+        return CalibrationResult("tare", self.table + b"+tare", (self.health,), {"ground_truth_m": ground_truth_m})
+
+    def set_calibration_table(self, table: bytes) -> None:
+        self.table = table
+
+    def write_calibration(self) -> None:
+        self.written = True
+
+
+@pytest.mark.parametrize(("h", "level", "apply"), [(0.1, GOOD, False), (-0.3, IMPROVABLE, True),
+                                                   (0.74, IMPROVABLE, True), (1.2, REQUIRED, True)])
+def test_health_bands(h: float, level: str, apply: bool) -> None:
+    v = health_verdict(h)
+    assert v.level == level and v.recommend_apply == apply
+
+
+def test_applies_only_after_confirmation() -> None:
+    dev = FakeDevice(0.5)
+    said: list[str] = []
+    rec = run_calibration(dev, Calibration(on_chip=True, tare=False), confirm=lambda q: False, say=said.append)
+    assert dev.table == b"factory" and not rec["changed"] and not rec["steps"][0]["applied"]
+    assert any("can be improved" in s for s in said)
+    rec = run_calibration(dev, Calibration(on_chip=True, tare=True, tare_distance_m=1.0),
+                          confirm=lambda q: True, say=said.append)
+    assert dev.table == b"factory+occ+tare" and rec["changed"] and not dev.written
+    assert base64.b64decode(rec["table_before_b64"]) == b"factory"
+    assert base64.b64decode(rec["table_after_b64"]) == b"factory+occ+tare"
+    assert [s["kind"] for s in rec["steps"]] == ["on_chip", "tare"]
+
+
+def test_tare_needs_distance_and_playback_is_skipped() -> None:
+    with pytest.raises(InputError, match="tare_distance_m"):
+        run_calibration(FakeDevice(0.1), Calibration(tare=True), confirm=lambda q: True, say=lambda s: None)
+    rec = run_calibration(object(), Calibration(), confirm=lambda q: True, say=lambda s: None)
+    assert rec["skipped"]
+
+
+def test_live_option_and_temperature_readers_on_a_software_sensor() -> None:
+    rs = pytest.importorskip("pyrealsense2")
+    dev = rs.software_device()
+    sensor = dev.add_sensor("Stereo Module")
+    sensor.add_read_only_option(rs.option.asic_temperature, 41.5)
+    sensor.add_read_only_option(rs.option.projector_temperature, 44.0)
+    sensor.add_read_only_option(rs.option.depth_units, 0.001)
+    assert read_temperatures(sensor) == {"asic": 41.5, "projector": 44.0}
+    opts = read_options(sensor)
+    assert opts["depth_units"] == pytest.approx(0.001) and opts["asic_temperature"] == pytest.approx(41.5)
+    bare = dev.add_sensor("RGB Camera")
+    assert read_temperatures(bare, {"temperature": 38.0}) == {"sensor": 38.0}
+
+
+def test_live_camera_imports_without_device() -> None:
+    cam = LiveCamera(serial="000000000000")
+    assert cam.temperatures() == {} and cam.options() == {}
+
+
+@pytest.mark.hardware
+def test_live_d455_streams_and_reports() -> None:
+    from depthstation.protocol import Streams
+
+    cam = LiveCamera()
+    info = cam.start(Streams(width=640, height=480, fps=30))
+    try:
+        fs = cam.wait_for_frames(5.0)
+        assert fs.depth is not None and fs.depth.shape == (480, 640)
+        assert 0.0001 <= info.depth_units_m <= 0.01
+        assert "serial" in cam.device_info()
+        assert cam.options()
+    finally:
+        cam.stop()
