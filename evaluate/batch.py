@@ -1,0 +1,307 @@
+"""Many evaluations in one run: a manifest of items, a result folder each, a combined grid.
+
+Why a manifest: a mapping campaign (dozens of sequences) or a fleet of cameras (several sessions
+each) is run overnight, on a cluster, and must survive an interruption. Each item is one scan or
+checkerboard evaluation; its frames or standpoints go out as chunks through
+:mod:`depthstation.parallel`; an item counts as finished only when its folder holds
+``result.json`` *and* the done marker, which is written last, so a restart redoes exactly the
+items that were not finished (and an item whose manifest entry changed).
+
+Manifest (TOML; relative paths are relative to the manifest's folder)::
+
+    out = "campaign"                    # result root (default: <manifest stem>-results)
+    [defaults.scan]                     # options every scan item starts from
+    chunk_frames = 100
+    [[items]]
+    kind = "scan"                       # scan | checkerboard
+    out = "seq01"                       # folder under the result root (default: the name)
+    name = "seq01"                      # default: the stem of the first input
+    inputs = { sequence = "seq01.mcap", poses = "seq01.txt", reference = "room.ply" }
+    options = { chunk_frames = 50 }
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tomllib
+from numpy.typing import NDArray
+
+from depthstation.errors import DepthstationError, EvaluationError, InputError
+from depthstation.parallel import ChunkRunner, ProgressFn
+from depthstation.results import RESULT_FILE, write_json, write_result_info
+from evaluate.grid import GRID_FILE, Grid
+
+DONE_MARKER = ".done"
+COMBINED_DIR = "combined"
+BATCH_FILE = "batch.json"
+
+
+# -- what travels: a grid as its non-empty cells ---------------------------------------------------
+@dataclass
+class PackedGrid:
+    """The non-empty cells of a :class:`Grid`: a partial grid of one chunk fills a few percent of
+    the 1200 x 900 cells, so this is ~28 bytes per used cell instead of 26 MB dense."""
+
+    distance_edges_m: NDArray[np.float64]
+    inclination_edges_deg: NDArray[np.float64]
+    cells: NDArray[np.int32]  # flat (distance, inclination) index, C order
+    count: NDArray[np.int64]
+    mean: NDArray[np.float64]
+    m2: NDArray[np.float64]
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in (self.distance_edges_m, self.inclination_edges_deg, self.cells,
+                                      self.count, self.mean, self.m2))
+
+
+def pack_grid(grid: Grid) -> PackedGrid:
+    """Keep only the cells with samples (exact: the same floats come back)."""
+    cells = np.flatnonzero(grid.count).astype(np.int32)
+    return PackedGrid(grid.distance_edges_m, grid.inclination_edges_deg, cells,
+                      grid.count.ravel()[cells], grid.mean.ravel()[cells], grid.m2.ravel()[cells])
+
+
+def unpack_grid(packed: PackedGrid) -> Grid:
+    grid = Grid.with_edges(packed.distance_edges_m, packed.inclination_edges_deg)
+    grid.count.ravel()[packed.cells] = packed.count
+    grid.mean.ravel()[packed.cells] = packed.mean
+    grid.m2.ravel()[packed.cells] = packed.m2
+    return grid
+
+
+def merge_grids(a: Grid, b: Grid) -> Grid:
+    """Chan merge of two partial grids (folds into ``a``)."""
+    return a.merge(b)
+
+
+# -- items and jobs --------------------------------------------------------------------------------
+@dataclass
+class BatchItem:
+    """One evaluation of the manifest: inputs and options resolved, where its results go."""
+
+    name: str
+    kind: str
+    inputs: dict[str, Any]
+    options: dict[str, Any]
+    out: Path
+
+    def fingerprint(self) -> str:
+        """Changes when the item's inputs or options change, so an edited item is redone."""
+        text = json.dumps({"kind": self.kind, "inputs": self.inputs, "options": self.options},
+                          sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+@dataclass
+class ItemJob:
+    """How an item runs: chunk descriptors and their function; then ``finish`` writes the folder.
+
+    ``merge`` given: chunk results are folded in chunk order and ``finish`` gets the merged one;
+    else it gets the list. ``finish`` writes ``result.json`` and returns the item's grid file or
+    None (then the item does not enter the combined grid).
+    """
+
+    fn: Callable[[Any], Any]
+    chunks: Sequence[Any]
+    finish: Callable[[Any], Path | None]
+    merge: Callable[[Any, Any], Any] | None = None
+    encode: Callable[[Any], Any] | None = None
+    decode: Callable[[Any], Any] | None = None
+    description: str = ""
+
+
+#: kind -> function preparing the job of an item (runs in this process: loads what is small,
+#: decides the chunks; the heavy reading happens in the chunk function on the workers).
+KINDS: dict[str, Callable[[BatchItem], ItemJob]] = {}
+
+
+def register_kind(kind: str, prepare: Callable[[BatchItem], ItemJob]) -> None:
+    KINDS[kind] = prepare
+
+
+@dataclass
+class Manifest:
+    path: Path
+    out: Path
+    items: list[BatchItem] = field(default_factory=list)
+
+
+def _resolve_inputs(inputs: dict[str, Any], base: Path) -> dict[str, Any]:
+    def one(v: Any) -> Any:
+        if isinstance(v, str):
+            p = Path(v).expanduser()
+            return str(p if p.is_absolute() else (base / p))
+        if isinstance(v, list):
+            return [one(x) for x in v]
+        return v
+
+    return {k: one(v) for k, v in inputs.items()}
+
+
+def load_manifest(path: Path) -> Manifest:
+    """Parse and check a manifest; every problem is an InputError naming the item."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "manifest not found")
+    try:
+        data = tomllib.loads(path.read_text())
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(path, f"broken TOML ({exc})") from exc
+    base = path.parent.resolve()
+    out = Path(str(data.get("out", f"{path.stem}-results"))).expanduser()
+    out = out if out.is_absolute() else base / out
+    defaults = data.get("defaults", {})
+    raw_items = data.get("items", [])
+    if not isinstance(raw_items, list) or not raw_items:
+        raise InputError(path, "no [[items]] in the manifest")
+    items: list[BatchItem] = []
+    seen: set[Path] = set()
+    for k, raw in enumerate(raw_items):
+        where = f"items[{k}]"
+        if not isinstance(raw, dict):
+            raise InputError(path, f"{where} is not a table")
+        kind = raw.get("kind")
+        if kind not in KINDS:
+            known = ", ".join(sorted(KINDS)) or "none"
+            raise InputError(path, f"{where}: kind {kind!r} is not one of {known}")
+        inputs = raw.get("inputs", {})
+        if not isinstance(inputs, dict) or not inputs:
+            raise InputError(path, f"{where}: inputs must be a non-empty table")
+        options = dict(defaults.get(kind, {}))
+        options.update(raw.get("options", {}))
+        inputs = _resolve_inputs(inputs, base)
+        first = next(iter(inputs.values()))
+        first = first[0] if isinstance(first, list) else first
+        name = str(raw.get("name", raw.get("out", Path(str(first)).stem)))
+        item_out = out / str(raw.get("out", name))
+        if item_out in seen:
+            raise InputError(path, f"{where}: out folder {item_out} is used by another item")
+        seen.add(item_out)
+        items.append(BatchItem(name, kind, inputs, options, item_out))
+    return Manifest(path, out, items)
+
+
+# -- running ---------------------------------------------------------------------------------------
+def is_done(item: BatchItem) -> bool:
+    """Finished = result.json present and the done marker names this item's fingerprint."""
+    marker = item.out / DONE_MARKER
+    if not (item.out / RESULT_FILE).is_file() or not marker.is_file():
+        return False
+    try:
+        return bool(json.loads(marker.read_text()).get("fingerprint") == item.fingerprint())
+    except (json.JSONDecodeError, AttributeError):
+        return False
+
+
+def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None = None) -> Path | None:
+    """Evaluate one item through the runner and write its folder; the done marker comes last."""
+    marker = item.out / DONE_MARKER
+    marker.unlink(missing_ok=True)
+    job = KINDS[item.kind](item)
+    prog = progress or (lambda d, t: None)
+    if job.merge is not None:
+        if not job.chunks:
+            raise EvaluationError(f"{item.name}: nothing to evaluate")
+        result: Any = runner.reduce(job.fn, job.chunks, job.merge, progress=prog, encode=job.encode,
+                                    decode=job.decode)
+    else:
+        result = runner.map(job.fn, job.chunks, progress=prog, encode=job.encode, decode=job.decode)
+    grid_path = job.finish(result)
+    if not (item.out / RESULT_FILE).is_file():
+        raise EvaluationError(f"{item.name}: the {item.kind} evaluation wrote no {RESULT_FILE}")
+    write_json(marker, {"fingerprint": item.fingerprint(), "grid": grid_path})
+    return grid_path
+
+
+def _item_grid(item: BatchItem) -> Path | None:
+    try:
+        g = json.loads((item.out / DONE_MARKER).read_text()).get("grid")
+    except (OSError, json.JSONDecodeError):
+        return None
+    return Path(g) if g else None
+
+
+def combine_grids(paths: Sequence[Path], out_dir: Path, inputs: Sequence[str]) -> Grid | None:
+    """Merge the items' grids (manifest order) into ``out_dir/grid.npz`` with its result.json."""
+    grid: Grid | None = None
+    for p in paths:
+        g = Grid.load(p)
+        if grid is None:
+            grid = g
+        elif not grid.compatible(g):
+            raise InputError(p, "grid bins differ from the other items' (cannot combine)")
+        else:
+            grid.merge(g)
+    if grid is None:
+        return None
+    grid.save(out_dir / GRID_FILE)
+    write_result_info(out_dir, "combined-grid", [str(p) for p in paths], {"items": list(inputs)},
+                      extra={"summary": grid.summary()})
+    return grid
+
+
+@dataclass
+class BatchReport:
+    out: Path
+    done: list[str] = field(default_factory=list)      # evaluated in this run
+    skipped: list[str] = field(default_factory=list)   # finished before, not redone
+    failed: dict[str, str] = field(default_factory=dict)
+    combined: Path | None = None
+
+
+def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
+          progress: bool = False, log: Callable[[str], None] | None = None) -> BatchReport:
+    """Run every unfinished item of the manifest, then merge all items' grids into ``combined/``.
+
+    One pool (or one cluster connection) serves all items; the items run one after another and
+    each spreads its chunks over the workers. An item that fails is reported and the batch goes
+    on; an interruption (Ctrl-C, a killed process) leaves the unfinished items without their
+    done marker, so the next run does them and only them.
+    """
+    from depthstation.parallel import progress_bar
+
+    man = load_manifest(manifest)
+    say = log or (lambda s: None)
+    report = BatchReport(man.out)
+    man.out.mkdir(parents=True, exist_ok=True)
+    with ChunkRunner(workers, cluster) as runner:
+        for item in man.items:
+            if is_done(item):
+                report.skipped.append(item.name)
+                say(f"{item.name}: finished before, skipped")
+                continue
+            try:
+                with progress_bar(f"{item.name} ({item.kind})", progress) as prog:
+                    run_item(item, runner, prog)
+            except InputError:
+                raise
+            except DepthstationError as exc:
+                report.failed[item.name] = str(exc)
+                say(f"{item.name}: failed: {exc}")
+                continue
+            report.done.append(item.name)
+            say(f"{item.name}: done")
+    grids = [(it.name, g) for it in man.items if is_done(it) and (g := _item_grid(it)) is not None]
+    if grids:
+        combine_grids([g for _, g in grids], man.out / COMBINED_DIR, [n for n, _ in grids])
+        report.combined = man.out / COMBINED_DIR / GRID_FILE
+    write_json(man.out / BATCH_FILE, {
+        "manifest": str(man.path), "cluster": cluster, "workers": workers,
+        "items": [{"name": it.name, "kind": it.kind, "out": str(it.out), "done": is_done(it),
+                   "error": report.failed.get(it.name)} for it in man.items],
+        "evaluated": report.done, "skipped": report.skipped,
+        "combined_grid": report.combined,
+    })
+    if report.failed:
+        names = ", ".join(report.failed)
+        raise EvaluationError(f"{len(report.failed)} item(s) failed: {names} (see {man.out / BATCH_FILE});"
+                              " run again to retry them")
+    return report

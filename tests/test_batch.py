@@ -1,0 +1,233 @@
+"""Batch runs: a result folder per item, a combined grid equal to one pass over everything,
+and an interrupted batch redoes only what was unfinished.
+
+The item kind here is a small synthetic grid evaluation registered by the test (its chunk
+function reads (distance, inclination, error) samples of a frame range from a .npy file); the
+truth is a two-pass numpy mean/variance per cell over all samples of all items.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from depthstation.errors import InputError
+from depthstation.parallel import FrameChunk, frame_chunks
+from depthstation.results import write_result_info
+from evaluate import batch as batch_mod
+from evaluate.batch import (
+    DONE_MARKER,
+    BatchItem,
+    ItemJob,
+    batch,
+    load_manifest,
+    merge_grids,
+    pack_grid,
+    unpack_grid,
+)
+from evaluate.grid import GRID_FILE, Grid
+
+EDGES_D = np.linspace(0.0, 6.0, 13)    # 0.5 m bins
+EDGES_I = np.linspace(0.0, 90.0, 10)   # 10 degree bins
+
+
+def synth_chunk(chunk: FrameChunk) -> Grid:
+    """Partial grid of frames [start, stop); logs the call; obeys fault flags next to the file."""
+    base = Path(chunk.path)
+    with (base.parent / "calls.log").open("a") as f:
+        f.write(f"{base.stem}:{chunk.index}\n")
+    flag = base.with_suffix(".interrupt")
+    if chunk.index == 1 and flag.exists():
+        mode = flag.read_text()
+        flag.unlink()
+        if mode == "kill":
+            os._exit(9)  # the whole batch process dies mid-item
+        raise KeyboardInterrupt
+    data = np.load(chunk.path, mmap_mode="r")[chunk.start:chunk.stop]
+    grid = Grid.with_edges(EDGES_D, EDGES_I)
+    grid.add(data[..., 0], data[..., 1], data[..., 2])
+    return grid
+
+
+def prepare_synth(item: BatchItem) -> ItemJob:
+    path = Path(item.inputs["samples"])
+    n = np.load(path, mmap_mode="r").shape[0]
+
+    def finish(grid: Grid) -> Path:
+        out = grid.save(item.out / GRID_FILE)
+        write_result_info(item.out, "synthetic-grid", [str(path)], item.options)
+        return out
+
+    return ItemJob(synth_chunk, frame_chunks(path, n, int(item.options.get("chunk_frames", 3))),
+                   finish, merge=merge_grids, encode=pack_grid, decode=unpack_grid)
+
+
+@pytest.fixture(autouse=True)
+def synth_kind(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(batch_mod.KINDS, "synthgrid", prepare_synth)
+
+
+def make_samples(path: Path, seed: int, frames: int = 10) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    d = rng.uniform(0.3, 5.9, (frames, 200))
+    a = rng.uniform(0.0, 89.0, (frames, 200))
+    err = 0.002 * d**2 + rng.normal(0, 0.001 * d)
+    data = np.stack([d, a, err], axis=-1)
+    np.save(path, data)
+    return data
+
+
+def write_manifest(root: Path, names: list[str], extra: str = "") -> Path:
+    lines = [f'out = "results"\n{extra}\n[defaults.synthgrid]\nchunk_frames = 3\n']
+    for n in names:
+        lines.append(f'[[items]]\nkind = "synthgrid"\nname = "{n}"\ninputs = {{ samples = "{n}.npy" }}\n')
+    path = root / "campaign.toml"
+    path.write_text("\n".join(lines))
+    return path
+
+
+def truth(datas: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    x = np.concatenate([d.reshape(-1, 3) for d in datas])
+    k = np.digitize(x[:, 0], EDGES_D) - 1
+    j = np.digitize(x[:, 1], EDGES_I) - 1
+    cell = k * (EDGES_I.size - 1) + j
+    size = (EDGES_D.size - 1) * (EDGES_I.size - 1)
+    count = np.bincount(cell, minlength=size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.bincount(cell, x[:, 2], minlength=size) / count
+        var = np.bincount(cell, (x[:, 2] - mean[cell]) ** 2, minlength=size) / (count - 1)
+    shape = (EDGES_D.size - 1, EDGES_I.size - 1)
+    return count.reshape(shape), mean.reshape(shape), var.reshape(shape)
+
+
+def calls(root: Path) -> list[str]:
+    log = root / "calls.log"
+    return log.read_text().split() if log.exists() else []
+
+
+def assert_grid_is_truth(path: Path, datas: list[np.ndarray]) -> None:
+    g = Grid.load(path)
+    count, mean, var = truth(datas)
+    np.testing.assert_array_equal(g.count, count)
+    ok = count > 1
+    np.testing.assert_allclose(g.mean_m[ok], mean[ok], rtol=1e-10, atol=1e-15)
+    np.testing.assert_allclose(g.var[ok], var[ok], rtol=1e-8, atol=1e-18)
+
+
+def test_pack_grid_is_exact_and_small() -> None:
+    g = Grid.empty()  # the DESIGN grid, 1200 x 900
+    rng = np.random.default_rng(0)
+    g.add(rng.uniform(1, 1.5, 50_000), rng.uniform(10, 20, 50_000), rng.normal(0, 0.01, 50_000))
+    p = pack_grid(g)
+    back = unpack_grid(p)
+    for a, b in ((g.count, back.count), (g.mean, back.mean), (g.m2, back.m2)):
+        np.testing.assert_array_equal(a, b)
+    dense = g.count.nbytes + g.mean.nbytes + g.m2.nbytes
+    assert p.nbytes < dense / 20, (p.nbytes, dense)
+
+
+def test_batch_results_combined_grid_and_resume(tmp_path: Path) -> None:
+    names = ["seq_a", "seq_b", "seq_c"]
+    datas = [make_samples(tmp_path / f"{n}.npy", seed=i) for i, n in enumerate(names)]
+    manifest = write_manifest(tmp_path, names)
+    report = batch(manifest, workers=1)
+    assert report.done == names and not report.skipped
+    out = tmp_path / "results"
+    for n, d in zip(names, datas, strict=True):
+        assert (out / n / "result.json").is_file() and (out / n / DONE_MARKER).is_file()
+        assert_grid_is_truth(out / n / GRID_FILE, [d])
+    assert_grid_is_truth(out / "combined" / GRID_FILE, datas)
+    assert json.loads((out / "combined" / "result.json").read_text())["kind"] == "combined-grid"
+    first = calls(tmp_path)
+    assert len(first) == 3 * 4  # 10 frames in chunks of 3: 4 chunks per item, each read once
+    again = batch(manifest, workers=1)
+    assert again.skipped == names and not again.done
+    assert calls(tmp_path) == first  # nothing re-read
+
+
+def test_interrupted_batch_redoes_only_unfinished(tmp_path: Path) -> None:
+    names = ["seq_a", "seq_b", "seq_c"]
+    datas = [make_samples(tmp_path / f"{n}.npy", seed=10 + i) for i, n in enumerate(names)]
+    manifest = write_manifest(tmp_path, names)
+    (tmp_path / "seq_b.interrupt").write_text("interrupt")
+    with pytest.raises(KeyboardInterrupt):
+        batch(manifest, workers=2)
+    out = tmp_path / "results"
+    assert (out / "seq_a" / DONE_MARKER).is_file()
+    assert not (out / "seq_b" / DONE_MARKER).exists() and not (out / "seq_c").exists()
+    before = calls(tmp_path)
+    report = batch(manifest, workers=2)
+    assert report.skipped == ["seq_a"] and report.done == ["seq_b", "seq_c"]
+    redone = calls(tmp_path)[len(before):]
+    assert not [c for c in redone if c.startswith("seq_a")]
+    assert sorted(redone) == sorted([f"{n}:{i}" for n in ("seq_b", "seq_c") for i in range(4)])
+    assert_grid_is_truth(out / "combined" / GRID_FILE, datas)
+
+
+def test_killed_batch_process_resumes(tmp_path: Path) -> None:
+    names = ["seq_a", "seq_b"]
+    datas = [make_samples(tmp_path / f"{n}.npy", seed=20 + i) for i, n in enumerate(names)]
+    manifest = write_manifest(tmp_path, names)
+    (tmp_path / "seq_b.interrupt").write_text("kill")
+    code = textwrap.dedent(f"""
+        import sys
+        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        import test_batch
+        from evaluate import batch as b
+        b.KINDS["synthgrid"] = test_batch.prepare_synth
+        b.batch(b.Path({str(manifest)!r}), workers=1)
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 9, proc.stderr
+    out = tmp_path / "results"
+    assert (out / "seq_a" / DONE_MARKER).is_file() and not (out / "seq_b" / DONE_MARKER).exists()
+    report = batch(manifest)
+    assert report.skipped == ["seq_a"] and report.done == ["seq_b"]
+    assert_grid_is_truth(out / "combined" / GRID_FILE, datas)
+
+
+def test_changed_item_is_redone(tmp_path: Path) -> None:
+    make_samples(tmp_path / "seq_a.npy", seed=1)
+    manifest = write_manifest(tmp_path, ["seq_a"])
+    batch(manifest)
+    manifest.write_text(manifest.read_text().replace("chunk_frames = 3", "chunk_frames = 5"))
+    assert batch(manifest).done == ["seq_a"]
+
+
+def test_failed_item_is_reported_and_others_finish(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from depthstation.errors import EvaluationError
+
+    def prepare_maybe_fail(item: BatchItem) -> Any:
+        if item.name == "seq_a":
+            raise EvaluationError("no usable frame")
+        return prepare_synth(item)
+
+    monkeypatch.setitem(batch_mod.KINDS, "synthgrid", prepare_maybe_fail)
+    datas = [make_samples(tmp_path / f"{n}.npy", seed=i) for i, n in enumerate(["seq_a", "seq_b"])]
+    manifest = write_manifest(tmp_path, ["seq_a", "seq_b"])
+    with pytest.raises(EvaluationError, match="1 item\\(s\\) failed: seq_a"):
+        batch(manifest)
+    info = json.loads((tmp_path / "results" / "batch.json").read_text())
+    assert [i["done"] for i in info["items"]] == [False, True]
+    assert_grid_is_truth(tmp_path / "results" / "combined" / GRID_FILE, datas[1:])
+
+
+@pytest.mark.parametrize(("text", "match"), [
+    ("", "no \\[\\[items\\]\\]"),
+    ('[[items]]\nkind = "nope"\ninputs = { a = "x" }\n', "kind 'nope' is not one of"),
+    ('[[items]]\nkind = "synthgrid"\n', "inputs must be a non-empty table"),
+    ("out = [", "broken TOML"),
+])
+def test_bad_manifest_is_input_error(tmp_path: Path, text: str, match: str) -> None:
+    path = tmp_path / "m.toml"
+    path.write_text(text)
+    with pytest.raises(InputError, match=match):
+        load_manifest(path)
