@@ -1,0 +1,115 @@
+"""Board corners in a colour image: plain chessboard (fast check + cornerSubPix) or ChArUco (cv2 5 API)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from depthstation.board import Board
+
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
+
+
+@dataclass(frozen=True)
+class Detection:
+    """Corners found in one image: pixel positions (OpenCV: integer = pixel centre) and board points."""
+
+    image_points: NDArray[np.float64]   # N x 2, colour pixels
+    object_points: NDArray[np.float64]  # N x 3, board frame (metres)
+    ids: NDArray[np.int64]              # corner ids, x fastest (Board.corner_points order)
+    markers: int = 0                    # ArUco markers seen (ChArUco only)
+
+
+def to_gray(color_rgb: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """Grey image from RGB (or pass a grey image through)."""
+    if color_rgb.ndim == 2:
+        return color_rgb
+    return np.asarray(cv2.cvtColor(color_rgb, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
+
+
+def charuco_legacy(board: Board) -> bool:
+    """OpenCV's legacy ChArUco pattern flag that gives `board.first_square_black`.
+
+    OpenCV >= 4.6 puts a black square at the top-left; its legacy pattern (pre 4.6) differs only
+    for an even number of rows, where the top-left square is white.
+    """
+    return (not board.first_square_black) and board.squares_y % 2 == 0
+
+
+class BoardDetector:
+    """Detects one board type repeatedly; the OpenCV objects are built once."""
+
+    def __init__(self, board: Board, subpix: bool = True) -> None:
+        self.board = board
+        self.subpix = subpix
+        self._corners = board.corner_points()
+        self._charuco: cv2.aruco.CharucoDetector | None = None
+        self._charuco_other: cv2.aruco.CharucoDetector | None = None
+        if board.type == "charuco":
+            self._charuco = self._make_charuco(charuco_legacy(board))
+            if board.squares_y % 2 == 0:
+                self._charuco_other = self._make_charuco(not charuco_legacy(board))
+
+    def _make_charuco(self, legacy: bool) -> cv2.aruco.CharucoDetector:
+        b = self.board
+        name = str(b.dictionary)
+        if not hasattr(cv2.aruco, name):
+            from depthstation.errors import InputError
+
+            raise InputError(None, f"board.dictionary '{name}' is not an OpenCV ArUco dictionary")
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+        cb = cv2.aruco.CharucoBoard((b.squares_x, b.squares_y), b.square_length_m,
+                                    float(b.marker_length_m or 0.0), dictionary)
+        cb.setLegacyPattern(legacy)
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE  # ChArUco corners are refined
+        return cv2.aruco.CharucoDetector(cb, cv2.aruco.CharucoParameters(), params)
+
+    def detect(self, color: NDArray[np.uint8]) -> Detection | None:
+        """Corners of the board in an RGB (or grey) image, or None when the board is not found."""
+        gray = to_gray(color)
+        if self.board.type == "charuco":
+            return self._detect_charuco(gray)
+        return self._detect_chessboard(gray)
+
+    def _detect_chessboard(self, gray: NDArray[np.uint8]) -> Detection | None:
+        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
+        found, corners = cv2.findChessboardCorners(gray, self.board.inner_corners, flags=flags)
+        if not found or corners is None:
+            return None
+        pts = corners.reshape(-1, 2).astype(np.float32)
+        if self.subpix:
+            spacing = float(np.min(np.linalg.norm(np.diff(pts, axis=0), axis=1)))
+            half = int(np.clip(spacing / 4.0, 2, 11))
+            refined = cv2.cornerSubPix(gray, pts.reshape(-1, 1, 2), (half, half), (-1, -1),
+                                       _SUBPIX_CRITERIA)
+            pts = np.asarray(refined, dtype=np.float32).reshape(-1, 2)
+        ids = np.arange(len(pts), dtype=np.int64)
+        return Detection(pts.astype(np.float64), self._corners, ids)
+
+    def _detect_charuco(self, gray: NDArray[np.uint8]) -> Detection | None:
+        assert self._charuco is not None
+        corners, ids, _, marker_ids = self._charuco.detectBoard(gray)
+        markers = 0 if marker_ids is None else len(marker_ids)
+        if ids is None or len(ids) < 6:
+            return None
+        idx = np.asarray(ids, dtype=np.int64).reshape(-1)
+        pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+        return Detection(pts, self._corners[idx], idx, markers)
+
+    def other_pattern_matches(self, color: NDArray[np.uint8]) -> bool:
+        """Whether OpenCV's other ChArUco pattern (legacy flag flipped) finds the board here."""
+        if self._charuco_other is None:
+            return False
+        _, ids, _, _ = self._charuco_other.detectBoard(to_gray(color))
+        return ids is not None and len(ids) >= 6
+
+    def markers_seen(self, color: NDArray[np.uint8]) -> int:
+        """ArUco markers of the board's dictionary in the image (a hint when no corner is found)."""
+        if self._charuco is None:
+            return 0
+        _, _, _, marker_ids = self._charuco.detectBoard(to_gray(color))
+        return 0 if marker_ids is None else len(marker_ids)

@@ -1,0 +1,204 @@
+"""One frame of the study: detect, pose, mask the board's depth pixels, reduce them to moments."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from depthstation.board import Board
+from depthstation.camera import StreamInfo
+from depthstation.frames import FrameSet
+from evaluate.checkerboard.detection import BoardDetector, Detection
+from evaluate.checkerboard.errors import BoardMismatchError
+from evaluate.checkerboard.mask import BLACK, WHITE, BoardMask, board_mask, board_to_depth
+from evaluate.checkerboard.metrics import fit_plane_moments, moment_matrix
+from evaluate.checkerboard.pose import BoardPose, estimate_pose, flip_board, square_contrast
+
+MIN_CONTRAST = 5.0  # grey levels white minus black below which the colours count as swapped
+
+
+@dataclass
+class FrameResult:
+    """Figures of one frame; `status` is 'ok' or why the frame was rejected."""
+
+    index: int
+    timestamp_ns: int
+    status: str = "ok"
+    pose_color: NDArray[np.float64] | None = None   # board -> colour camera, 4x4
+    pose_depth: NDArray[np.float64] | None = None   # board -> depth camera, 4x4
+    reprojection_px: float = float("nan")
+    corners: int = 0
+    reference_distance_m: float = float("nan")      # z of the board centre in the depth frame
+    board_pixels: int = 0
+    valid_pixels: int = 0
+    fill_rate: float = float("nan")
+    noise_m: float = float("nan")
+    noise_black_m: float = float("nan")
+    noise_white_m: float = float("nan")
+    accuracy_m: float = float("nan")                # against the standpoint's averaged pose
+    accuracy_rms_m: float = float("nan")
+    accuracy_black_m: float = float("nan")
+    accuracy_white_m: float = float("nan")
+    accuracy_own_m: float = float("nan")            # against this frame's own pose
+    accuracy_own_rms_m: float = float("nan")
+    corner_shift_px: float = float("nan")           # median corner motion since the first frame
+    origin: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    moments: dict[str, NDArray[np.float64]] = field(default_factory=dict)  # 'all', 'black', 'white'
+    temperature_c: float = float("nan")
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+@dataclass
+class FramePixels:
+    """The board's valid depth pixels of one frame (kept for samples and the per-pixel figure)."""
+
+    u: NDArray[np.int32]
+    v: NDArray[np.int32]
+    z_m: NDArray[np.float32]
+    colour: NDArray[np.uint8]
+
+
+class FrameEvaluator:
+    """Evaluates frames of one standpoint with one detector; checks the board colours once."""
+
+    def __init__(self, info: StreamInfo, board: Board, *, refine: bool = True,
+                 margin_m: float = 0.01, max_reprojection_px: float = 3.0,
+                 min_pixels: int = 50, source: str | None = None) -> None:
+        if info.color_intrinsics is None and not info.depth_aligned_to_color:
+            self.color_intr = info.depth_intrinsics
+        else:
+            self.color_intr = info.color_intrinsics or info.depth_intrinsics
+        self.info = info
+        self.board = board
+        self.refine = refine
+        self.margin_m = margin_m
+        self.max_reprojection_px = max_reprojection_px
+        self.min_pixels = min_pixels
+        self.source = source
+        self.detector = BoardDetector(board)
+        self.depth_to_color = (np.eye(4) if info.depth_aligned_to_color
+                               else info.depth_to_color.matrix)
+        # plain boards with an even side are not symmetric under a half turn: check every frame
+        self._check_every_frame = board.type == "checkerboard" and (
+            board.squares_x % 2 == 0 or board.squares_y % 2 == 0)
+        self._colours_checked = False
+        self._first_corners: dict[int, NDArray[np.float64]] | None = None
+
+    def _corner_shift(self, det: Detection) -> float:
+        """Median image motion of the corners since the first posed frame (camera still or not)."""
+        if self._first_corners is None:
+            self._first_corners = dict(zip(det.ids.tolist(), det.image_points, strict=True))
+            return 0.0
+        shifts = [float(np.hypot(*(p - self._first_corners[i])))
+                  for i, p in zip(det.ids.tolist(), det.image_points, strict=True)
+                  if i in self._first_corners]
+        return float(np.median(shifts)) if shifts else float("nan")
+
+    def _check_colours(self, color: NDArray[np.uint8], det: Detection,
+                       pose: BoardPose) -> tuple[Detection, BoardPose]:
+        black, white = square_contrast(color, pose.matrix, self.color_intr, self.board)
+        if white - black >= MIN_CONTRAST or not np.isfinite(white - black):
+            self._colours_checked = True
+            return det, pose
+        if self._check_every_frame:
+            flipped = flip_board(det, self.board)
+            fpose = estimate_pose(flipped, self.color_intr, self.refine)
+            if fpose is not None:
+                b2, w2 = square_contrast(color, fpose.matrix, self.color_intr, self.board)
+                if w2 - b2 >= MIN_CONTRAST:
+                    return flipped, fpose
+        if abs(white - black) < MIN_CONTRAST:
+            return det, pose  # too little contrast to judge (dark image); judged on a later frame
+        want = "black" if self.board.first_square_black else "white"
+        msg = (f"the board's squares have the opposite colours in the images (squares the board "
+               f"description calls black have grey level {black:.0f}, white ones {white:.0f}); "
+               f"the description says the top-left square is {want}: set "
+               f"first_square_black = {str(not self.board.first_square_black).lower()} "
+               "if that is the printed board")
+        raise BoardMismatchError(self.source, msg)
+
+    def evaluate(self, fs: FrameSet, keep_pixels: bool = False) -> tuple[FrameResult, FramePixels | None]:
+        """Figures of one frame (noise from its own plane fit; accuracy is set per standpoint)."""
+        res = FrameResult(fs.index, fs.timestamp_ns)
+        temps = fs.metadata.get("temperatures") if fs.metadata else None
+        if isinstance(temps, dict) and temps:
+            res.temperature_c = float(np.mean([float(v) for v in temps.values()]))
+        elif fs.metadata and "temperature_c" in fs.metadata:
+            res.temperature_c = float(fs.metadata["temperature_c"])
+        if fs.color is None:
+            res.status = "no colour image"
+            return res, None
+        if fs.depth is None:
+            res.status = "no depth image"
+            return res, None
+        det = self.detector.detect(fs.color)
+        if det is None:
+            if self.board.type == "charuco" and self.detector.other_pattern_matches(fs.color):
+                legacy = not self.board.first_square_black
+                msg = ("the images show OpenCV's " + ("current" if legacy else "legacy (pre-4.6)")
+                       + " ChArUco pattern, the board description the other one: set "
+                       f"first_square_black = {str(legacy).lower()}")
+                raise BoardMismatchError(self.source, msg)
+            res.status = "board not found"
+            return res, None
+        pose = estimate_pose(det, self.color_intr, self.refine)
+        if pose is None:
+            res.status = "pose failed"
+            return res, None
+        if self._check_every_frame or not self._colours_checked:
+            det, pose = self._check_colours(fs.color, det, pose)
+        res.corners = len(det.ids)
+        res.corner_shift_px = self._corner_shift(det)
+        res.reprojection_px = pose.reprojection_px
+        if pose.reprojection_px > self.max_reprojection_px:
+            res.status = f"reprojection error above {self.max_reprojection_px:g} px"
+            return res, None
+        res.pose_color = pose.matrix
+        res.pose_depth = board_to_depth(pose.matrix, self.depth_to_color)
+        centre = res.pose_depth[:3, :3] @ self.board.center + res.pose_depth[:3, 3]
+        res.reference_distance_m = float(centre[2])
+        res.origin = centre
+        mask = board_mask(res.pose_depth, self.info.depth_intrinsics, self.board, self.margin_m)
+        if mask is None:
+            res.status = "board outside the depth image"
+            return res, None
+        return self._depth_figures(res, fs, mask, keep_pixels)
+
+    def _depth_figures(self, res: FrameResult, fs: FrameSet, mask: BoardMask,
+                       keep_pixels: bool) -> tuple[FrameResult, FramePixels | None]:
+        assert fs.depth is not None
+        rows, cols = mask.box
+        raw = fs.depth[rows, cols]
+        valid = mask.inside & (raw > 0)
+        res.board_pixels = int(np.count_nonzero(mask.inside))
+        res.valid_pixels = int(np.count_nonzero(valid))
+        res.fill_rate = res.valid_pixels / res.board_pixels if res.board_pixels else float("nan")
+        if res.valid_pixels < self.min_pixels:
+            res.status = "too few depth pixels on the board"
+            return res, None
+        vi, ui = np.nonzero(valid)
+        z = raw[vi, ui].astype(np.float64) * self.info.depth_units_m
+        o = res.origin
+        x = z * mask.ray_x[ui] - o[0]
+        y = z * mask.ray_y[vi] - o[1]
+        zc = z - o[2]
+        colour = mask.colour[vi, ui]
+        a_all = moment_matrix(x, y, zc)
+        b = colour == BLACK
+        w = colour == WHITE
+        a_b = moment_matrix(x[b], y[b], zc[b])
+        a_w = moment_matrix(x[w], y[w], zc[w])
+        res.moments = {"all": a_all, "black": a_b, "white": a_w}
+        res.noise_m = fit_plane_moments(a_all)[2]
+        res.noise_black_m = fit_plane_moments(a_b)[2]
+        res.noise_white_m = fit_plane_moments(a_w)[2]
+        pixels = None
+        if keep_pixels:
+            pixels = FramePixels((ui + mask.u0).astype(np.int32), (vi + mask.v0).astype(np.int32),
+                                 z.astype(np.float32), colour)
+        return res, pixels

@@ -1,0 +1,83 @@
+"""Board pose from detected corners: EPnP (the paper's method), optionally refined by Levenberg-Marquardt."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from depthstation.board import Board
+from depthstation.camera import Intrinsics
+from evaluate.checkerboard.detection import Detection, to_gray
+
+_OPENCV_MODELS = ("brown_conrady", "inverse_brown_conrady", "modified_brown_conrady", "opencv")
+
+
+@dataclass(frozen=True)
+class BoardPose:
+    """Board-to-camera transform (p_cam = R p_board + t) and its reprojection RMS in pixels."""
+
+    matrix: NDArray[np.float64]  # 4x4
+    reprojection_px: float
+
+
+def dist_coeffs(intr: Intrinsics) -> NDArray[np.float64]:
+    """OpenCV distortion vector for an intrinsics record (zeros for 'none' or unknown models)."""
+    if intr.model.lower() in _OPENCV_MODELS and any(c != 0.0 for c in intr.coeffs):
+        return np.asarray(intr.coeffs, dtype=np.float64)
+    return np.zeros(5)
+
+
+def estimate_pose(det: Detection, intr: Intrinsics, refine: bool = True) -> BoardPose | None:
+    """EPnP pose of the board in the colour camera; None when it fails or lies behind the camera."""
+    obj = det.object_points.astype(np.float64)
+    img = det.image_points.astype(np.float64)
+    k = intr.K
+    dist = dist_coeffs(intr)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, k, dist, flags=cv2.SOLVEPNP_EPNP)
+    if not ok:
+        return None
+    if refine:
+        rvec, tvec = cv2.solvePnPRefineLM(obj, img, k, dist, rvec, tvec)
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, k, dist)
+    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
+    m = np.eye(4)
+    m[:3, :3] = cv2.Rodrigues(rvec)[0]
+    m[:3, 3] = tvec.reshape(3)
+    if m[2, 3] <= 0:
+        return None
+    return BoardPose(m, rms)
+
+
+def square_contrast(color: NDArray[np.uint8], pose: NDArray[np.float64], intr: Intrinsics,
+                    board: Board) -> tuple[float, float]:
+    """Mean grey level of the squares the board calls black and of those it calls white.
+
+    Sampled in the strip between a square's edge and its centre marker (ChArUco white squares
+    carry a dark marker in the middle), so the two means only agree with the board description
+    when the printed colours do.
+    """
+    gray = to_gray(color).astype(np.float32)
+    s = board.square_length_m
+    inset = 0.5 - (board.marker_length_m or 0.0) / s / 2 if board.type == "charuco" else 0.5
+    frac = inset / 2 if board.type == "charuco" else 0.5
+    cols, rows = np.meshgrid(np.arange(board.squares_x), np.arange(board.squares_y))
+    x = (cols.ravel() + 0.5) * s
+    y = (rows.ravel() + frac) * s
+    pts = np.stack([x, y, np.zeros_like(x)], axis=1)
+    cam = pts @ pose[:3, :3].T + pose[:3, 3]
+    uv, _ = cv2.projectPoints(cam, np.zeros(3), np.zeros(3), intr.K, dist_coeffs(intr))
+    uv = np.rint(uv.reshape(-1, 2)).astype(np.int64)
+    h, w = gray.shape
+    ok = (uv[:, 0] >= 1) & (uv[:, 0] < w - 1) & (uv[:, 1] >= 1) & (uv[:, 1] < h - 1)
+    black = board.is_black(x + 1e-9, y + 1e-9)
+    vals = np.array([gray[v - 1:v + 2, u - 1:u + 2].mean() if k else np.nan
+                     for (u, v), k in zip(uv, ok, strict=True)])
+    return float(np.nanmean(vals[black])), float(np.nanmean(vals[~black]))
+
+
+def flip_board(det: Detection, board: Board) -> Detection:
+    """The same plain-chessboard detection with its corner order reversed (board turned by 180 deg)."""
+    return Detection(det.image_points[::-1].copy(), det.object_points, det.ids, det.markers)

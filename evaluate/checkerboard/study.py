@@ -1,0 +1,300 @@
+"""One standpoint of the checkerboard study: first N frames -> averaged pose, noise, accuracy, colours."""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from depthstation.board import Board
+from depthstation.camera import StreamInfo
+from depthstation.errors import EvaluationError
+from depthstation.frames import FrameSet
+from depthstation.geometry import average_poses, inclination_deg
+from evaluate.checkerboard.frame import FrameEvaluator, FramePixels, FrameResult
+from evaluate.checkerboard.mask import BLACK, WHITE
+from evaluate.checkerboard.metrics import plane_distance_stats
+
+FrameCallback = Callable[[FrameSet, FrameResult], None]
+
+
+class RecordingLike(Protocol):
+    """What the study needs of `depthstation.capture.reader.Recording` (contract 1)."""
+
+    name: str
+    path: Path
+    info: StreamInfo
+    metadata: dict[str, Any]
+    frame_count: int | None
+
+    def frames(self, limit: int | None = None, start: int = 0) -> Iterable[FrameSet]: ...
+
+
+@dataclass
+class PixelSamples:
+    """Per-pixel samples of a standpoint (contract 3, for explain); one entry per valid board pixel."""
+
+    frame: NDArray[np.int32]          # frame index in the recording
+    u: NDArray[np.int32]              # depth pixel column
+    v: NDArray[np.int32]              # depth pixel row
+    z_ref_m: NDArray[np.float32]      # reference-plane z-depth along the pixel's ray
+    z_meas_m: NDArray[np.float32]     # measured z-depth
+    error_m: NDArray[np.float32]      # signed orthogonal distance to the reference plane (+ = behind)
+    inclination_deg: NDArray[np.float32]
+    is_black: NDArray[np.bool_]
+    is_white: NDArray[np.bool_]       # False on square edges and ChArUco markers (neither class)
+    timestamp_ns: NDArray[np.int64]
+    temperature_c: NDArray[np.float32]  # NaN where the frame had none
+
+    def to_dict(self) -> dict[str, NDArray[Any]]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+    def __len__(self) -> int:
+        return int(self.u.size)
+
+
+@dataclass
+class ExampleFrame:
+    """One frame's per-pixel residuals (paper Fig. 5): NaN off the board."""
+
+    index: int
+    noise_map_m: NDArray[np.float32]     # signed distance to the frame's own fitted plane
+    accuracy_map_m: NDArray[np.float32]  # signed distance to the reference plane
+    v0: int
+    u0: int
+
+
+@dataclass
+class StandpointResult:
+    """A standpoint's figures (DESIGN §2 conventions) plus its frames and optional samples."""
+
+    name: str
+    path: str
+    frames_requested: int
+    frames_read: int
+    frames: list[FrameResult]
+    rejected: dict[str, int]
+    notes: list[str] = field(default_factory=list)
+    pose_depth: NDArray[np.float64] | None = None       # averaged board -> depth camera
+    camera_in_board: NDArray[np.float64] | None = None  # averaged colour camera pose in the board frame
+    figures: dict[str, float] = field(default_factory=dict)
+    reference_plane: str = "average"                    # 'average' (still camera) or 'frame' (moved)
+    example: ExampleFrame | None = None
+    samples: PixelSamples | None = None
+    truth: dict[str, Any] | None = None
+
+    @property
+    def frames_used(self) -> int:
+        return sum(1 for f in self.frames if f.ok)
+
+    @property
+    def usable(self) -> bool:
+        return self.frames_used > 0
+
+    def row(self) -> dict[str, Any]:
+        """One row of standpoints.csv."""
+        return {"standpoint": self.name, "frames": self.frames_used,
+                "frames_read": self.frames_read, **self.figures}
+
+
+def _mean_std(values: list[float]) -> tuple[float, float]:
+    a = np.asarray([v for v in values if np.isfinite(v)], dtype=np.float64)
+    if a.size == 0:
+        return float("nan"), float("nan")
+    return float(a.mean()), float(a.std(ddof=1)) if a.size > 1 else float("nan")
+
+
+def colour_tests(black: list[float], white: list[float]) -> tuple[float, float]:
+    """p-values that black and white squares differ: Welch t over frames, paired t per frame."""
+    from scipy import stats
+
+    b = np.asarray(black, dtype=np.float64)
+    w = np.asarray(white, dtype=np.float64)
+    keep = np.isfinite(b) & np.isfinite(w)
+    b, w = b[keep], w[keep]
+    if b.size < 3 or (np.ptp(b) == 0 and np.ptp(w) == 0):
+        return float("nan"), float("nan")
+    welch = float(stats.ttest_ind(b, w, equal_var=False).pvalue)
+    paired = float(stats.ttest_rel(b, w).pvalue)
+    return welch, paired
+
+
+def evaluate_frames(name: str, frames: Iterable[FrameSet], info: StreamInfo, board: Board, *,
+                    frames_requested: int = 150, collect_samples: bool = False,
+                    sample_stride: int = 1, refine: bool = True, margin_m: float = 0.01,
+                    path: str = "", on_frame: FrameCallback | None = None,
+                    reference: str = "auto") -> StandpointResult:
+    """The study of one standpoint from any frame source (one pass over the frames)."""
+    ev = FrameEvaluator(info, board, refine=refine, margin_m=margin_m, source=path or name)
+    results: list[FrameResult] = []
+    kept: list[tuple[FrameResult, FramePixels]] = []
+    example: tuple[FrameResult, FramePixels] | None = None
+    for fs in frames:
+        want = collect_samples or example is None
+        res, pixels = ev.evaluate(fs, keep_pixels=want)
+        results.append(res)
+        if pixels is not None:
+            if example is None:
+                example = (res, pixels)
+            if collect_samples:
+                if sample_stride > 1:
+                    sl = slice(None, None, sample_stride)
+                    pixels = FramePixels(pixels.u[sl], pixels.v[sl], pixels.z_m[sl], pixels.colour[sl])
+                kept.append((res, pixels))
+        if on_frame is not None:
+            on_frame(fs, res)
+    return aggregate(name, results, info, board, frames_requested=frames_requested, path=path,
+                     kept=kept if collect_samples else None, example=example, reference=reference)
+
+
+def evaluate_recording(rec: RecordingLike, board: Board, *, frames: int = 150,
+                       collect_samples: bool = False, sample_stride: int = 1, refine: bool = True,
+                       margin_m: float = 0.01, on_frame: FrameCallback | None = None,
+                       reference: str = "auto") -> StandpointResult:
+    """Contract 3: the checkerboard study of one recording (its first `frames` frames).
+
+    reference: 'average' (the standpoint's averaged pose, the paper's method), 'frame' (each
+    frame's own pose) or 'auto' (average unless the camera moved during the standpoint).
+    """
+    result = evaluate_frames(rec.name, rec.frames(limit=frames), rec.info, board,
+                             frames_requested=frames, collect_samples=collect_samples,
+                             sample_stride=sample_stride, refine=refine, margin_m=margin_m,
+                             path=str(rec.path), on_frame=on_frame, reference=reference)
+    truth = rec.metadata.get("truth") if isinstance(rec.metadata, dict) else None
+    if isinstance(truth, dict):
+        result.truth = truth
+    return result
+
+
+def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Board, *,
+              frames_requested: int, path: str = "",
+              kept: list[tuple[FrameResult, FramePixels]] | None = None,
+              example: tuple[FrameResult, FramePixels] | None = None, reference: str = "auto",
+              max_corner_shift_px: float = 2.0) -> StandpointResult:
+    """Standpoint figures from per-frame results: averaged pose, then accuracy against its plane.
+
+    The paper's standpoints are still, so the averaged pose is the better reference (pose noise
+    averages out). When the corners moved by more than `max_corner_shift_px` the camera was not
+    still and, with reference='auto', each frame is compared with its own pose instead.
+    """
+    rejected = Counter(r.status for r in results if not r.ok)
+    out = StandpointResult(name, path, frames_requested, len(results), results, dict(rejected))
+    if len(results) < frames_requested:
+        out.notes.append(f"fewer frames than asked: {len(results)} of {frames_requested}")
+    ok = [r for r in results if r.ok]
+    posed = [r for r in results if r.pose_depth is not None]
+    if not ok:
+        out.notes.append("no usable frame" + (f" ({', '.join(f'{k}: {v}' for k, v in rejected.items())})"
+                                              if rejected else ""))
+        out.figures = {"distance_m": float("nan"), "inclination_deg": float("nan")}
+        return out
+    pose = average_poses(np.stack([r.pose_depth for r in ok]))  # type: ignore[misc]
+    out.pose_depth = pose
+    out.camera_in_board = average_poses(np.stack([np.linalg.inv(r.pose_color) for r in ok]))  # type: ignore[arg-type]
+    r_avg, t_avg = pose[:3, :3], pose[:3, 3]
+    centre = r_avg @ board.center + t_avg
+    normal = r_avg[:, 2]  # board z: into the board, away from the camera
+    shift = max((r.corner_shift_px for r in ok if np.isfinite(r.corner_shift_px)), default=0.0)
+    moved = shift > max_corner_shift_px
+    use_frame = reference == "frame" or (reference == "auto" and moved)
+    out.reference_plane = "frame" if use_frame else "average"
+    if moved:
+        out.notes.append(f"the camera moved during the standpoint (corners shifted up to {shift:.1f} px)"
+                         + ("; accuracy is taken against each frame's own pose" if use_frame else ""))
+    for r in ok:
+        assert r.pose_depth is not None
+        n_own = r.pose_depth[:3, 2]
+        off_own = float(n_own @ (r.pose_depth[:3, 3] - r.origin))
+        r.accuracy_own_m, r.accuracy_own_rms_m = plane_distance_stats(r.moments["all"], n_own, off_own)
+        n_ref, off = (n_own, off_own) if use_frame else (normal, float(normal @ (t_avg - r.origin)))
+        r.accuracy_m, r.accuracy_rms_m = plane_distance_stats(r.moments["all"], n_ref, off)
+        r.accuracy_black_m = plane_distance_stats(r.moments["black"], n_ref, off)[0]
+        r.accuracy_white_m = plane_distance_stats(r.moments["white"], n_ref, off)[0]
+    f: dict[str, float] = {}
+    f["distance_m"] = float(centre[2])
+    f["inclination_deg"] = float(inclination_deg(centre, normal))
+    f["reference_distance_std_m"] = _mean_std([r.reference_distance_m for r in ok])[1]
+    f["reprojection_px"] = _mean_std([r.reprojection_px for r in ok])[0]
+    f["fill_rate"], f["fill_rate_std"] = _mean_std([r.fill_rate for r in posed])
+    for key in ("noise", "accuracy", "accuracy_rms", "noise_black", "noise_white",
+                "accuracy_black", "accuracy_white"):
+        mean, std = _mean_std([getattr(r, key + "_m") for r in ok])
+        f[key + "_m"], f[key + "_std_m"] = mean, std
+    f["noise_black_white_p"], f["noise_black_white_paired_p"] = colour_tests(
+        [r.noise_black_m for r in ok], [r.noise_white_m for r in ok])
+    f["accuracy_black_white_p"], f["accuracy_black_white_paired_p"] = colour_tests(
+        [r.accuracy_black_m for r in ok], [r.accuracy_white_m for r in ok])
+    f["accuracy_frame_pose_m"] = _mean_std([r.accuracy_own_m for r in ok])[0]
+    f["corner_shift_px"] = shift
+    f["pixels_per_frame"] = _mean_std([float(r.valid_pixels) for r in ok])[0]
+    out.figures = f
+    if abs(f["accuracy_m"]) > 0.05 * f["distance_m"]:
+        out.notes.append(f"mean accuracy {f['accuracy_m'] * 1000:.0f} mm is over 5% of the distance: "
+                         "check the board's square_length_m and the depth units")
+    if example is not None:
+        ex_pose = example[0].pose_depth if use_frame else pose
+        assert ex_pose is not None
+        out.example = _example(example, info, board, ex_pose)
+    if kept is not None:
+        out.samples = _samples(kept, info, pose, use_frame)
+    return out
+
+
+def _example(item: tuple[FrameResult, FramePixels], info: StreamInfo, board: Board,
+             pose: NDArray[np.float64]) -> ExampleFrame:
+    """Per-pixel noise and accuracy residuals of one frame, as images over the board's box."""
+    res, px = item
+    intr = info.depth_intrinsics
+    rx = (px.u - intr.ppx) / intr.fx
+    ry = (px.v - intr.ppy) / intr.fy
+    z = px.z_m.astype(np.float64)
+    p = np.stack([z * rx, z * ry, z], axis=1)
+    c = p.mean(axis=0)
+    _, _, vt = np.linalg.svd(p - c, full_matrices=False)
+    n = vt[2] if vt[2] @ c > 0 else -vt[2]
+    noise = (p - c) @ n
+    normal = pose[:3, 2]
+    acc = (p - pose[:3, 3]) @ normal
+    u0, v0 = int(px.u.min()), int(px.v.min())
+    shape = (int(px.v.max()) - v0 + 1, int(px.u.max()) - u0 + 1)
+    nm = np.full(shape, np.nan, dtype=np.float32)
+    am = np.full(shape, np.nan, dtype=np.float32)
+    nm[px.v - v0, px.u - u0] = noise
+    am[px.v - v0, px.u - u0] = acc
+    return ExampleFrame(res.index, nm, am, v0, u0)
+
+
+def _samples(kept: list[tuple[FrameResult, FramePixels]], info: StreamInfo,
+             pose: NDArray[np.float64], use_frame: bool = False) -> PixelSamples:
+    """Per-pixel samples against the reference plane (averaged pose, or each frame's own)."""
+    intr = info.depth_intrinsics
+    if not kept:
+        raise EvaluationError("no pixels to sample")
+    u = np.concatenate([p.u for _, p in kept])
+    v = np.concatenate([p.v for _, p in kept])
+    z = np.concatenate([p.z_m for _, p in kept]).astype(np.float64)
+    colour = np.concatenate([p.colour for _, p in kept])
+    sizes = [p.u.size for _, p in kept]
+    frame = np.repeat(np.array([r.index for r, _ in kept], dtype=np.int32), sizes)
+    ts = np.repeat(np.array([r.timestamp_ns for r, _ in kept], dtype=np.int64), sizes)
+    temp = np.repeat(np.array([r.temperature_c for r, _ in kept], dtype=np.float32), sizes)
+    rx = (u - intr.ppx) / intr.fx
+    ry = (v - intr.ppy) / intr.fy
+    if use_frame:
+        poses = np.repeat(np.stack([r.pose_depth for r, _ in kept]), sizes, axis=0)  # type: ignore[misc]
+        n, nt = poses[:, :3, 2], np.einsum("ij,ij->i", poses[:, :3, 2], poses[:, :3, 3])
+    else:
+        n, nt = pose[None, :3, 2], np.full(u.size, float(pose[:3, 2] @ pose[:3, 3]))
+    dot = n[:, 0] * rx + n[:, 1] * ry + n[:, 2]
+    z_ref = nt / dot
+    ray_norm = np.sqrt(rx * rx + ry * ry + 1.0)
+    error = (z - z_ref) * dot  # n.(z r) - n.t, with n away from the camera
+    incl = np.degrees(np.arccos(np.clip(np.abs(dot) / ray_norm, 0.0, 1.0)))
+    return PixelSamples(frame, u.astype(np.int32), v.astype(np.int32), z_ref.astype(np.float32),
+                        z.astype(np.float32), error.astype(np.float32), incl.astype(np.float32),
+                        colour == BLACK, colour == WHITE, ts, temp)
