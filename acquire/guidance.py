@@ -39,6 +39,9 @@ class Guidance:
     aim_yaw_deg: float = 0.0  # + = turn the camera right to centre the board
     aim_pitch_deg: float = 0.0  # + = tilt the camera down
     in_tolerance: bool = False
+    distance_ok: bool = False
+    inclination_ok: bool = False
+    aim_ok: bool = False
     still: bool = False
     fill_rate: float | None = None
     messages: tuple[str, ...] = ()
@@ -101,7 +104,7 @@ def guide(target: Standpoint, tol: Tolerances, *, distance_m: float | None, incl
     if in_tol:
         msgs.append("in position: hold still" if not still else "in position and still: recording")
     return Guidance(True, target, distance_m, inclination_deg, azimuth_deg, dd, daz, yaw, pitch,
-                    in_tol, still, fill, (head, *msgs))
+                    in_tol, dist_ok, inc_ok, aim_ok, still, fill, (head, *msgs))
 
 
 @dataclass
