@@ -1,0 +1,71 @@
+"""The rerun bridge: recordings read back with rerun's chunk reader hold heatmaps, series, text, blueprint."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from depthstation import viz
+from depthstation.station.view import folder_to_rrd, view_path
+
+
+def test_recording_round_trip(tmp_path: Path) -> None:
+    rrd = tmp_path / "r.rrd"
+    d_edges = np.linspace(0.5, 2.5, 5)
+    i_edges = np.linspace(0.0, 60.0, 4)
+    grid = np.arange(12, dtype=float).reshape(4, 3) * 1e-3
+    grid[0, 0] = np.nan
+    bp = viz.blueprint(viz.heatmap_view("grid/mean", "mean [m]"), viz.series_view("progress", "progress"))
+    with viz.recording("depthstation-test", viz.RerunTarget(rrd=rrd), bp, "# What\nA test.") as rec:
+        viz.send_heatmap(rec, "grid/mean", grid, d_edges, i_edges, quantity="mean error", unit="m")
+        viz.send_series(rec, "progress/frames_done", np.arange(5), np.arange(5) * 2.0, name="frames",
+                        unit="1")
+        for k in range(3):
+            viz.send_scalar(rec, "progress/live", 0.5 * k, step=k)
+        viz.send_colormapped(rec, "images/noise", np.random.default_rng(0).random((8, 10)))
+        viz.send_table(rec, "table", [{"standpoint": "s1", "noise_m": 0.001}])
+    c = viz.read_rrd(rrd)
+    assert c.tensors["/grid/mean"] == ((4, 3), (viz.DISTANCE_DIM, viz.INCLINATION_DIM))
+    assert {"unit", "quantity", "distance_edges_m", "inclination_edges_deg"} <= c.entities["/grid/mean"]
+    assert c.series["/progress/frames_done"].tolist() == [0.0, 2.0, 4.0, 6.0, 8.0]
+    assert c.series["/progress/live"].tolist() == [0.0, 0.5, 1.0]
+    assert c.texts["/description"].startswith("# What")
+    assert "noise_m" in c.texts["/table"]
+    assert c.has_blueprint
+
+
+def test_disabled_target_costs_nothing(tmp_path: Path) -> None:
+    with viz.recording("x", viz.RerunTarget()) as rec:
+        assert rec is None
+        viz.send_heatmap(rec, "g", np.zeros((2, 2)), np.arange(3.0), np.arange(3.0), quantity="q", unit="m")
+        viz.send_series(rec, "s", [0], [1.0], name="s", unit="m")
+    assert not list(tmp_path.iterdir())
+
+
+def test_heatmap_shape_must_match_edges(tmp_path: Path) -> None:
+    with viz.recording("x", viz.RerunTarget(rrd=tmp_path / "x.rrd")) as rec, \
+            pytest.raises(ValueError, match="does not match"):
+        viz.send_heatmap(rec, "g", np.zeros((3, 3)), np.arange(3.0), np.arange(4.0), quantity="q", unit="m")
+
+
+def test_colorize_greys_out_nan() -> None:
+    img = viz.colorize(np.array([[0.0, 1.0], [np.nan, 0.5]]))
+    assert img.shape == (2, 2, 3) and img.dtype == np.uint8
+    assert img[1, 0].tolist() == [128, 128, 128]
+    assert not np.array_equal(img[0, 0], img[0, 1])
+
+
+def test_view_converts_a_result_folder(tmp_path: Path) -> None:
+    from tests.test_station_compare import write_checkerboard, write_scan
+
+    cb = write_checkerboard(tmp_path / "cb", 0.095)
+    rrd = view_path(cb, spawn=False)
+    c = viz.read_rrd(rrd)
+    assert c.series["/standpoints/noise_m"].size == 10
+    assert "checkerboard" in c.texts["/description"]
+    scan = write_scan(tmp_path / "scan", 0.004)
+    c2 = viz.read_rrd(folder_to_rrd(scan, tmp_path / "scan.rrd"))
+    assert c2.tensors["/grid/std"][1] == (viz.DISTANCE_DIM, viz.INCLINATION_DIM)
+    assert c2.has_blueprint
