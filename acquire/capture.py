@@ -77,6 +77,8 @@ class GuidedCapture:
         self.sleep = sleep
         self.info: StreamInfo | None = None
         self.events: list[dict[str, Any]] = []
+        self.skipped: dict[str, str] = {}
+        self.dropped = 0
         self._t0_ns: int | None = None
         self._last_temp_ns = 0
 
@@ -144,8 +146,12 @@ class GuidedCapture:
     # -- the plan ----------------------------------------------------------------------------
     def run(self, done: set[str] | None = None, skipped: set[str] | None = None) -> list[StandpointOutcome]:
         """Capture every standpoint not yet `done` (or `skipped` at the end of a range), in order."""
-        done = set(done or ())
-        skipped = set(skipped or ())
+        prior = self.session.data.get("capture") or {}
+        self.skipped.update(prior.get("skipped") or {})
+        self.events = list(prior.get("events") or []) + self.events
+        done = set(done or ()) | {e["name"] for e in self.session.standpoints
+                                  if e.get("status") == "complete"}
+        skipped = set(skipped or ()) | set(self.skipped)
         plan = self.protocol.plan.standpoints()
         outcomes: list[StandpointOutcome] = []
         self._start()
@@ -178,11 +184,14 @@ class GuidedCapture:
         return outcomes
 
     def _mark_skipped(self, sp: Standpoint) -> None:
+        self.skipped[sp.name] = "end of range: the board's depth fill rate collapsed"
         self.events.append({"event": "end_of_range", "standpoint": sp.name, "trajectory": sp.trajectory,
                             "time_ns": time.time_ns()})
-        mark = getattr(self.session, "mark_skipped", None)
-        if mark is not None:
-            mark(sp.name, "end of range: the board's depth fill rate collapsed")
+        self._save_log()
+
+    def _save_log(self) -> None:
+        """The capture's own record in session.json: skipped standpoints and fault events."""
+        self.session.set("capture", {"skipped": dict(self.skipped), "events": list(self.events)})
 
     def _standpoint(self, sp: Standpoint, state: LiveState) -> StandpointOutcome:
         """Guide, then record; a disconnect during either restarts the standpoint after reconnect."""
@@ -193,7 +202,12 @@ class GuidedCapture:
                 return self._record(sp, state)
             except CameraDisconnected as exc:
                 self.events.append({"event": "disconnected", "standpoint": sp.name, "during": state.phase,
-                                    "error": str(exc), "time_ns": time.time_ns()})
+                                    "frames_recorded": state.recorded, "error": str(exc),
+                                    "time_ns": time.time_ns()})
+                if state.phase == "recording":
+                    # the writer closed the file as 'partial'; move it aside (never deleted)
+                    self.session.discard(sp.name, f"camera disconnected after {state.recorded} frames")
+                self._save_log()
                 state.recorded = 0
                 self._reconnect(state)
                 state.phase = "guiding"
@@ -249,7 +263,8 @@ class GuidedCapture:
         with self.session.standpoint_writer(sp.name, self.info, meta) as writer:
             while state.recorded < n:
                 fs = self._frame()
-                writer.write(fs)
+                if writer.write(fs) is False:
+                    state.message = f"writer queue full: frame {fs.index} dropped"
                 state.recorded += 1
                 if fs.timestamp_ns - self._last_temp_ns >= 1_000_000_000:
                     temps = self.camera.temperatures()
@@ -268,9 +283,8 @@ class GuidedCapture:
                     self.on_guidance(state.guidance, fs, self._t_s(fs))
             measured = self._measured(poses, n)
             meta["measured"] = measured
-            add = getattr(writer, "add_metadata", None)
-            if add is not None:
-                add("standpoint", meta)
+            writer.set_metadata("standpoint", meta)
+            self.dropped += int(getattr(writer, "dropped", 0))
         state.done.append(sp.name)
         state.phase = "done"
         self._emit(state)
