@@ -305,3 +305,109 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
         raise EvaluationError(f"{len(report.failed)} item(s) failed: {names} (see {man.out / BATCH_FILE});"
                               " run again to retry them")
     return report
+
+
+# -- the reference-scan study in chunks ------------------------------------------------------------
+@dataclass(frozen=True)
+class ScanChunk:
+    """Frames [start, start+limit) of a sequence: paths and poses travel, pixels are read there."""
+
+    sequence: str
+    mesh: str
+    trajectory: Any  # evaluate.scan.trajectory.Trajectory, camera-to-reference (registration applied)
+    config: Any      # evaluate.scan.study.StudyConfig
+    start: int
+    limit: int
+    intrinsics: str | None = None
+
+
+# One mesh scene and one open sequence per worker process, reused by its following chunks: the
+# mesh is loaded once per worker, not per chunk; only one is kept (bounded memory).
+_SCAN_CACHE: dict[str, Any] = {}
+
+
+def _scan_context(chunk: ScanChunk) -> tuple[Any, Any]:
+    from evaluate.scan.raycast import MeshCaster
+    from evaluate.scan.sequence import open_sequence
+
+    key_src = (chunk.sequence, chunk.intrinsics)
+    if _SCAN_CACHE.get("source_key") != key_src:
+        _SCAN_CACHE["source"] = open_sequence(Path(chunk.sequence),
+                                              Path(chunk.intrinsics) if chunk.intrinsics else None)
+        _SCAN_CACHE["source_key"] = key_src
+    source = _SCAN_CACHE["source"]
+    key_mesh = (chunk.mesh, source.info.depth_intrinsics, chunk.config.nthreads)
+    if _SCAN_CACHE.get("mesh_key") != key_mesh:
+        _SCAN_CACHE.pop("caster", None)
+        _SCAN_CACHE["caster"] = MeshCaster(Path(chunk.mesh), source.info.depth_intrinsics,
+                                           chunk.config.nthreads)
+        _SCAN_CACHE["mesh_key"] = key_mesh
+    return _SCAN_CACHE["caster"], source
+
+
+def scan_chunk(chunk: ScanChunk) -> Any:
+    """Partial scan result (grid + pixel counts + frames used) of one chunk, on the worker."""
+    from evaluate.scan.study import evaluate_chunk
+
+    caster, source = _scan_context(chunk)
+    return evaluate_chunk(caster, source, chunk.trajectory, chunk.config, chunk.start, chunk.limit)
+
+
+@dataclass
+class PackedScanResult:
+    grid: PackedGrid
+    stats: NDArray[np.int64]
+    used: list[int]
+    no_pose: list[int]
+    no_depth: list[int]
+
+
+def pack_scan_result(res: Any) -> PackedScanResult:
+    return PackedScanResult(pack_grid(res.grid), res.stats, res.used, res.no_pose, res.no_depth)
+
+
+def unpack_scan_result(p: PackedScanResult) -> Any:
+    from evaluate.scan.study import ChunkResult
+
+    return ChunkResult(unpack_grid(p.grid), p.stats, p.used, p.no_pose, p.no_depth)
+
+
+def merge_scan_results(a: Any, b: Any) -> Any:
+    return a.merge(b)
+
+
+def scan_chunks(sequence: Path, mesh: Path, trajectory: Any, config: Any, *, chunk_frames: int = 64,
+                intrinsics: Path | None = None) -> list[ScanChunk]:
+    """The chunks of a scan evaluation (the frame count comes from the sequence's index only)."""
+    from evaluate.scan.sequence import open_sequence
+    from evaluate.scan.study import chunk_ranges
+
+    source = open_sequence(Path(sequence), intrinsics)
+    n = source.frame_count
+    if n is None:
+        raise InputError(sequence, "the sequence does not say how many frames it holds; "
+                                   "cannot split it into chunks")
+    if config.max_frames is not None:
+        n = min(n, config.max_frames * config.every)
+    return [ScanChunk(str(sequence), str(mesh), trajectory, config, s, lim,
+                      None if intrinsics is None else str(intrinsics))
+            for s, lim in chunk_ranges(n, chunk_frames)]
+
+
+def run_scan(sequence: Path, mesh: Path, trajectory: Any, config: Any, *, chunk_frames: int = 64,
+             workers: int = 1, cluster: str | None = None, intrinsics: Path | None = None,
+             progress: ProgressFn | None = None, runner: ChunkRunner | None = None) -> Any:
+    """The scan study's ChunkResult over the whole sequence, chunks run serially, in local
+    processes or on a Dask cluster; partial grids travel as their non-empty cells."""
+    chunks = scan_chunks(sequence, mesh, trajectory, config, chunk_frames=chunk_frames,
+                         intrinsics=intrinsics)
+    own = runner is None
+    run = runner if runner is not None else ChunkRunner(workers, cluster)
+    try:
+        if own:
+            run.__enter__()
+        return run.reduce(scan_chunk, chunks, merge_scan_results, progress=progress or (lambda d, t: None),
+                          encode=pack_scan_result, decode=unpack_scan_result)
+    finally:
+        if own:
+            run.close()

@@ -1,0 +1,102 @@
+"""The reference-scan study in chunks: serial, 2 local processes and a 2-worker Dask LocalCluster
+give the grid of the one-pass evaluation (to float rounding), also when a worker is killed."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytest.importorskip("open3d")
+from evaluate import batch as batch_mod
+from evaluate.batch import ScanChunk, run_scan, scan_chunk
+
+
+@pytest.fixture(scope="module")
+def scan_case(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    import open3d as o3d
+
+    from evaluate.scan.study import StudyConfig
+    from evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
+    from evaluate.scan.trajectory import Trajectory
+
+    root = tmp_path_factory.mktemp("scan")
+    room = Room()
+    seq = make_sequence(frames=10, width=80, height=60, room=room, seed=3)
+    folder = write_tum_folder(seq, root / "seq")
+    mesh = root / "room.ply"
+    o3d.io.write_triangle_mesh(str(mesh), room.mesh(segments=64))  # type: ignore[arg-type]
+    traj = Trajectory(np.asarray(seq.timestamps_ns, np.float64) * 1e-9, np.asarray(seq.poses))
+    config = StudyConfig(distance_bin_m=0.05, inclination_bin_deg=1.0, nthreads=1)
+    return {"sequence": folder, "mesh": mesh, "trajectory": traj, "config": config}
+
+
+@pytest.fixture(scope="module")
+def one_pass(scan_case: dict[str, Any]) -> Any:
+    """The scan helper's own single-process evaluation, all frames in one chunk."""
+    from evaluate.scan.study import run_study
+
+    return run_study(scan_case["sequence"], scan_case["mesh"], scan_case["trajectory"], scan_case["config"])
+
+
+def assert_same(a: Any, b: Any) -> None:
+    np.testing.assert_array_equal(a.grid.count, b.grid.count)
+    np.testing.assert_allclose(a.grid.mean, b.grid.mean, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(a.grid.m2, b.grid.m2, rtol=1e-8, atol=1e-18)
+    np.testing.assert_array_equal(a.stats, b.stats)
+    assert sorted(a.used) == sorted(b.used)
+
+
+def killing_scan_chunk(chunk: ScanChunk) -> Any:
+    """scan_chunk, but the worker running the second chunk dies once (flag file)."""
+    flag = Path(str(chunk.sequence) + ".killed")
+    if chunk.start > 0 and chunk.start == chunk.limit and not flag.exists():
+        flag.write_text(str(os.getpid()))
+        os._exit(21)
+    return scan_chunk(chunk)
+
+
+def test_chunked_scan_equals_one_pass(scan_case: dict[str, Any], one_pass: Any) -> None:
+    assert one_pass.grid.total > 10_000
+    serial = run_scan(scan_case["sequence"], scan_case["mesh"], scan_case["trajectory"],
+                      scan_case["config"], chunk_frames=3)
+    assert_same(serial, one_pass)
+    local = run_scan(scan_case["sequence"], scan_case["mesh"], scan_case["trajectory"],
+                     scan_case["config"], chunk_frames=3, workers=2)
+    assert_same(local, one_pass)
+    assert local.used == list(range(10))  # merged in frame order
+
+
+@pytest.fixture(scope="module")
+def cluster() -> Iterator[str]:
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, processes=True, threads_per_worker=1, host="127.0.0.1",
+                                  dashboard_address=None) as lc:
+        yield lc.scheduler_address
+
+
+def test_scan_on_dask_with_a_killed_worker(scan_case: dict[str, Any], one_pass: Any, cluster: str,
+                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    on_dask = run_scan(scan_case["sequence"], scan_case["mesh"], scan_case["trajectory"],
+                       scan_case["config"], chunk_frames=3, cluster=cluster)
+    assert_same(on_dask, one_pass)
+    flag = Path(str(scan_case["sequence"]) + ".killed")
+    monkeypatch.setattr(batch_mod, "scan_chunk", killing_scan_chunk)
+    killed = run_scan(scan_case["sequence"], scan_case["mesh"], scan_case["trajectory"],
+                      scan_case["config"], chunk_frames=3, cluster=cluster)
+    assert flag.exists(), "no worker was killed"
+    assert_same(killed, one_pass)
+
+
+def test_scan_chunks_carry_no_pixels(scan_case: dict[str, Any]) -> None:
+    import pickle
+
+    chunks = batch_mod.scan_chunks(scan_case["sequence"], scan_case["mesh"], scan_case["trajectory"],
+                                   replace(scan_case["config"]), chunk_frames=4)
+    assert [(c.start, c.limit) for c in chunks] == [(0, 4), (4, 4), (8, 2)]
+    assert len(pickle.dumps(chunks[0])) < 10 * 1024  # 60x80 depth alone would be 9.6 kB per frame
