@@ -1,0 +1,104 @@
+"""The steps of `depthstation demo`, each a thin call into a stage's public functions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from depthstation.progress import progress
+from depthstation.station.demo import DEMO_MODEL, DEMO_PROTOCOL, DemoContext, Step
+
+# ------------------------------------------------------------------------------ checkerboard study
+
+
+def evaluate_checkerboard_session(inputs: list[Path], out: Path, ctx: DemoContext, name: str,
+                                  frames: int = 150) -> Path:
+    """The checkerboard study of a session, standpoint by standpoint, with a progress bar."""
+    from depthstation.capture.reader import open_inputs
+    from depthstation.protocol import load_protocol
+    from evaluate.checkerboard import evaluate_recording
+    from evaluate.checkerboard.report import write_study
+
+    protocol = load_protocol(DEMO_PROTOCOL)
+    recs = open_inputs(inputs)
+    results = []
+    with progress() as bar:
+        task = bar.add_task(f"checkerboard study ({name})", total=len(recs), status="")
+        for rec in recs:
+            bar.update(task, status=rec.name)
+            results.append(evaluate_recording(rec, protocol.board, frames=frames))
+            bar.advance(task)
+    device = dict(recs[0].metadata.get("device", {})) if recs else {}
+    write_study(out, results, protocol.board, [str(p) for p in inputs],
+                {"frames": frames, "protocol": DEMO_PROTOCOL}, device)
+    ctx.facts[f"{name}_standpoints"] = [r.row() for r in results]
+    return out
+
+
+def _checkerboard_step(ctx: DemoContext) -> tuple[Path, str]:
+    session = ctx.results.get("session")
+    if session is None:
+        from simulate.checkerboard import simulate_checkerboard
+
+        from depthstation.protocol import load_protocol
+        from simulate.model import load_model
+
+        session = simulate_checkerboard(load_protocol(DEMO_PROTOCOL), load_model(DEMO_MODEL),
+                                        ctx.out / "session-simulated", seed=1)
+        ctx.facts["checkerboard_input"] = "simulated session (the guided session step did not run)"
+    out = evaluate_checkerboard_session([session], ctx.out / "checkerboard", ctx, "checkerboard")
+    rows = ctx.facts["checkerboard_standpoints"]
+    noise = [r.get("noise_m") for r in rows if r.get("noise_m") is not None]
+    text = f"{len(rows)} standpoints"
+    if noise:
+        text += f", noise {1e3 * min(noise):.2f} to {1e3 * max(noise):.2f} mm"
+    return out, text
+
+
+CHECKERBOARD = Step("checkerboard", "checkerboard study of the session",
+                    ("depthstation.capture.reader:open_inputs", "evaluate.checkerboard:evaluate_recording",
+                     "evaluate.checkerboard.report:write_study"), _checkerboard_step)
+
+# ------------------------------------------------------------------------------ compare D455 / D435
+
+
+def _compare_step(ctx: DemoContext) -> tuple[Path, str]:
+    from simulate.checkerboard import simulate_checkerboard
+
+    from depthstation.protocol import load_protocol
+    from depthstation.station.compare_write import run_compare
+    from simulate.model import load_model
+
+    ref = ctx.results.get("checkerboard")
+    if ref is None:
+        msg = "needs the checkerboard step"
+        raise RuntimeError(msg)
+    sess = simulate_checkerboard(load_protocol(DEMO_PROTOCOL), load_model("d435"), ctx.out / "session-d435",
+                                 seed=2)
+    other = evaluate_checkerboard_session([sess], ctx.out / "checkerboard-d435", ctx, "checkerboard_d435")
+    out = ctx.out / "compare-d455-d435"
+    summary = run_compare([ref, other], out, target=ctx.target(out, "compare"))
+    ratio = summary["standpoints"]["others"][other.name]["noise_m"]["median_ratio"]
+    ctx.facts["noise_ratio_d435_over_d455"] = ratio
+    return out, (f"noise D435 / D455 (median over standpoints) = {ratio:.2f} "
+                 f"(Intel's formula: 95 / 50 mm = 1.9)")
+
+
+COMPARE = Step("compare", "compare with a simulated D435 (shorter baseline)",
+               ("simulate.checkerboard:simulate_checkerboard", "simulate.model:load_model",
+                "evaluate.checkerboard.report:write_study"), _compare_step)
+
+
+def _not_wired(ctx: DemoContext) -> tuple[Path, Any]:
+    msg = "not wired yet"
+    raise RuntimeError(msg)
+
+
+SESSION = Step("session", "guided session with the simulated D455 (warm-up, calibration, capture)",
+               ("acquire.session:run_session", "simulate.camera:SimulatedCamera"), _not_wired)
+SCAN = Step("scan", "reference-scan study of a simulated room walk",
+            ("simulate.scan:simulate_scan", "evaluate.scan.run:evaluate_scan"), _not_wired)
+EXPLAIN = Step("explain", "explain a capture with a concealed effect",
+               ("evaluate.explain.run:explain",), _not_wired)
+
+DEMO_STEPS = [SESSION, CHECKERBOARD, SCAN, EXPLAIN, COMPARE]

@@ -1,0 +1,67 @@
+"""The demo's step runner: unavailable stages are said, failures reported, the rest still runs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from depthstation.errors import DepthstationError, InputError
+from depthstation.station.demo import DemoContext, Step, fresh_dir, missing_requirement, run_demo
+
+
+def test_missing_requirement() -> None:
+    assert missing_requirement(("json:dumps", "depthstation.viz:send_heatmap")) is None
+    assert missing_requirement(("json:dumps", "no_such_module_xyz:run")) == "no_such_module_xyz:run"
+    assert missing_requirement(("json:no_such_function",)) == "json:no_such_function"
+
+
+def test_fresh_dir_never_reuses_a_folder(tmp_path: Path) -> None:
+    assert fresh_dir(tmp_path / "d") == tmp_path / "d"
+    (tmp_path / "d").mkdir()
+    assert fresh_dir(tmp_path / "d") == tmp_path / "d"          # empty: fine
+    (tmp_path / "d" / "x").write_text("captured")
+    assert fresh_dir(tmp_path / "d") == tmp_path / "d-2"
+
+
+def _ok(ctx: DemoContext) -> tuple[Path, str]:
+    folder = ctx.out / "ok"
+    folder.mkdir()
+    return folder, "fine"
+
+
+def _boom(ctx: DemoContext) -> tuple[Path, str]:
+    raise ValueError("broken on purpose")
+
+
+def _after(ctx: DemoContext) -> tuple[Path, str]:
+    assert "ok" in ctx.results
+    return ctx.results["ok"], "saw the first step"
+
+
+def test_steps_report_and_go_on(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    steps = [Step("ok", "works", ("json:dumps",), _ok),
+             Step("absent", "stage missing", ("no_such_module_xyz:run",), _ok),
+             Step("boom", "fails", (), _boom),
+             Step("after", "runs after a failure", (), _after),
+             Step("skipme", "skipped", (), _boom)]
+    (tmp_path / "demo").mkdir()
+    (tmp_path / "demo" / "old").write_text("a previous run")
+    with pytest.raises(DepthstationError, match="boom"):
+        run_demo(tmp_path / "demo", steps=steps, skip={"skipme"})
+    out = tmp_path / "demo-2"
+    report = json.loads((out / "demo.json").read_text())["steps"]
+    assert {k: v["status"] for k, v in report.items()} == {
+        "ok": "done", "absent": "not available", "boom": "failed", "after": "done", "skipme": "skipped"}
+    assert "step absent: not available in this build" in report["absent"]["summary"]
+    assert "broken on purpose" in (out / "demo.log").read_text()
+    assert (tmp_path / "demo" / "old").read_text() == "a previous run"
+    assert json.loads((out / "result.json").read_text())["kind"] == "demo"
+    err = " ".join(capsys.readouterr().err.split())      # the console wraps long lines
+    assert "not available in this build" in err and "open it with" in err
+
+
+def test_unknown_skip_is_input_error(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="unknown step"):
+        run_demo(tmp_path / "d", steps=[Step("ok", "works", (), _ok)], skip={"nope"})
