@@ -1,0 +1,28 @@
+"""A depth scale error: baseline or focal length of the calibration off by a ratio; bias proportional to z."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from simulate.effects.base import Array, Effect, PixelContext
+
+
+class DepthScale(Effect):
+    """z_meas = (1 + scale_error) z: the device triangulates with f_cal B_cal = (1 + e) f B."""
+
+    name: ClassVar[str] = "depth_scale"
+    meaning: ClassVar[str] = "depth scaled by (1 + scale_error): baseline or focal error"
+    stage: ClassVar[int] = 30
+    PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
+        "scale_error": (0.0, "1", "relative error of f*B used for triangulation"),
+    }
+
+    def bias_m(self, ctx: PixelContext) -> Array:
+        z = np.asarray(ctx.z_m, dtype=np.float64)
+        return np.broadcast_to(self.params["scale_error"] * z, ctx.shape()).copy()
+
+    def apply(self, ctx: PixelContext, z_m: Array, rng: np.random.Generator) -> Array:
+        z_m *= np.float32(1.0 + self.params["scale_error"])
+        return z_m

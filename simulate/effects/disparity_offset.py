@@ -1,0 +1,27 @@
+"""A constant disparity offset: bias growing with z^2, what the D4xx tare calibration removes."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from simulate.effects.base import Array, DisparityShift, PixelContext
+
+
+class DisparityOffset(DisparityShift):
+    """d_meas = d + offset_px, so z_meas - z = -z^2 offset / (f B + z offset) (~ -z^2 offset / (f B)).
+
+    A small error in the relative rotation of the two imagers about the vertical axis (or the
+    principal points) shifts every disparity by the same amount; Intel's tare calibration
+    estimates exactly this offset from a flat target at a known distance.
+    """
+
+    name: ClassVar[str] = "disparity_offset"
+    meaning: ClassVar[str] = "constant disparity offset (px); depth bias ~ -z^2 offset / (f B)"
+    PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
+        "offset_px": (0.0, "px", "added to every disparity (+ = depth too near)"),
+    }
+
+    def shift_px(self, ctx: PixelContext) -> Array:
+        return np.asarray(self.params["offset_px"])

@@ -1,0 +1,27 @@
+"""Thermal drift: the stereo head bends as it warms up; offset following temperature."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from simulate.effects.base import Array, DisparityShift, PixelContext
+
+
+class ThermalDrift(DisparityShift):
+    """d_meas = d + coeff_px_per_c (T - reference_c): the imagers' relative yaw changes with T.
+
+    The reason the paper warms the camera up for an hour before measuring.
+    """
+
+    name: ClassVar[str] = "thermal_drift"
+    meaning: ClassVar[str] = "disparity offset proportional to the temperature change since calibration"
+    PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
+        "coeff_px_per_c": (0.0, "px/degC", "disparity offset per degree of temperature change"),
+        "reference_c": (40.0, "degC", "temperature at which the device was calibrated"),
+    }
+
+    def shift_px(self, ctx: PixelContext) -> Array:
+        t = np.asarray(ctx.temperature_c, dtype=np.float64)
+        return np.asarray(self.params["coeff_px_per_c"] * (t - self.params["reference_c"]))

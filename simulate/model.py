@@ -1,0 +1,167 @@
+"""A sensor model: a camera preset plus an ordered list of effects, read from and written to TOML."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tomllib
+
+from depthstation.errors import InputError, SimulationError
+from simulate.effects import EFFECTS
+from simulate.effects.base import Array, Effect, PixelContext
+from simulate.presets import PRESETS, CameraPreset
+
+MODEL_DIR = Path(__file__).resolve().parent / "models"
+
+
+@dataclass
+class SensorModel:
+    """What the simulator renders with and what `explain` fits: camera geometry and effects.
+
+    `effects` are kept in physical order (their `stage`: disparity biases, disparity noise, depth
+    scale, quantisation, depth artefacts, reference errors, dropout), stable within a stage.
+    """
+
+    name: str
+    camera: CameraPreset
+    effects: list[Effect] = field(default_factory=list)
+    camera_overrides: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.effects = sorted(self.effects, key=lambda e: e.stage)
+
+    def effect(self, name: str) -> Effect | None:
+        """The effect of that catalogue name, or None when the model lacks it."""
+        return next((e for e in self.effects if e.name == name), None)
+
+    def bias_m(self, ctx: PixelContext) -> Array:
+        """Sum of the effects' analytic z biases (first order: effects assumed small and independent)."""
+        out = np.zeros(ctx.shape())
+        for e in self.effects:
+            out = out + e.bias_m(ctx)
+        return out
+
+    def variance_m2(self, ctx: PixelContext) -> Array:
+        """Sum of the effects' analytic z variances."""
+        out = np.zeros(ctx.shape())
+        for e in self.effects:
+            out = out + e.variance_m2(ctx)
+        return out
+
+    def valid_probability(self, ctx: PixelContext) -> Array:
+        """Probability that a pixel has depth (product over the effects)."""
+        out = np.ones(ctx.shape())
+        for e in self.effects:
+            out = out * e.valid_probability(ctx)
+        return out
+
+    def sample(self, ctx: PixelContext, z_m: Array, rng: np.random.Generator) -> Array:
+        """One measured z map (float32, NaN = no depth) from a true one; z_m is not modified."""
+        z = np.array(z_m, dtype=np.float32, copy=True)
+        for e in self.effects:
+            z = e.apply(ctx, z, rng)
+        return z
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"camera": {"preset": self.camera.name, **self.camera_overrides},
+                "effects": {e.name: dict(e.params) for e in self.effects}}
+
+    def to_toml(self) -> str:
+        """The model as TOML that `load_model` reads back to the same model."""
+        lines = [f"# sensor model '{self.name}' (depthstation simulate)", "[camera]",
+                 f'preset = "{self.camera.name}"']
+        lines += [f"{k} = {_toml_value(v)}" for k, v in self.camera_overrides.items()]
+        for e in self.effects:
+            lines += ["", f"[effects.{e.name}]"]
+            lines += [f"{k} = {_toml_value(v)}  # {e.units[k]}" for k, v in e.params.items()]
+        return "\n".join(lines) + "\n"
+
+    def with_effect(self, name: str, **params: float) -> SensorModel:
+        """A copy with one effect added or its parameters replaced (what `explain` proposes)."""
+        effects = [e for e in self.effects if e.name != name]
+        old = self.effect(name)
+        merged = {**(old.params if old else {}), **params}
+        effects.append(make_effect(name, merged))
+        return SensorModel(self.name, self.camera, effects, dict(self.camera_overrides))
+
+    def without_effect(self, name: str) -> SensorModel:
+        return SensorModel(self.name, self.camera, [e for e in self.effects if e.name != name],
+                           dict(self.camera_overrides))
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, str):
+        return f'"{v}"'
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(float(v))
+
+
+def make_effect(name: str, params: dict[str, Any] | None = None) -> Effect:
+    """Instantiate a catalogue effect by name."""
+    if name not in EFFECTS:
+        raise SimulationError(f"unknown effect '{name}' (catalogue: {', '.join(EFFECTS)})")
+    try:
+        return EFFECTS[name](params or {})
+    except ValueError as exc:
+        raise SimulationError(f"effect '{name}': {exc}") from exc
+
+
+def model_from_dict(data: dict[str, Any], name: str, source: Path | None = None) -> SensorModel:
+    """Validate a parsed model TOML; errors name the key."""
+    for k in data:
+        if k not in ("camera", "effects"):
+            raise InputError(source, f"model: unknown key '{k}' (expected [camera] and [effects.*])")
+    cam = dict(data.get("camera", {}))
+    preset_name = str(cam.pop("preset", "d455")).lower()
+    if preset_name not in PRESETS:
+        known = ', '.join(PRESETS)
+        raise InputError(source, f"model: camera.preset '{preset_name}' unknown (known: {known})")
+    try:
+        camera = PRESETS[preset_name].with_overrides(cam)
+    except KeyError as exc:
+        raise InputError(source, f"model: unknown key 'camera.{exc.args[0]}'") from exc
+    except (TypeError, ValueError) as exc:
+        raise InputError(source, f"model: [camera] {exc}") from exc
+    effects_data = data.get("effects", {})
+    if not isinstance(effects_data, dict):
+        raise InputError(source, "model: [effects] must be a table of tables")
+    effects: list[Effect] = []
+    for ename, params in effects_data.items():
+        if not isinstance(params, dict):
+            raise InputError(source, f"model: [effects.{ename}] must be a table")
+        try:
+            effects.append(make_effect(ename, params))
+        except SimulationError as exc:
+            raise InputError(source, f"model: {exc}") from exc
+    return SensorModel(name, camera, effects, cam)
+
+
+def load_model(name_or_path: str | Path | SensorModel = "d455") -> SensorModel:
+    """A model from a preset name ('d455', 'd435', 'd415' -> simulate/models/<name>.toml) or a TOML path."""
+    if isinstance(name_or_path, SensorModel):
+        return name_or_path
+    p = Path(name_or_path)
+    if not p.exists() and not p.suffix and (MODEL_DIR / f"{str(name_or_path).lower()}.toml").is_file():
+        p = MODEL_DIR / f"{str(name_or_path).lower()}.toml"
+    if not p.is_file():
+        raise InputError(p, f"model not found (a preset {', '.join(PRESETS)} or a model TOML)")
+    try:
+        data = tomllib.loads(p.read_text())
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(p, f"not valid TOML ({exc})") from exc
+    return model_from_dict(data, p.stem, p)
+
+
+def model_from_toml(text: str, name: str = "model") -> SensorModel:
+    """A model from TOML text (e.g. the copy kept in a truth.json)."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(None, f"model: not valid TOML ({exc})") from exc
+    return model_from_dict(data, name)
