@@ -1,0 +1,106 @@
+"""RealSense recordings: the real D435 .bag, and .db3 fixtures recorded at test time by librealsense."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from depthstation.capture.importer import import_recordings
+from depthstation.capture.reader import open_inputs, open_recording
+from depthstation.capture.rsrecord import write_realsense_recording
+from depthstation.capture.samples import sample_frames, sample_info
+from depthstation.errors import InputError
+from tests.test_capture_format import assert_same_info
+
+
+def test_real_d435_bag(d435_bag: Path) -> None:
+    rec = open_recording(d435_bag)
+    assert rec.name == "single_depth_color_640x480"
+    assert rec.frame_count == 2
+    assert rec.stream_counts == {"depth": 2, "color": 1}
+    info = rec.info
+    assert info.depth_units_m == pytest.approx(0.001, rel=1e-6)
+    assert info.baseline_m == pytest.approx(0.05017, abs=1e-5)
+    assert info.depth_intrinsics.fx == pytest.approx(390.43, abs=0.01)
+    assert (info.depth_intrinsics.width, info.depth_intrinsics.height) == (640, 480)
+    assert info.color_intrinsics is not None and info.color_intrinsics.fx == pytest.approx(613.20, abs=0.01)
+    assert info.device["serial_number"] == "728612070259"
+    frames = list(rec.frames())
+    assert [f.index for f in frames] == [169, 170]
+    assert sum(f.color is not None for f in frames) == 1
+    assert all(f.depth is not None and f.depth.shape == (480, 640) for f in frames)
+    # Walls 0.45 to 2.2 m away: the median valid depth must lie in that range.
+    d = frames[0].depth_m(info.depth_units_m)
+    assert 0.45 < float(np.nanmedian(d)) < 2.2
+    # Geometry agrees with librealsense's own playback of the same file.
+    import pyrealsense2 as rs
+
+    cfg = rs.config()
+    cfg.enable_device_from_file(str(d435_bag), repeat_playback=False)
+    pipe = rs.pipeline()
+    prof = pipe.start(cfg)
+    try:
+        e = prof.get_stream(rs.stream.depth).get_extrinsics_to(prof.get_stream(rs.stream.color))
+        from depthstation.camera import Extrinsics
+
+        ref = Extrinsics.from_librealsense(e.rotation, e.translation)
+        np.testing.assert_allclose(info.depth_to_color.matrix, ref.matrix, atol=1e-6)
+        fs = pipe.wait_for_frames(5000)
+        np.testing.assert_array_equal(np.asanyarray(fs.get_depth_frame().get_data()), frames[1].depth)
+    finally:
+        pipe.stop()
+
+
+@pytest.fixture()
+def db3(tmp_path: Path) -> tuple[Path, list]:  # type: ignore[type-arg]
+    info = sample_info(64, 48)
+    frames = list(sample_frames(info, 4, seed=7, start_ns=1_700_000_000_000_000_000))
+    path = tmp_path / "standpoint_07.db3"
+    assert write_realsense_recording(path, info, frames) == 4
+    return path, frames
+
+
+def test_db3_record_import_read_is_bit_exact(db3: tuple[Path, list], tmp_path: Path) -> None:  # type: ignore[type-arg]
+    path, frames = db3
+    info = sample_info(64, 48)
+    rec = open_recording(path)
+    assert rec.frame_count == 4
+    assert_same_info(rec.info, info)
+    assert rec.info.baseline_m == pytest.approx(0.095, rel=1e-6)
+    assert rec.info.device["serial_number"] == "000000000001"
+    session = import_recordings([path], tmp_path / "session")
+    assert [e["status"] for e in session.standpoints] == ["complete"]
+    (mrec,) = open_inputs([tmp_path / "session"])
+    assert mrec.name == "standpoint_07"
+    assert_same_info(mrec.info, info)
+    got = list(mrec.frames())
+    assert [f.index for f in got] == [f.index for f in frames]
+    for a, b in zip(frames, got, strict=True):
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_array_equal(a.color, b.color)
+        assert abs(a.timestamp_ns - b.timestamp_ns) < 1000  # ms double in the file: sub-microsecond
+
+
+def test_write_realsense_refuses_bag_and_overwrite(db3: tuple[Path, list], tmp_path: Path) -> None:  # type: ignore[type-arg]
+    info = sample_info(64, 48)
+    with pytest.raises(InputError, match=r"\.db3"):
+        write_realsense_recording(tmp_path / "x.bag", info, sample_frames(info, 1))
+    with pytest.raises(InputError, match="never overwritten"):
+        write_realsense_recording(db3[0], info, sample_frames(info, 1))
+
+
+def test_png_dataset(charuco_dir: Path) -> None:
+    recs = open_inputs([charuco_dir])
+    assert [r.name for r in recs][:2] == ["pose03", "pose04"]
+    rec = recs[0]
+    assert rec.info.depth_aligned_to_color
+    assert rec.info.depth_intrinsics == rec.info.color_intrinsics
+    assert rec.info.depth_intrinsics.fx == pytest.approx(1377.6449, abs=1e-3)
+    assert np.allclose(rec.info.depth_to_color.matrix, np.eye(4))
+    fs = next(rec.frames())
+    assert fs.index == 0 and fs.depth is not None and fs.depth.dtype == np.uint16
+    assert fs.depth.shape == (1080, 1920) and fs.color is not None and fs.color.shape == (1080, 1920, 3)
+    # A single standpoint folder opens on its own too (camera.json one level up).
+    assert open_recording(charuco_dir / "pose05").frame_count == rec.frame_count
