@@ -411,3 +411,49 @@ def run_scan(sequence: Path, mesh: Path, trajectory: Any, config: Any, *, chunk_
     finally:
         if own:
             run.close()
+
+
+# -- the checkerboard study in chunks: one standpoint per task ---------------------------------------
+@dataclass(frozen=True)
+class CheckerboardChunk:
+    """One standpoint: the recording's path (opened and read by the worker) and the study options."""
+
+    path: str
+    board: Any  # depthstation.board.Board (a small dataclass)
+    frames: int = 150
+    options: tuple[tuple[str, Any], ...] = ()
+
+
+def checkerboard_chunk(chunk: CheckerboardChunk) -> Any:
+    """StandpointResult of one standpoint, evaluated where it is read."""
+    from depthstation.capture.reader import open_recording
+    from evaluate.checkerboard.study import evaluate_recording
+
+    rec = open_recording(Path(chunk.path))
+    return evaluate_recording(rec, chunk.board, frames=chunk.frames, **dict(chunk.options))
+
+
+def checkerboard_chunks(inputs: Sequence[Path], board: Any, *, frames: int = 150,
+                        **options: Any) -> list[CheckerboardChunk]:
+    """Expand sessions / dataset roots into standpoints (index only, no frames read here)."""
+    from depthstation.capture.reader import open_inputs
+
+    recs = open_inputs([Path(p) for p in inputs])
+    if not recs:
+        raise InputError(None, "no standpoint recordings found in the inputs")
+    opts = tuple(sorted(options.items()))
+    return [CheckerboardChunk(str(r.path), board, frames, opts) for r in recs]
+
+
+def run_checkerboard(inputs: Sequence[Path], board: Any, *, frames: int = 150, workers: int = 1,
+                     cluster: str | None = None, progress: ProgressFn | None = None,
+                     runner: ChunkRunner | None = None, **options: Any) -> list[Any]:
+    """StandpointResults of every standpoint in input order, standpoints spread over the workers.
+
+    ``options`` go to ``evaluate_recording`` (collect_samples, refine, reference, ...).
+    """
+    chunks = checkerboard_chunks(inputs, board, frames=frames, **options)
+    if runner is not None:
+        return runner.map(checkerboard_chunk, chunks, progress=progress or (lambda d, t: None))
+    with ChunkRunner(workers, cluster) as run:
+        return run.map(checkerboard_chunk, chunks, progress=progress or (lambda d, t: None))
