@@ -1,0 +1,246 @@
+"""Registration of the trajectory frame to the reference: a given similarity, Umeyama from pass
+points, then ICP with scale on a cloud of depth pixels in a trusted band (paper: 0.5-2.0 m).
+
+Why with scale: SLAM trajectories and the camera's depth scale need not agree with the TLS metre
+(paper: s = 0.98288); a rigid fit would push that disagreement into the rotation.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from depthstation.errors import EvaluationError, InputError
+from depthstation.geometry import rotation_angle_deg
+from evaluate.scan._o3d import open3d
+from evaluate.scan.sequence import FrameSource
+from evaluate.scan.trajectory import Trajectory, compose_similarity, decompose_similarity
+
+F64 = NDArray[np.float64]
+
+
+@dataclass
+class Registration:
+    """p_reference = s R p_trajectory + t, how it was found, and how well it fits."""
+
+    matrix: F64
+    method: str
+    mean_c2c_m: float | None = None
+    mean_c2m_m: float | None = None
+    icp: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def scale(self) -> float:
+        return decompose_similarity(self.matrix)[0]
+
+    def to_dict(self) -> dict[str, Any]:
+        s, r, t = decompose_similarity(self.matrix)
+        return {"method": self.method, "scale": s, "rotation": r.tolist(), "translation_m": t.tolist(),
+                "matrix": self.matrix.tolist(), "mean_c2c_m": self.mean_c2c_m,
+                "mean_c2m_m": self.mean_c2m_m, "icp": self.icp}
+
+
+def read_similarity(path: Path) -> F64:
+    """A 4x4 matrix as text (whitespace or commas); 3x4 accepted; positive scale required."""
+    path = Path(path)
+    try:
+        m = np.loadtxt(path, delimiter="," if "," in path.read_text() else None, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise InputError(path, f"not a 4x4 matrix ({exc})") from exc
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0, 0, 0, 1]])
+    if m.shape != (4, 4) or not np.allclose(m[3], [0, 0, 0, 1]):
+        raise InputError(path, f"expected a 4x4 similarity [sR t; 0 0 0 1], got shape {m.shape}")
+    try:
+        s, r, _ = decompose_similarity(m)
+    except ValueError as exc:
+        raise InputError(path, str(exc)) from exc
+    if not np.allclose(m[:3, :3], s * r, atol=1e-6 * s):
+        raise InputError(path, "upper-left 3x3 is not a scaled rotation")
+    return m
+
+
+def read_pass_points(path: Path) -> tuple[F64, F64]:
+    """CSV rows `x y z x_ref y_ref z_ref` (trajectory frame, reference frame); header optional."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "pass-point file not found")
+    src, dst = [], []
+    with path.open(newline="") as fh:
+        for lineno, row in enumerate(csv.reader(fh), 1):
+            vals = [c.strip() for c in row if c.strip()]
+            if not vals or vals[0].startswith("#"):
+                continue
+            try:
+                nums = [float(v) for v in vals]
+            except ValueError:
+                if lineno == 1:
+                    continue  # header
+                raise InputError(path, f"line {lineno}: not numbers: {row}") from None
+            if len(nums) == 7:  # leading point id
+                nums = nums[1:]
+            if len(nums) != 6:
+                raise InputError(path, f"line {lineno}: expected 6 coordinates, got {len(nums)}")
+            src.append(nums[:3])
+            dst.append(nums[3:])
+    if len(src) < 3:
+        raise InputError(path, f"need at least 3 pass points, got {len(src)}")
+    return np.asarray(src), np.asarray(dst)
+
+
+def umeyama(src: F64, dst: F64, with_scale: bool = True) -> F64:
+    """Least-squares similarity dst ~ s R src + t (Umeyama 1991) as a 4x4 matrix."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    a, b = src - mu_s, dst - mu_d
+    cov = b.T @ a / src.shape[0]
+    u, d, vt = np.linalg.svd(cov)
+    sign = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2, 2] = -1.0
+    r = u @ sign @ vt
+    var_s = (a**2).sum() / src.shape[0]
+    if var_s <= 0:
+        raise EvaluationError("pass points are all the same point")
+    s = float(np.trace(np.diag(d) @ sign) / var_s) if with_scale else 1.0
+    return compose_similarity(s, r, mu_d - s * r @ mu_s)
+
+
+def depth_band_cloud(source: FrameSource, trajectory: Trajectory, *, band_m: tuple[float, float] = (0.5, 2.0),
+                     tolerance_s: float = 0.01, every: int = 10, stride: int = 4,
+                     max_frames: int | None = None, voxel_m: float = 0.01) -> F64:
+    """Depth pixels within the band, back-projected and posed into the trajectory frame.
+
+    Every `every`-th frame and every `stride`-th pixel: registration needs coverage, not density.
+    """
+    o3d = open3d()
+
+    info = source.info
+    intr = info.depth_intrinsics
+    v, u = np.mgrid[0:intr.height:stride, 0:intr.width:stride].astype(np.float64)
+    x = ((u - intr.ppx) / intr.fx).ravel()
+    y = ((v - intr.ppy) / intr.fy).ravel()
+    parts = []
+    used = 0
+    for fs in source.frames():
+        if fs.index % every or fs.depth is None:
+            continue
+        pose = trajectory.match(fs.timestamp_ns * 1e-9, tolerance_s)
+        if pose is None:
+            continue
+        z = fs.depth[::stride, ::stride].astype(np.float64).ravel() * info.depth_units_m
+        ok = (z >= band_m[0]) & (z <= band_m[1])
+        p = np.stack([x[ok] * z[ok], y[ok] * z[ok], z[ok]], axis=-1)
+        parts.append(p @ pose[:3, :3].T + pose[:3, 3])
+        used += 1
+        if max_frames is not None and used >= max_frames:
+            break
+    if not parts:
+        raise EvaluationError(f"no frame with a pose and depth in {band_m[0]}-{band_m[1]} m for registration")
+    pts = np.concatenate(parts)
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    if voxel_m > 0:
+        pc = pc.voxel_down_sample(voxel_m)
+    return np.asarray(pc.points)
+
+
+def icp_with_scale(points: F64, target: Any, init: F64, *,
+                   distances_m: tuple[float, ...] = (0.2, 0.08, 0.03, 0.015),
+                   max_iterations: int = 60) -> tuple[F64, dict[str, Any]]:
+    """Point-to-point ICP estimating a similarity, coarse to fine correspondence distances."""
+    o3d = open3d()
+
+    reg = o3d.pipelines.registration
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    m = np.asarray(init, dtype=np.float64)
+    res = None
+    for dist in distances_m:
+        res = reg.registration_icp(
+            src, target, dist, m, reg.TransformationEstimationPointToPoint(with_scaling=True),
+            reg.ICPConvergenceCriteria(relative_fitness=1e-10, relative_rmse=1e-10,
+                                       max_iteration=max_iterations))
+        m = np.asarray(res.transformation).copy()
+    assert res is not None
+    s0, r0, t0 = decompose_similarity(init)
+    s1, r1, t1 = decompose_similarity(m)
+    return m, {"fitness": float(res.fitness), "inlier_rmse_m": float(res.inlier_rmse),
+               "final_distance_m": distances_m[-1], "points": len(points),
+               "scale_change": s1 / s0, "rotation_change_deg": rotation_angle_deg(r0, r1),
+               "translation_change_m": float(np.linalg.norm(t1 - t0))}
+
+
+def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float = 0.02,
+                   iterations: int = 50, tol: float = 1e-7) -> tuple[F64, dict[str, Any]]:
+    """ICP with scale against the exact surface: closest points on the mesh, then Umeyama.
+
+    Why: point-to-point ICP against sampled reference points converges to where the samples
+    happen to lie (cm spacing); the mesh's closest points remove that sampling bias.
+    """
+    o3d = open3d()
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    pts = np.asarray(points, dtype=np.float64)
+    m = np.asarray(init, dtype=np.float64).copy()
+    used = 0
+    it = 0
+    for it in range(iterations):  # noqa: B007 - reported below
+        p = pts @ m[:3, :3].T + m[:3, 3]
+        cp = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))["points"].numpy()
+        ok = np.linalg.norm(cp - p, axis=1) < max_distance_m
+        used = int(ok.sum())
+        if used < 10:
+            raise EvaluationError("mesh refinement: fewer than 10 points near the reference surface")
+        step = umeyama(p[ok], cp[ok].astype(np.float64))
+        m = step @ m
+        if np.abs(step - np.eye(4)).max() < tol:
+            break
+    return m, {"mesh_refine_iterations": it + 1, "mesh_refine_points": used}
+
+
+def fit_distances(points: F64, matrix: F64, target: Any, mesh: Any | None) -> tuple[float, float | None]:
+    """Mean distance of the registered cloud to the reference points (C2C, as CloudCompare) and,
+    with a mesh, to the surface (C2M, free of the sampling spacing of the points)."""
+    o3d = open3d()
+
+    p = np.asarray(points) @ matrix[:3, :3].T + matrix[:3, 3]
+    src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
+    c2c = float(np.mean(np.asarray(src.compute_point_cloud_distance(target))))
+    c2m = None
+    if mesh is not None:
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+        c2m = float(np.mean(scene.compute_distance(o3d.core.Tensor(p.astype(np.float32))).numpy()))
+    return c2c, c2m
+
+
+def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any, *,
+             similarity: F64 | None = None, pass_points: tuple[F64, F64] | None = None,
+             icp: bool = True, band_m: tuple[float, float] = (0.5, 2.0), tolerance_s: float = 0.01,
+             every: int = 10) -> Registration:
+    """Initial similarity (given, from pass points, or identity), refined by ICP when asked."""
+    if similarity is not None:
+        init, method = np.asarray(similarity, dtype=np.float64), "given"
+    elif pass_points is not None:
+        init, method = umeyama(*pass_points), "pass_points"
+    else:
+        init, method = np.eye(4), "identity"
+    points = depth_band_cloud(source, trajectory, band_m=band_m, tolerance_s=tolerance_s, every=every)
+    info: dict[str, Any] = {"band_m": list(band_m)}
+    m = init
+    if icp:
+        m, icp_info = icp_with_scale(points, target, init)
+        info.update(icp_info)
+        method += "+icp"
+        if mesh is not None:
+            m, refine_info = refine_on_mesh(points, mesh, m)
+            info.update(refine_info)
+            method += "+mesh"
+    c2c, c2m = fit_distances(points, m, target, mesh)
+    return Registration(m, method, c2c, c2m, info)

@@ -1,0 +1,118 @@
+"""TUM trajectories (`timestamp tx ty tz qx qy qz qw`, what ORB-SLAM3 writes) and time matching."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from depthstation.errors import InputError
+from depthstation.geometry import matrix_to_quaternion, quaternion_to_matrix
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Camera-to-world poses (4x4) at time stamps in seconds, sorted by time."""
+
+    timestamps_s: NDArray[np.float64]
+    poses: NDArray[np.float64]  # N x 4 x 4, p_world = T @ p_camera
+
+    def __len__(self) -> int:
+        return int(self.timestamps_s.size)
+
+    def match(self, t_s: float, tolerance_s: float) -> NDArray[np.float64] | None:
+        """Pose whose stamp is nearest to t_s, or None when none lies within the tolerance.
+
+        Nearest rather than interpolated: ORB-SLAM3 stamps its poses with the frame time, so an
+        exact match is the normal case and a gap means the tracker lost the frame.
+        """
+        ts = self.timestamps_s
+        if ts.size == 0:
+            return None
+        i = int(np.searchsorted(ts, t_s))
+        best = None
+        for j in (i - 1, i):
+            if 0 <= j < ts.size and (best is None or abs(ts[j] - t_s) < abs(ts[best] - t_s)):
+                best = j
+        if best is None or abs(ts[best] - t_s) > tolerance_s:
+            return None
+        return self.poses[best]
+
+    def transformed(self, similarity: NDArray[np.float64]) -> Trajectory:
+        """Poses in another frame: p' = s R p + t applied to the camera centre; the rotation part
+        gets the pure rotation (cameras stay orthonormal, the scale moves only the centres)."""
+        s, r, t = decompose_similarity(similarity)
+        out = self.poses.copy()
+        out[:, :3, :3] = r @ self.poses[:, :3, :3]
+        out[:, :3, 3] = (s * (r @ self.poses[:, :3, 3].T)).T + t
+        return Trajectory(self.timestamps_s.copy(), out)
+
+
+def decompose_similarity(m: NDArray[np.float64]) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
+    """4x4 similarity [sR t; 0 1] -> (s, R, t)."""
+    m = np.asarray(m, dtype=np.float64)
+    a = m[:3, :3]
+    s = float(np.cbrt(np.linalg.det(a)))
+    if s <= 0:
+        raise ValueError("similarity has a non-positive determinant")
+    u, _, vt = np.linalg.svd(a / s)
+    r = u @ vt
+    return s, r, m[:3, 3].copy()
+
+
+def compose_similarity(s: float, r: NDArray[np.float64], t: NDArray[np.float64]) -> NDArray[np.float64]:
+    m = np.eye(4)
+    m[:3, :3] = s * np.asarray(r)
+    m[:3, 3] = t
+    return m
+
+
+def read_tum(path: Path) -> Trajectory:
+    """Read a TUM trajectory; comment lines (#) and blank lines are skipped."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "trajectory file not found")
+    rows: list[list[float]] = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.replace(",", " ").split()
+        if len(parts) != 8:
+            raise InputError(path, f"line {lineno}: expected 8 values "
+                                   f"(timestamp tx ty tz qx qy qz qw), got {len(parts)}")
+        try:
+            rows.append([float(p) for p in parts])
+        except ValueError as exc:
+            raise InputError(path, f"line {lineno}: not a number ({exc})") from exc
+    if not rows:
+        raise InputError(path, "trajectory has no poses")
+    a = np.asarray(rows)
+    order = np.argsort(a[:, 0], kind="stable")
+    a = a[order]
+    poses = np.tile(np.eye(4), (a.shape[0], 1, 1))
+    for i, row in enumerate(a):
+        q = row[4:8]
+        nq = np.linalg.norm(q)
+        if not np.isfinite(nq) or nq < 1e-9:
+            raise InputError(path, f"pose at t={row[0]} has a zero quaternion")
+        poses[i, :3, :3] = quaternion_to_matrix(q / nq)
+        poses[i, :3, 3] = row[1:4]
+    return Trajectory(a[:, 0], poses)
+
+
+def write_tum(path: Path, timestamps_s: Sequence[float] | NDArray[np.float64],
+              poses: Sequence[NDArray[np.float64]] | NDArray[np.float64]) -> Path:
+    """Write camera-to-world poses as a TUM trajectory (9 decimals: ns-exact time stamps)."""
+    path = Path(path)
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    for t, T in zip(timestamps_s, poses, strict=True):
+        T = np.asarray(T)
+        q = matrix_to_quaternion(T[:3, :3])
+        vals = [*T[:3, 3], *q]
+        lines.append(f"{float(t):.9f} " + " ".join(f"{v:.9f}" for v in vals))
+    path.write_text("\n".join(lines) + "\n")
+    return path

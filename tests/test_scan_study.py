@@ -1,0 +1,121 @@
+"""Reference-scan study on a known world: analytic room, known error model, known registration."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from depthstation.geometry import rodrigues, rotation_angle_deg
+from evaluate.grid import Grid
+from evaluate.scan.raycast import MeshCaster
+from evaluate.scan.reference import sample_reference_points
+from evaluate.scan.registration import register, umeyama
+from evaluate.scan.study import StudyConfig, evaluate_chunk, run_study
+from evaluate.scan.synthetic import ErrorModel, Room, make_sequence, render_truth
+from evaluate.scan.trajectory import Trajectory, compose_similarity, decompose_similarity
+
+MODEL = ErrorModel(a_per_m=0.002, b_m=0.004, sigma_per_m=0.0015)
+UNITS = 1e-4
+
+
+@pytest.fixture(scope="module")
+def room() -> Room:
+    return Room()
+
+
+@pytest.fixture(scope="module")
+def mesh(room: Room) -> object:
+    return room.mesh()
+
+
+@pytest.fixture(scope="module")
+def seq():  # type: ignore[no-untyped-def]
+    return make_sequence(frames=24, width=160, height=120, model=MODEL, depth_units_m=UNITS, seed=3)
+
+
+def _traj(seq) -> Trajectory:  # type: ignore[no-untyped-def]
+    return Trajectory(np.asarray(seq.timestamps_ns) * 1e-9, seq.poses)
+
+
+def test_reference_depth_and_inclination_match_the_analytic_room(room: Room, mesh: object, seq) -> None:  # type: ignore[no-untyped-def]
+    caster = MeshCaster(mesh, seq.info.depth_intrinsics, nthreads=1)
+    z, inc = render_truth(room, seq.info.depth_intrinsics, seq.poses[5])
+    im = caster.images(seq.poses[5], seq.depth[5], UNITS)
+    assert np.isfinite(im.reference_m).all()
+    # z-depth through integer pixel centres: a +0.5 px or range-vs-z slip would be mm to cm off
+    assert np.median(np.abs(im.reference_m - z)) < 2e-5
+    assert np.percentile(np.abs(im.inclination_deg - inc), 99) < 0.05
+    err = im.error_m[np.isfinite(im.error_m)]
+    assert err.mean() > 0  # the model reads too far: positive errors (DESIGN sign)
+
+
+def test_grid_recovers_the_model_signature(room: Room, mesh: object, seq) -> None:  # type: ignore[no-untyped-def]
+    config = StudyConfig(distance_bin_m=0.05, inclination_bin_deg=2.0, nthreads=1)
+    caster = MeshCaster(mesh, seq.info.depth_intrinsics, nthreads=1)
+    res = evaluate_chunk(caster, seq, _traj(seq), config)
+    grid = res.grid
+    assert res.stats[0] == 24 * 160 * 120 and len(res.used) == 24
+    # expected cell statistics from the truth of the very same pixels (analytic signature)
+    exp_bias, exp_var = Grid.empty(0.05, 2.0), Grid.empty(0.05, 2.0)
+    for k in range(24):
+        z, inc = render_truth(room, seq.info.depth_intrinsics, seq.poses[k])
+        ok = seq.depth[k] > 0
+        exp_bias.add(z[ok], inc[ok], MODEL.bias_m(z[ok], inc[ok]))
+        exp_var.add(z[ok], inc[ok], MODEL.sigma_m(z[ok]) ** 2 + UNITS**2 / 12)
+    well = (grid.count >= 200) & (exp_bias.count >= 200)
+    assert well.sum() >= 40
+    se = grid.stderr[well]
+    diff = np.abs(grid.mean_m[well] - exp_bias.mean_m[well])
+    assert np.all((diff <= 4 * se) | (diff <= 1e-3))
+    assert np.mean(diff <= 3 * se) > 0.97
+    expected_std = np.sqrt(exp_var.mean_m[well] + np.nan_to_num(exp_bias.var[well]))
+    ratio = grid.std[well] / expected_std
+    tol = 4 / np.sqrt(2 * (grid.count[well] - 1)) + 0.02
+    assert np.all(np.abs(ratio - 1) <= tol)
+
+
+def test_merged_chunks_in_two_processes_equal_one_pass(mesh: object, seq, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    import open3d as o3d
+
+    path = tmp_path / "room.ply"
+    o3d.io.write_triangle_mesh(str(path), mesh)
+    config = StudyConfig(distance_bin_m=0.05, inclination_bin_deg=1.0, nthreads=1)
+    one = run_study(seq, path, _traj(seq), config, workers=1)
+    two = run_study(seq, path, _traj(seq), config, workers=2, chunk_frames=5)
+    np.testing.assert_array_equal(two.grid.count, one.grid.count)
+    np.testing.assert_allclose(two.grid.mean, one.grid.mean, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(two.grid.m2, one.grid.m2, rtol=1e-9, atol=1e-15)
+    np.testing.assert_array_equal(two.stats, one.stats)
+    assert sorted(two.used) == one.used
+
+
+def test_registration_recovers_a_known_similarity(room: Room, mesh: object) -> None:
+    s_true = 0.982
+    # a trajectory frame scaled by 1/s reads depth in that frame's units: consistent data
+    seq = make_sequence(frames=20, width=120, height=90, depth_units_m=UNITS, seed=5,
+                        model=ErrorModel(scale=1 / s_true, a_per_m=0, b_m=0, sigma_per_m=5e-4))
+    S = compose_similarity(s_true, rodrigues(np.radians([3.0, -2.0, 20.0])), np.array([1.0, -0.5, 0.2]))
+    traj_f = _traj(seq).transformed(np.linalg.inv(S))
+    rng = np.random.default_rng(1)
+    ref_pts = np.array([[0, 0, 0], [6, 0, 0], [6, 5, 0], [0, 5, 2.8], [3, 2.5, 0.75], [6, 5, 2.8]], float)
+    si = np.linalg.inv(S)
+    src = ref_pts @ si[:3, :3].T + si[:3, 3] + rng.normal(0, 0.02, ref_pts.shape)
+    reg = register(seq, traj_f, mesh, sample_reference_points(mesh, 300_000), pass_points=(src, ref_pts),
+                   every=1)
+    s, r, t = decompose_similarity(reg.matrix)
+    s0, r0, t0 = decompose_similarity(S)
+    assert abs(s / s0 - 1) < 1e-3
+    assert rotation_angle_deg(r, r0) < 0.05
+    assert np.linalg.norm(t - t0) < 0.005
+    assert reg.mean_c2m_m is not None and reg.mean_c2m_m < 0.002
+    # the posed trajectory then matches the truth poses
+    back = traj_f.transformed(reg.matrix)
+    assert np.abs(back.poses[:, :3, 3] - seq.poses[:, :3, 3]).max() < 0.005
+
+
+def test_umeyama_exact_on_noise_free_points() -> None:
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(10, 3))
+    S = compose_similarity(1.3, rodrigues(np.array([0.2, -0.4, 1.0])), np.array([0.5, 2.0, -1.0]))
+    dst = src @ S[:3, :3].T + S[:3, 3]
+    np.testing.assert_allclose(umeyama(src, dst), S, atol=1e-10)
