@@ -55,6 +55,8 @@ class Step:
     title: str
     requires: tuple[str, ...]               # 'module:attribute' the step calls
     run: Callable[[DemoContext], tuple[Path, str]]   # -> (result folder, one-line summary)
+    # extra requirements that depend on what earlier steps produced (e.g. a fallback input)
+    needs: Callable[[DemoContext], tuple[str, ...]] | None = None
 
 
 def missing_requirement(requires: tuple[str, ...]) -> str | None:
@@ -99,7 +101,7 @@ def run_steps(ctx: DemoContext, steps: list[Step], skip: set[str]) -> dict[str, 
             stderr_console.print(f"{head}: skipped (--skip {step.name})")
             outcomes[step.name] = StepOutcome("skipped")
             continue
-        missing = missing_requirement(step.requires)
+        missing = missing_requirement(step.requires + (step.needs(ctx) if step.needs else ()))
         if missing is not None:
             msg = f"step {step.name}: not available in this build (needs {missing})"
             stderr_console.print(f"{head}\n  [yellow]{msg}[/]")

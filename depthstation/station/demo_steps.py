@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from depthstation.progress import progress
 from depthstation.station.demo import DEMO_MODEL, DEMO_PROTOCOL, DemoContext, Step
 
 # ------------------------------------------------------------------------------ checkerboard study
@@ -13,25 +12,13 @@ from depthstation.station.demo import DEMO_MODEL, DEMO_PROTOCOL, DemoContext, St
 
 def evaluate_checkerboard_session(inputs: list[Path], out: Path, ctx: DemoContext, name: str,
                                   frames: int = 150) -> Path:
-    """The checkerboard study of a session, standpoint by standpoint, with a progress bar."""
-    from depthstation.capture.reader import open_inputs
-    from depthstation.protocol import load_protocol
-    from evaluate.checkerboard import evaluate_recording
-    from evaluate.checkerboard.report import write_study
+    """The checkerboard study of a session (the stage's `run_study`, as `evaluate checkerboard` runs it)."""
+    from depthstation.protocol import PROTOCOL_DIR
+    from evaluate.checkerboard.run import run_study
 
-    protocol = load_protocol(DEMO_PROTOCOL)
-    recs = open_inputs(inputs)
-    results = []
-    with progress() as bar:
-        task = bar.add_task(f"checkerboard study ({name})", total=len(recs), status="")
-        for rec in recs:
-            bar.update(task, status=rec.name)
-            results.append(evaluate_recording(rec, protocol.board, frames=frames))
-            bar.advance(task)
-    device = dict(recs[0].metadata.get("device", {})) if recs else {}
-    write_study(out, results, protocol.board, [str(p) for p in inputs],
-                {"frames": frames, "protocol": DEMO_PROTOCOL}, device)
-    ctx.facts[f"{name}_standpoints"] = [r.row() for r in results]
+    rows = run_study(inputs, PROTOCOL_DIR / f"{DEMO_PROTOCOL}.toml", out, frames=frames,
+                     target=ctx.target(out, name))
+    ctx.facts[f"{name}_standpoints"] = rows
     return out
 
 
@@ -56,8 +43,9 @@ def _checkerboard_step(ctx: DemoContext) -> tuple[Path, str]:
 
 
 CHECKERBOARD = Step("checkerboard", "checkerboard study of the session",
-                    ("depthstation.capture.reader:open_inputs", "evaluate.checkerboard:evaluate_recording",
-                     "evaluate.checkerboard.report:write_study"), _checkerboard_step)
+                    ("evaluate.checkerboard.run:run_study",), _checkerboard_step,
+                    needs=lambda ctx: () if "session" in ctx.results else
+                    ("simulate.checkerboard:simulate_checkerboard",))
 
 # ------------------------------------------------------------------------------ compare D455 / D435
 
@@ -86,7 +74,7 @@ def _compare_step(ctx: DemoContext) -> tuple[Path, str]:
 
 COMPARE = Step("compare", "compare with a simulated D435 (shorter baseline)",
                ("simulate.checkerboard:simulate_checkerboard", "simulate.model:load_model",
-                "evaluate.checkerboard.report:write_study"), _compare_step)
+                "evaluate.checkerboard.run:run_study"), _compare_step)
 
 
 def _not_wired(ctx: DemoContext) -> tuple[Path, Any]:
