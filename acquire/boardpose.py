@@ -44,6 +44,10 @@ class BoardPose:
         center = self.R @ np.zeros(3) + self.t
         return n if float(np.dot(n, center)) < 0 else -n
 
+    def center_in_camera(self, board: Board) -> FloatArray:
+        """The board centre in the depth camera frame."""
+        return self.R @ board.center + self.t
+
     @property
     def camera_position(self) -> FloatArray:
         """Depth camera centre in the board frame (for stillness checks)."""

@@ -223,8 +223,8 @@ class GuidedCapture:
             t = self._t_s(fs)
             t_start = t if t_start is None else t_start
             pose, fill = self._measure(fs)
-            is_still = still.update(fs.timestamp_ns, None if pose is None else pose.R,
-                                    None if pose is None else pose.camera_position)
+            is_still = still.update(fs.timestamp_ns,
+                                    None if pose is None else pose.center_in_camera(self.protocol.board))
             g = self._guidance(sp, pose, fill, is_still)
             # end of range: the board is seen, the operator is past half the step, and depth is gone
             if pose is not None and fill is not None:

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.geometry import rotation_angle_deg
 from depthstation.protocol import Standpoint, Tolerances
 
 # Where the board centre should sit in the image: within this share of the half-width of centre.
@@ -109,40 +108,52 @@ def guide(target: Standpoint, tol: Tolerances, *, distance_m: float | None, incl
 
 @dataclass
 class StillnessTracker:
-    """Pose stable over `still_seconds`: the camera centre and orientation (board frame) moved less
-    than the tolerances within the window, judged on frame timestamps (not wall time)."""
+    """Pose stable over `still_seconds`, judged on frame timestamps (not wall time).
+
+    Judged on the board centre as the camera sees it: its position (camera frame) within
+    `translation_m` and its bearing within `rotation_deg` of the latest frame. The board's own
+    tilt from EPnP is left out: it jitters by tenths of a degree at a few metres even for a camera
+    on a tripod, while a hand-held camera's turns and shifts all move the centre.
+    """
 
     seconds: float
     translation_m: float
     rotation_deg: float
-    _poses: deque[tuple[int, NDArray[np.float64], NDArray[np.float64]]] = field(default_factory=deque)
+    _samples: deque[tuple[int, NDArray[np.float64]]] = field(default_factory=deque)
 
     @classmethod
     def from_tolerances(cls, tol: Tolerances) -> StillnessTracker:
         return cls(tol.still_seconds, tol.still_translation_m, tol.still_rotation_deg)
 
     def reset(self) -> None:
-        self._poses.clear()
+        self._samples.clear()
 
-    def update(self, t_ns: int, r: NDArray[np.float64] | None, position: NDArray[np.float64] | None) -> bool:
-        """Add one frame's pose (None = board lost, which restarts the window); True when still."""
-        if r is None or position is None:
-            self._poses.clear()
+    def _agrees(self, a: NDArray[np.float64], b: NDArray[np.float64]) -> bool:
+        if float(np.linalg.norm(a - b)) > self.translation_m:
             return False
-        self._poses.append((t_ns, r, position))
-        # keep the longest run of recent poses that all agree with the latest one
+        cos = float(np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)))
+        return math.degrees(math.acos(min(1.0, max(-1.0, cos)))) <= self.rotation_deg
+
+    def update(self, t_ns: int, center: NDArray[np.float64] | None) -> bool:
+        """Add one frame's board centre (camera frame; None = board lost, which restarts the
+        window); True when the centre stayed put for the whole window."""
+        if center is None:
+            self._samples.clear()
+            return False
+        c = np.asarray(center, dtype=np.float64)
+        self._samples.append((t_ns, c))
+        # keep the longest run of recent samples that all agree with the latest one
         keep = 0
-        for _, r_i, p_i in reversed(self._poses):
-            if (np.linalg.norm(p_i - position) > self.translation_m
-                    or rotation_angle_deg(r_i, r) > self.rotation_deg):
+        for _, c_i in reversed(self._samples):
+            if not self._agrees(c_i, c):
                 break
             keep += 1
-        while len(self._poses) > keep:
-            self._poses.popleft()
+        while len(self._samples) > keep:
+            self._samples.popleft()
         # no need to remember more than the window (one sample at or before its start)
-        while len(self._poses) > 1 and t_ns - self._poses[1][0] >= self.seconds * 1e9:
-            self._poses.popleft()
-        return (t_ns - self._poses[0][0]) / 1e9 >= self.seconds - 1e-6
+        while len(self._samples) > 1 and t_ns - self._samples[1][0] >= self.seconds * 1e9:
+            self._samples.popleft()
+        return (t_ns - self._samples[0][0]) / 1e9 >= self.seconds - 1e-6
 
 
 def end_of_range(fill_rates: list[float], threshold: float, frames: int = 5) -> bool:

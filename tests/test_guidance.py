@@ -109,14 +109,22 @@ def test_guidance_says_how_to_move() -> None:
 def test_stillness_needs_the_whole_window() -> None:
     tr = StillnessTracker(seconds=1.0, translation_m=0.01, rotation_deg=0.5)
     rng = np.random.default_rng(1)
-    r = np.eye(3)
-    still = [tr.update(int(i * 1e9 / 30), r, rng.normal(0, 0.001, 3)) for i in range(40)]
+    c = np.array([0.0, 0.0, 1.5])
+    still = [tr.update(int(i * 1e9 / 30), c + rng.normal(0, 0.001, 3)) for i in range(40)]
     assert not any(still[:30]) and all(still[31:])
-    # a 3 cm jump restarts the window
-    assert not tr.update(int(40 * 1e9 / 30), r, np.array([0.03, 0, 0]))
-    still = [tr.update(int(i * 1e9 / 30), r, np.array([0.03, 0, 0])) for i in range(41, 80)]
+    # a 3 cm shift restarts the window
+    c2 = c + np.array([0.03, 0, 0])
+    assert not tr.update(int(40 * 1e9 / 30), c2)
+    still = [tr.update(int(i * 1e9 / 30), c2) for i in range(41, 80)]
     assert not any(still[:29]) and still[-1]
-    assert not tr.update(int(81 * 1e9 / 30), None, None)
+    # turning the camera by 1 degree moves the bearing, not the range: also restarts the window
+    a = np.radians(1.0)
+    c3 = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]) @ c2
+    tr2 = StillnessTracker(seconds=1.0, translation_m=0.05, rotation_deg=0.5)
+    for i in range(40):
+        tr2.update(int(i * 1e9 / 30), c2)
+    assert not tr2.update(int(40 * 1e9 / 30), c3)
+    assert not tr.update(int(81 * 1e9 / 30), None)
 
 
 def test_end_of_range_and_fill_rate() -> None:
