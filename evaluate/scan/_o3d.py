@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 
 def open3d() -> Any:
     """The open3d module; imported on first use so the CLI starts without it."""
-    o3d = open3d()
-
-    return o3d
+    return importlib.import_module("open3d")
