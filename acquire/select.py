@@ -57,6 +57,7 @@ def open_camera(spec: CameraSpec, **sim_options: Any) -> Any:
     if spec.kind == "file":
         from acquire.playback import PlaybackCamera
 
+        assert spec.path is not None
         return PlaybackCamera(spec.path)
     from simulate.camera import SimulatedCamera
 

@@ -74,6 +74,7 @@ class OperatorSettings:
     footing_deg: float = 0.7
     tremor_m: float = 0.0015  # hand tremor per frame (std per axis)
     tremor_deg: float = 0.08
+    update_hz: float = 30.0  # how often the held pose changes (a renderer re-renders on each change)
 
 
 @dataclass
@@ -88,18 +89,23 @@ class SimulatedOperator:
     _move: tuple[float, float, FloatArray, FloatArray] | None = field(default=None, init=False)
     _next_look_s: float = field(default=0.0, init=False)
     moves: int = field(default=0, init=False)
+    _held: tuple[float, FloatArray] | None = field(default=None, init=False)
 
     def __post_init__(self) -> None:
         self._rng = np.random.default_rng(self.seed)
 
     def pose(self, t_s: float) -> FloatArray:
-        """Camera-to-board pose at time t (the walk in progress, plus this frame's tremor)."""
+        """Camera-to-board pose at time t (the walk in progress, plus tremor), held for
+        1 / `update_hz` seconds so a ray-casting renderer is not asked for a new view every frame."""
+        if self._held is not None and t_s < self._held[0] + 1.0 / self.settings.update_hz - 1e-9:
+            return self._held[1].copy()
         st = self._current(t_s)
         pose = st.camera_to_board(self.board)
         s = self.settings
         if s.tremor_m > 0 or s.tremor_deg > 0:
             pose[:3, 3] += self._rng.normal(0.0, s.tremor_m, 3)
             pose[:3, :3] = pose[:3, :3] @ rodrigues(np.radians(self._rng.normal(0.0, s.tremor_deg, 3)))
+        self._held = (t_s, pose.copy())
         return pose
 
     def board_to_camera(self, t_s: float) -> FloatArray:
