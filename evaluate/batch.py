@@ -41,6 +41,7 @@ from evaluate.grid import GRID_FILE, Grid
 DONE_MARKER = ".done"
 COMBINED_DIR = "combined"
 BATCH_FILE = "batch.json"
+STANDPOINTS_FILE = "standpoints.csv"
 
 
 # -- what travels: a grid as its non-empty cells ---------------------------------------------------
@@ -248,6 +249,27 @@ def combine_grids(paths: Sequence[Path], out_dir: Path, inputs: Sequence[str]) -
     return grid
 
 
+def combine_tables(tables: Sequence[tuple[str, Path]], out: Path) -> Path:
+    """All items' standpoints.csv in one table, an ``item`` column first (fleet comparisons)."""
+    import csv
+
+    rows: list[dict[str, str]] = []
+    columns: list[str] = ["item"]
+    for name, path in tables:
+        with path.open(newline="") as f:
+            for row in csv.DictReader(f):
+                rows.append({"item": name, **row})
+                columns += [c for c in row if c not in columns]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+    tmp.replace(out)
+    return out
+
+
 @dataclass
 class BatchReport:
     out: Path
@@ -293,6 +315,10 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
     if grids:
         combine_grids([g for _, g in grids], man.out / COMBINED_DIR, [n for n, _ in grids])
         report.combined = man.out / COMBINED_DIR / GRID_FILE
+    tables = [(it.name, it.out / STANDPOINTS_FILE) for it in man.items
+              if is_done(it) and (it.out / STANDPOINTS_FILE).is_file()]
+    if tables:
+        combine_tables(tables, man.out / COMBINED_DIR / STANDPOINTS_FILE)
     write_json(man.out / BATCH_FILE, {
         "manifest": str(man.path), "cluster": cluster, "workers": workers,
         "items": [{"name": it.name, "kind": it.kind, "out": str(it.out), "done": is_done(it),
@@ -457,3 +483,91 @@ def run_checkerboard(inputs: Sequence[Path], board: Any, *, frames: int = 150, w
         return runner.map(checkerboard_chunk, chunks, progress=progress or (lambda d, t: None))
     with ChunkRunner(workers, cluster) as run:
         return run.map(checkerboard_chunk, chunks, progress=progress or (lambda d, t: None))
+
+
+# -- manifest kinds --------------------------------------------------------------------------------
+def _prepare_checkerboard(item: BatchItem) -> ItemJob:
+    """Item inputs: ``inputs`` (path or list: sessions, recordings, PNG folders), ``board``.
+    Options: ``frames`` (150), ``reference`` (auto|average|frame)."""
+    from depthstation.board import load_board
+    from depthstation.capture.reader import open_recording
+    from evaluate.checkerboard.report import write_study
+
+    raw = item.inputs.get("inputs")
+    if raw is None or "board" not in item.inputs:
+        raise InputError(None, f"{item.name}: a checkerboard item needs inputs.inputs and inputs.board")
+    paths = [Path(p) for p in (raw if isinstance(raw, list) else [raw])]
+    board_path = Path(item.inputs["board"])
+    board = load_board(board_path)
+    frames = int(item.options.get("frames", 150))
+    reference = str(item.options.get("reference", "auto"))
+    chunks = checkerboard_chunks(paths, board, frames=frames, reference=reference)
+
+    def finish(results: list[Any]) -> Path | None:
+        if not any(r.usable for r in results):
+            raise EvaluationError(f"{item.name}: no usable frame in any of {len(results)} standpoints")
+        first = open_recording(Path(chunks[0].path))
+        device = dict(first.metadata.get("device") or first.info.device or {})
+        params = {"board": str(board_path), "frames": frames, "reference": reference}
+        write_study(item.out, results, board, [str(p) for p in paths], params, device)
+        return None
+
+    return ItemJob(checkerboard_chunk, chunks, finish, description="standpoints")
+
+
+def _prepare_scan(item: BatchItem) -> ItemJob:
+    """Item inputs: ``sequence``, ``poses`` (TUM), ``reference`` (mesh or cloud), optional
+    ``similarity`` (4x4 text), ``pass_points`` (CSV), ``intrinsics``. Options: ``chunk_frames``
+    (64), ``icp`` (true), grid bins and frame selection of the scan study's StudyConfig."""
+    from dataclasses import fields
+
+    from evaluate.scan.reference import reference_mesh, sample_reference_points
+    from evaluate.scan.registration import read_pass_points, read_similarity, register
+    from evaluate.scan.sequence import open_sequence
+    from evaluate.scan.study import StudyConfig
+    from evaluate.scan.trajectory import read_tum
+
+    need = [k for k in ("sequence", "poses", "reference") if k not in item.inputs]
+    if need:
+        raise InputError(None, f"{item.name}: a scan item needs inputs {', '.join(need)}")
+    opts = dict(item.options)
+    chunk_frames = int(opts.pop("chunk_frames", 64))
+    icp = bool(opts.pop("icp", True))
+    names = {f.name for f in fields(StudyConfig)} - {"per_frame_dir"}
+    unknown = sorted(set(opts) - names)
+    if unknown:
+        raise InputError(None, f"{item.name}: unknown scan options {', '.join(unknown)}")
+    config = StudyConfig(**opts)
+    seq_path = Path(item.inputs["sequence"])
+    intr = Path(item.inputs["intrinsics"]) if "intrinsics" in item.inputs else None
+    item.out.mkdir(parents=True, exist_ok=True)
+    mesh, mesh_path, mesh_info = reference_mesh(Path(item.inputs["reference"]), item.out)
+    trajectory = read_tum(Path(item.inputs["poses"]))
+    sim = read_similarity(Path(item.inputs["similarity"])) if "similarity" in item.inputs else None
+    pp = read_pass_points(Path(item.inputs["pass_points"])) if "pass_points" in item.inputs else None
+    if icp or pp is not None or sim is None:
+        source = open_sequence(seq_path, intr)
+        reg = register(source, trajectory, mesh, sample_reference_points(mesh), similarity=sim,
+                       pass_points=pp, icp=icp, tolerance_s=config.tolerance_s)
+        matrix, registration = reg.matrix, reg.to_dict()
+    else:
+        matrix, registration = sim, {"method": "given", "matrix": sim.tolist()}
+    posed = trajectory.transformed(matrix)
+    chunks = scan_chunks(seq_path, mesh_path, posed, config, chunk_frames=chunk_frames, intrinsics=intr)
+
+    def finish(res: Any) -> Path:
+        grid_path = res.grid.save(item.out / GRID_FILE)
+        summary = {"inputs": item.inputs, "registration": registration, "mesh": mesh_info,
+                   "chunks": len(chunks), "chunk_frames": chunk_frames, **res.summary()}
+        write_json(item.out / "summary.json", summary)
+        write_result_info(item.out, "scan", [str(v) for v in item.inputs.values()],
+                          {**item.options, "chunk_frames": chunk_frames},
+                          extra={"files": [GRID_FILE, "summary.json"]})
+        return Path(grid_path)
+
+    return ItemJob(scan_chunk, chunks, finish, merge=merge_scan_results, encode=pack_scan_result,
+                   decode=unpack_scan_result, description="frames")
+
+
+register_kind("scan", _prepare_scan)
+register_kind("checkerboard", _prepare_checkerboard)

@@ -1,0 +1,71 @@
+"""A batch of real items: two simulated room sequences (scan) and a real ChArUco standpoint
+(checkerboard), on 2 local workers; the combined grid equals the two one-pass grids merged and
+the combined table holds the checkerboard rows."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("open3d")
+
+
+def make_scan_item(root: Path, name: str, seed: int) -> dict[str, Path]:
+    import open3d as o3d
+
+    from evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
+    from evaluate.scan.trajectory import write_tum
+
+    room = Room()
+    seq = make_sequence(frames=6, width=64, height=48, room=room, seed=seed)
+    folder = write_tum_folder(seq, root / name)
+    poses = write_tum(root / f"{name}.txt", np.asarray(seq.timestamps_ns) * 1e-9, seq.poses)
+    mesh = root / "room.ply"
+    if not mesh.exists():
+        o3d.io.write_triangle_mesh(str(mesh), room.mesh(segments=64))  # type: ignore[arg-type]
+    sim = root / "identity.txt"
+    np.savetxt(sim, np.eye(4))
+    return {"sequence": folder, "poses": poses, "reference": mesh, "similarity": sim}
+
+
+def test_batch_of_scans_and_checkerboard(tmp_path: Path, charuco_dir: Path) -> None:
+    from evaluate.batch import batch
+    from evaluate.grid import GRID_FILE, Grid
+    from evaluate.scan.study import StudyConfig, run_study
+    from evaluate.scan.trajectory import read_tum
+
+    items = {n: make_scan_item(tmp_path, n, s) for n, s in (("room_a", 1), ("room_b", 2))}
+    opts = 'options = { icp = false, chunk_frames = 2, distance_bin_m = 0.05, inclination_bin_deg = 1.0 }'
+    text = ['out = "res"']
+    for n, inp in items.items():
+        fields = ", ".join(f'{k} = "{v}"' for k, v in inp.items())
+        text.append(f'[[items]]\nkind = "scan"\nname = "{n}"\ninputs = {{ {fields} }}\n{opts}\n')
+    text.append(f'[[items]]\nkind = "checkerboard"\nname = "d435"\n'
+                f'inputs = {{ inputs = ["{charuco_dir / "pose03"}"], board = "{charuco_dir / "board.json"}" }}\n'
+                'options = { frames = 3 }\n')
+    manifest = tmp_path / "m.toml"
+    manifest.write_text("\n".join(text))
+    report = batch(manifest, workers=2)
+    assert report.done == ["room_a", "room_b", "d435"]
+    out = tmp_path / "res"
+    config = StudyConfig(distance_bin_m=0.05, inclination_bin_deg=1.0)
+    expected = None
+    for n, inp in items.items():
+        one = run_study(inp["sequence"], inp["reference"], read_tum(inp["poses"]), config).grid
+        got = Grid.load(out / n / GRID_FILE)
+        np.testing.assert_array_equal(got.count, one.count)
+        np.testing.assert_allclose(got.mean, one.mean, rtol=1e-9, atol=1e-15)
+        expected = one if expected is None else expected.merge(one)
+    assert expected is not None and expected.total > 1000
+    combined = Grid.load(out / "combined" / GRID_FILE)
+    np.testing.assert_array_equal(combined.count, expected.count)
+    np.testing.assert_allclose(combined.mean, expected.mean, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(combined.m2, expected.m2, rtol=1e-8, atol=1e-18)
+    with (out / "combined" / "standpoints.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["item"], r["standpoint"]) for r in rows] == [("d435", "pose03")]
+    assert (out / "d435" / "standpoints.csv").is_file() and (out / "d435" / "result.json").is_file()
+    assert batch(manifest, workers=2).skipped == ["room_a", "room_b", "d435"]
