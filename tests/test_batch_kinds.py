@@ -43,8 +43,8 @@ def test_batch_of_scans_and_checkerboard(tmp_path: Path, charuco_dir: Path) -> N
     for n, inp in items.items():
         fields = ", ".join(f'{k} = "{v}"' for k, v in inp.items())
         text.append(f'[[items]]\nkind = "scan"\nname = "{n}"\ninputs = {{ {fields} }}\n{opts}\n')
-    text.append(f'[[items]]\nkind = "checkerboard"\nname = "d435"\n'
-                f'inputs = {{ inputs = ["{charuco_dir / "pose03"}"], board = "{charuco_dir / "board.json"}" }}\n'
+    cb = f'inputs = ["{charuco_dir / "pose03"}"], board = "{charuco_dir / "board.json"}"'
+    text.append(f'[[items]]\nkind = "checkerboard"\nname = "d435"\ninputs = {{ {cb} }}\n'
                 'options = { frames = 3 }\n')
     manifest = tmp_path / "m.toml"
     manifest.write_text("\n".join(text))
