@@ -1,0 +1,407 @@
+"""Attribute: which catalogue effects explain the real-minus-simulated residual, with what parameters.
+
+The residual lives on tiles (standpoint x frame block x pixel tile x black/white): the difference of
+mean errors real minus sim, and separately of temporal variances. Each candidate effect's signature
+is averaged over the same pixels, giving a linear model fitted by weighted least squares. Selection
+is forward, by BIC; a candidate enters only if it also lowers the held-out RMSE (leave one standpoint
+out, or frame blocks when there are fewer than three standpoints) and its cluster-robust Wald test
+(clusters = frame blocks) is strong, because tiles of one frame block share noise and BIC alone
+would trust them too much.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+from evaluate.explain.basis import Candidate
+from evaluate.explain.locate import temporal_dev2
+from evaluate.explain.samples import FloatArray, IntArray, Samples
+
+BIC_THRESHOLD = -10.0      # "very strong" evidence (Kass & Raftery)
+WALD_P = 1e-3
+MIN_TILE = 8
+
+NoiseVar = Callable[[Samples], FloatArray]
+
+
+@dataclass
+class Table:
+    """Tile-level regression data: y ~ X beta with weights w."""
+
+    kind: str
+    y: FloatArray
+    w: FloatArray
+    X: dict[str, FloatArray]
+    cluster: IntArray
+    fold: IntArray
+    standpoint: IntArray
+
+    def __len__(self) -> int:
+        return int(self.y.size)
+
+
+@dataclass
+class CandidateFit:
+    """One candidate's verdict: parameters, evidence, held-out effect, whether it was selected."""
+
+    effect: str
+    kind: str
+    role: str                       # "missing_physics" (not in the model) or "calibration"
+    params: dict[str, float]
+    units: dict[str, str]
+    meaning: str
+    delta_bic: float
+    heldout_rmse_before_m: float
+    heldout_rmse_after_m: float
+    wald_p: float
+    stderr: dict[str, float] = field(default_factory=dict)
+    selected: bool = False
+    step: int | None = None
+    coef: list[float] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["params"] = {k: {"value": v, "unit": self.units.get(k, ""), "stderr": self.stderr.get(k)}
+                       for k, v in self.params.items()}
+        d.pop("units")
+        d.pop("stderr")
+        return d
+
+
+def frame_blocks(s: Samples, blocks: int) -> IntArray:
+    """Block index of every sample: the frames of each standpoint in time order cut into `blocks`."""
+    out = np.zeros(len(s), dtype=np.int64)
+    for sp in np.unique(s.standpoint):
+        m = s.standpoint == sp
+        frames, inv = np.unique(s.frame[m], return_inverse=True)
+        nb = max(1, min(blocks, len(frames)))
+        out[m] = inv * nb // len(frames)
+    return out
+
+
+def _tile_keys(s: Samples, tile_px: float, block: IntArray) -> NDArray[np.int64]:
+    tu = np.clip(np.floor(s.u / tile_px), 0, 9999).astype(np.int64)
+    tv = np.clip(np.floor(s.v / tile_px), 0, 9999).astype(np.int64)
+    alb = (s.albedo >= 0.5).astype(np.int64)
+    return np.stack([s.standpoint, block, tv, tu, alb], axis=1)
+
+
+def _aggregate(keys: NDArray[np.int64], values: FloatArray) -> tuple[NDArray[np.int64], FloatArray,
+                                                                      FloatArray, FloatArray, IntArray]:
+    ok = np.isfinite(values)
+    kk = keys[ok]
+    _, first, inv = np.unique(_row_keys(kk), return_index=True, return_inverse=True)
+    uniq = kk[first]
+    inv = inv.ravel()
+    n = np.bincount(inv, minlength=len(uniq)).astype(np.float64)
+    s1 = np.bincount(inv, weights=values[ok], minlength=len(uniq))
+    s2 = np.bincount(inv, weights=values[ok] ** 2, minlength=len(uniq))
+    mean = s1 / n
+    var = np.maximum(s2 / n - mean ** 2, 0.0) * n / np.maximum(n - 1, 1)
+    full_inv = np.full(len(values), -1, dtype=np.int64)
+    full_inv[np.flatnonzero(ok)] = inv
+    return uniq, n, mean, var, full_inv
+
+
+def _row_keys(rows: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Rows of (standpoint, block, tile v, tile u, albedo) as one int64 with a fixed radix."""
+    key = np.zeros(len(rows), dtype=np.int64)
+    for j, radix in enumerate(_RADIX):
+        key = key * radix + rows[:, j]
+    return key
+
+
+_RADIX = (1, 4096, 10_000, 10_000, 2)
+
+
+def _match(a: NDArray[np.int64], b: NDArray[np.int64]) -> tuple[IntArray, IntArray]:
+    """Indices ia, ib of rows present in both key tables."""
+    _, ia, ib = np.intersect1d(_row_keys(a), _row_keys(b), assume_unique=True, return_indices=True)
+    return ia.astype(np.int64), ib.astype(np.int64)
+
+
+def _tile_px(s: Samples) -> float:
+    return max(8.0, round((2 * s.ppx + 1) / 24))
+
+
+def _folds(standpoint: IntArray, block: IntArray) -> IntArray:
+    if len(np.unique(standpoint)) >= 3:
+        return standpoint.copy()
+    return block.copy()
+
+
+def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, blocks: int = 4,
+               tile_px: float | None = None, noise_var: NoiseVar | None = None) -> Table:
+    """Tiles of mean error real minus sim, each candidate's signature averaged over the real pixels."""
+    tp = _tile_px(real) if tile_px is None else tile_px
+    br, bs = frame_blocks(real, blocks), frame_blocks(sim, blocks)
+    sim_sp = _align_standpoints(real, sim)
+    kr = _tile_keys(real, tp, br)
+    ks = _tile_keys(sim, tp, bs)
+    ks[:, 0] = sim_sp
+    ur, nr, mr, vr, inv_r = _aggregate(kr, real.err_m)
+    us, ns, ms, vs, _ = _aggregate(ks[sim_sp >= 0], sim.err_m[sim_sp >= 0])
+    ia, ib = _match(ur, us)
+    keep = (nr[ia] >= MIN_TILE) & (ns[ib] >= MIN_TILE)
+    ia, ib = ia[keep], ib[keep]
+    y = mr[ia] - ms[ib]
+    if noise_var is not None:
+        pv = noise_var(real)
+        ok = inv_r >= 0
+        sig2 = np.bincount(inv_r[ok], weights=pv[ok], minlength=len(ur)) / np.maximum(nr, 1)
+        var_y = sig2[ia] / nr[ia] + sig2[ia] / ns[ib]
+    else:
+        var_y = vr[ia] / nr[ia] + vs[ib] / ns[ib]
+    floor = np.median(var_y) * 1e-3 + 1e-18
+    w = 1.0 / np.maximum(var_y, floor)
+    X: dict[str, FloatArray] = {}
+    ok = inv_r >= 0
+    for c in candidates:
+        if c.kind != "bias":
+            continue
+        cols = c.columns(real)
+        tiles = np.stack([np.bincount(inv_r[ok], weights=cols[ok, j], minlength=len(ur)) / np.maximum(nr, 1)
+                          for j in range(cols.shape[1])], axis=1)
+        X[c.name] = tiles[ia]
+    sp, bl = ur[ia, 0], ur[ia, 1]
+    return Table("bias", y, w, X, sp * 1000 + bl, _folds(sp, bl), sp)
+
+
+def variance_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *,
+                   tile_px: float | None = None) -> Table:
+    """Tiles of temporal variance real minus sim (all frames of a standpoint together)."""
+    tp = 2 * (_tile_px(real) if tile_px is None else tile_px)
+    sim_sp = _align_standpoints(real, sim)
+    zero_r, zero_s = np.zeros(len(real), dtype=np.int64), np.zeros(len(sim), dtype=np.int64)
+    kr = _tile_keys(real, tp, zero_r)
+    ks = _tile_keys(sim, tp, zero_s)
+    ks[:, 0] = sim_sp
+    dr, ds = temporal_dev2(real), temporal_dev2(sim)
+    ur, nr, mr, _, inv_r = _aggregate(kr, dr)
+    us, ns, ms, _, _ = _aggregate(ks[sim_sp >= 0], ds[sim_sp >= 0])
+    ia, ib = _match(ur, us)
+    keep = (nr[ia] >= MIN_TILE) & (ns[ib] >= MIN_TILE)
+    ia, ib = ia[keep], ib[keep]
+    y = mr[ia] - ms[ib]
+    var_y = 2 * mr[ia] ** 2 / nr[ia] + 2 * ms[ib] ** 2 / ns[ib]
+    floor = np.median(var_y) * 1e-3 + 1e-30 if len(var_y) else 1e-30
+    w = 1.0 / np.maximum(var_y, floor)
+    X: dict[str, FloatArray] = {}
+    ok = inv_r >= 0
+    for c in candidates:
+        if c.kind != "variance":
+            continue
+        cols = c.columns(real)
+        tiles = np.stack([np.bincount(inv_r[ok], weights=cols[ok, j], minlength=len(ur)) / np.maximum(nr, 1)
+                          for j in range(cols.shape[1])], axis=1)
+        X[c.name] = tiles[ia]
+    sp = ur[ia, 0]
+    blocks = np.zeros_like(sp)
+    return Table("variance", y, w, X, sp, _folds(sp, sp if len(np.unique(sp)) >= 3 else blocks), sp)
+
+
+def _align_standpoints(real: Samples, sim: Samples) -> IntArray:
+    """Sim standpoint indices expressed in the real side's numbering (-1 where the real lacks it)."""
+    idx = {n: i for i, n in enumerate(real.names)}
+    remap = np.array([idx.get(n, -1) for n in sim.names] or [-1], dtype=np.int64)
+    return remap[sim.standpoint]
+
+
+def _design(t: Table, names: Sequence[str]) -> FloatArray:
+    if not names:
+        return np.zeros((len(t), 0))
+    return np.concatenate([t.X[n] for n in names], axis=1)
+
+
+def wls(X: FloatArray, y: FloatArray, w: FloatArray) -> FloatArray:
+    if X.shape[1] == 0:
+        return np.zeros(0)
+    sw = np.sqrt(w)
+    beta, *_ = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)
+    return np.asarray(beta)
+
+
+def bic(t: Table, names: Sequence[str]) -> float:
+    """Gaussian BIC with the noise scale estimated: n ln(RSS_w / n) + k ln n."""
+    X = _design(t, names)
+    beta = wls(X, t.y, t.w)
+    r = t.y - X @ beta
+    n = len(t)
+    rss = float((t.w * r ** 2).sum())
+    return n * np.log(max(rss, 1e-300) / n) + X.shape[1] * np.log(n)
+
+
+def heldout_rmse(t: Table, names: Sequence[str]) -> float:
+    """Weighted RMS (in the units of y) of held-out residuals, every fold fitted without itself."""
+    X = _design(t, names)
+    res = np.empty(len(t))
+    for f in np.unique(t.fold):
+        test = t.fold == f
+        train = ~test
+        beta = wls(X[train], t.y[train], t.w[train]) if train.any() else np.zeros(X.shape[1])
+        res[test] = t.y[test] - X[test] @ beta
+    return float(np.sqrt((t.w * res ** 2).sum() / t.w.sum()))
+
+
+def robust_cov(t: Table, names: Sequence[str]) -> tuple[FloatArray, FloatArray]:
+    """WLS estimate and its cluster-robust (sandwich, CR1) covariance, clusters = frame blocks."""
+    X = _design(t, names)
+    beta = wls(X, t.y, t.w)
+    if X.shape[1] == 0:
+        return beta, np.zeros((0, 0))
+    r = t.y - X @ beta
+    xw = X * t.w[:, None]
+    bread = np.linalg.pinv(X.T @ xw)
+    cl, inv = np.unique(t.cluster, return_inverse=True)
+    g = len(cl)
+    scores = np.zeros((g, X.shape[1]))
+    np.add.at(scores, inv.ravel(), xw * r[:, None])
+    meat = scores.T @ scores
+    n, k = X.shape
+    corr = g / max(g - 1, 1) * (n - 1) / max(n - k, 1)
+    return beta, bread @ meat @ bread * corr
+
+
+def wald_p(t: Table, names: Sequence[str], name: str) -> tuple[float, FloatArray, FloatArray]:
+    """Cluster-robust Wald p-value of one candidate's columns within a model; beta and SEs."""
+    beta, cov = robust_cov(t, names)
+    start = sum(t.X[n].shape[1] for n in names[:list(names).index(name)])
+    k = t.X[name].shape[1]
+    b = beta[start:start + k]
+    c = cov[start:start + k, start:start + k]
+    try:
+        stat = float(b @ np.linalg.solve(c, b))
+    except np.linalg.LinAlgError:
+        return 1.0, b, np.full(k, np.nan)
+    g = len(np.unique(t.cluster))
+    p = float(stats.f.sf(stat / k, k, max(g - 1, 1))) if g > 1 else 1.0
+    return p, b, np.sqrt(np.clip(np.diag(c), 0, None))
+
+
+def _usable(t: Table, name: str) -> bool:
+    x = t.X.get(name)
+    if x is None or not np.isfinite(x).all():
+        return False
+    return bool(np.all(np.abs(x).max(axis=0) > 0))
+
+
+def forward_select(t: Table, candidates: Sequence[Candidate], present: dict[str, dict[str, float]],
+                   samples: Samples | None = None) -> list[CandidateFit]:
+    """Forward selection by BIC, gated by held-out RMSE and the robust Wald test; every candidate scored."""
+    pool = [c for c in candidates if c.kind == t.kind and c.name in t.X and _usable(t, c.name)]
+    by_name = {c.name: c for c in pool}
+    selected: list[str] = []
+    fits: dict[str, CandidateFit] = {}
+    step = 0
+    if len(t) < 3:
+        return []
+    while True:
+        base_bic = bic(t, selected)
+        base_rmse = heldout_rmse(t, selected)
+        trials: list[tuple[float, str]] = []
+        for c in pool:
+            if c.name in selected or any(c.name in by_name[o].excludes or o in c.excludes
+                                         for o in selected):
+                continue
+            trials.append((bic(t, [*selected, c.name]) - base_bic, c.name))
+        if not trials:
+            break
+        trials.sort()
+        for dbic, name in trials:
+            c = by_name[name]
+            after = heldout_rmse(t, [*selected, name])
+            p, b, se = wald_p(t, [*selected, name], name)
+            fits[name] = _fit_record(c, present, dbic, base_rmse, after, p, b, se, samples)
+        best_d, best = trials[0]
+        rec = fits[best]
+        improves = rec.heldout_rmse_after_m < rec.heldout_rmse_before_m
+        if best_d < BIC_THRESHOLD and improves and rec.wald_p < WALD_P:
+            step += 1
+            rec.selected, rec.step = True, step
+            selected.append(best)
+            continue
+        break
+    # final parameters of the selected effects come from the joint fit
+    if selected:
+        beta, cov = robust_cov(t, selected)
+        start = 0
+        for name in selected:
+            k = t.X[name].shape[1]
+            c = by_name[name]
+            rec = fits[name]
+            b = beta[start:start + k]
+            se = np.sqrt(np.clip(np.diag(cov)[start:start + k], 0, None))
+            rec.coef = [float(x) for x in b]
+            rec.params, rec.stderr = _params(c, present, b, se, samples)
+            start += k
+    return list(fits.values())
+
+
+def _params(c: Candidate, present: dict[str, dict[str, float]], b: FloatArray, se: FloatArray,
+            samples: Samples | None = None) -> tuple[dict[str, float], dict[str, float]]:
+    """Fitted values; for an effect the model has, old + delta (bias) or sqrt(old^2 + delta) (variance)."""
+    old = present.get(c.name, {})
+    if c.squared:
+        p0 = float(old.get(c.params[0], 0.0))
+        total = p0 ** 2 + float(b[0])
+        val = float(np.sign(total) * np.sqrt(abs(total)))
+        err = float(se[0] / (2 * max(abs(val), 1e-12)))
+        return {c.params[0]: val}, {c.params[0]: err}
+    if c.convert is not None and samples is not None:
+        vals = c.to_params(b, samples)
+        rel = {p: float(e / abs(x)) if x else float("nan") for p, x, e in zip(c.params, b, se, strict=True)}
+        return vals, {p: abs(v) * rel.get(p, float("nan")) if p in rel else float("nan")
+                      for p, v in vals.items()}
+    vals = {p: float(old.get(p, 0.0)) + float(x) for p, x in zip(c.params, b, strict=True)}
+    return vals, {p: float(e) for p, e in zip(c.params, se, strict=True)}
+
+
+def _fit_record(c: Candidate, present: dict[str, dict[str, float]], dbic: float, before: float, after: float,
+                p: float, b: FloatArray, se: FloatArray, samples: Samples | None) -> CandidateFit:
+    params, errs = _params(c, present, b, se, samples)
+    role = "calibration" if c.name in present else "missing_physics"
+    if c.kind == "variance":   # variance misfit shown as a standard deviation (m)
+        before, after = float(np.sqrt(before)), float(np.sqrt(after))
+    units = dict(zip(c.params, c.units, strict=True))
+    units.update({k: units.get(k, "degC" if k.endswith("_c") else "") for k in params})
+    return CandidateFit(c.name, c.kind, role, params, units, c.meaning,
+                        float(dbic), before, after, p, errs, coef=[float(x) for x in b])
+
+
+def rank(fits: Sequence[CandidateFit]) -> list[CandidateFit]:
+    """Selected missing physics first (bias before variance, in selection order), then calibration,
+    then the rest by delta BIC."""
+    def key(f: CandidateFit) -> tuple[int, int, int, float]:
+        if f.selected:
+            return (0 if f.role == "missing_physics" else 1, 0 if f.kind == "bias" else 1, f.step or 0,
+                    f.delta_bic)
+        return (2, 0, 0, f.delta_bic)
+    return sorted(fits, key=key)
+
+
+@dataclass
+class Attribution:
+    candidates: list[CandidateFit]
+    bias_rows: int
+    variance_rows: int
+
+    @property
+    def selected(self) -> list[CandidateFit]:
+        return [c for c in self.candidates if c.selected]
+
+
+def attribute(real: Samples, sim: Samples, candidates: Sequence[Candidate],
+              present: dict[str, dict[str, float]] | None = None, *, blocks: int = 4,
+              noise_var: NoiseVar | None = None) -> Attribution:
+    """Fit, select and rank candidates for the bias and the variance residual."""
+    present = present or {}
+    bt = bias_table(real, sim, candidates, blocks=blocks, noise_var=noise_var)
+    vt = variance_table(real, sim, candidates)
+    fits = forward_select(bt, candidates, present, real) + forward_select(vt, candidates, present, real)
+    return Attribution(rank(fits), len(bt), len(vt))

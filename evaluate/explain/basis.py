@@ -1,0 +1,163 @@
+"""Signatures of the catalogue effects: what each one does to the z-depth error, per unit parameter.
+
+A bias candidate gives, for every sample, the expected z-depth bias (m) per unit of each of its
+parameters; a variance candidate gives the added z variance (m^2) per unit of its variance
+parameter. Both are linear in what is fitted, so attribution is a (weighted) least-squares problem.
+The forms follow DESIGN §4 and are written in the disparity domain where the physics lives:
+a disparity error dd (px) turns into a z error of -z^2/(f B) dd.
+
+Where the simulator's effect modules exist (`simulate.effects`), `module_basis` evaluates their
+own `bias_m`/`variance_m2` with unit parameters instead, so the fitted numbers are in the units of
+the model TOML; the forms here are the fallback and the documentation of what is fitted.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from evaluate.explain.samples import FloatArray, Samples
+
+Columns = Callable[[Samples], FloatArray]
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One catalogue effect as a fit basis: `columns(samples)` is (n, len(params))."""
+
+    name: str
+    kind: str                     # "bias" (fitted on mean errors) or "variance" (on temporal variances)
+    params: tuple[str, ...]
+    units: tuple[str, ...]
+    meaning: str
+    columns: Columns
+    squared: bool = False         # variance candidates: the fitted coefficient is params[0]**2
+    excludes: tuple[str, ...] = ()  # candidates whose signature this one contains (never both)
+    convert: Callable[[FloatArray, Samples], dict[str, float]] | None = None
+
+    def to_params(self, coef: FloatArray, samples: Samples | None = None) -> dict[str, float]:
+        """Fitted coefficients to named parameter values (sqrt for variance amplitudes)."""
+        if self.convert is not None and samples is not None:
+            return self.convert(coef, samples)
+        if self.squared:
+            return {self.params[0]: float(np.sign(coef[0]) * np.sqrt(abs(coef[0])))}
+        return {p: float(c) for p, c in zip(self.params, coef, strict=True)}
+
+
+def _k(s: Samples) -> FloatArray:
+    return s.k_m_per_px
+
+
+def _col(a: FloatArray) -> FloatArray:
+    return np.asarray(a, dtype=np.float64).reshape(-1, 1)
+
+
+def _disparity_offset(s: Samples) -> FloatArray:
+    # measured disparity = true + offset: a positive offset brings the surface nearer
+    return _col(-_k(s))
+
+
+def _depth_scale(s: Samples) -> FloatArray:
+    # z_meas = (1 + scale_error) z
+    return _col(s.z_ref_m)
+
+
+def _lr_focal(s: Samples) -> FloatArray:
+    # right focal = (1 + m) left focal: disparity error -m (u - cx), z error +z^2/(fB) m (u - cx)
+    return _col(_k(s) * (s.u - s.ppx))
+
+
+def _distortion(s: Samples) -> FloatArray:
+    # disparity error -k (r/f)^2 px with r the radius from the principal point
+    r2 = ((s.u - s.ppx) ** 2 + (s.v - s.ppy) ** 2) / s.fx ** 2
+    return _col(_k(s) * r2)
+
+
+def _pixel_locking(s: Samples) -> FloatArray:
+    phase = 2 * np.pi * s.disparity_px
+    return np.stack([-_k(s) * np.sin(phase), -_k(s) * np.cos(phase)], axis=1)
+
+
+def _thermal(s: Samples) -> FloatArray:
+    # disparity drift c (T - T0) px: linear in (c, c (T_med - T0)) with T_med the session median,
+    # so the temperature of zero drift T0 is fitted too (it is the calibration temperature)
+    t = s.temperature_c
+    if not np.isfinite(t).any():
+        return np.zeros((len(s), 2))
+    ref = float(np.nanmedian(t))
+    dt = np.where(np.isfinite(t), t - ref, 0.0)
+    return np.stack([-_k(s) * dt, -_k(s)], axis=1)
+
+
+def _thermal_params(coef: FloatArray, s: Samples) -> dict[str, float]:
+    c, off = float(coef[0]), float(coef[1])
+    ref = float(np.nanmedian(s.temperature_c))
+    t0 = ref - off / c if c != 0 else float("nan")
+    return {"px_per_c": c, "reference_c": t0}
+
+
+def _slant_bias(s: Samples) -> FloatArray:
+    # window foreshortening: error grows like z * (1/cos(theta) - 1)
+    th = np.radians(np.clip(s.inclination_deg, 0.0, 85.0))
+    return _col(s.z_ref_m * (1.0 / np.cos(th) - 1.0))
+
+
+def _albedo_bias(s: Samples) -> FloatArray:
+    # a constant z offset on dark surfaces (m per unit of darkness)
+    return _col(1.0 - np.clip(s.albedo, 0.0, 1.0))
+
+
+def _flying(s: Samples) -> FloatArray:
+    # mixed pixels pulled towards the background within a few pixels of a depth edge
+    e = np.where(np.isfinite(s.edge_px), s.edge_px, 1e9)
+    return _col(np.exp(-e / 2.0))
+
+
+def _var_disparity(s: Samples) -> FloatArray:
+    return _col(_k(s) ** 2)
+
+
+def _var_albedo(s: Samples) -> FloatArray:
+    return _col(_k(s) ** 2 * (1.0 - np.clip(s.albedo, 0.0, 1.0)))
+
+
+def _var_slant(s: Samples) -> FloatArray:
+    th = np.radians(np.clip(s.inclination_deg, 0.0, 85.0))
+    return _col(_k(s) ** 2 * np.tan(th) ** 2)
+
+
+OWN_CANDIDATES: tuple[Candidate, ...] = (
+    Candidate("disparity_offset", "bias", ("offset_px",), ("px",),
+              "constant disparity offset (what tare calibration fixes): bias -z^2/(fB) * offset",
+              _disparity_offset),
+    Candidate("depth_scale", "bias", ("scale_error",), ("1",),
+              "baseline or focal length error: bias proportional to z", _depth_scale),
+    Candidate("lr_focal_mismatch", "bias", ("mismatch",), ("1",),
+              "left/right focal mismatch: a wedge z^2/(fB) * m * (u - cx) that averages out", _lr_focal),
+    Candidate("distortion_residual", "bias", ("k_px",), ("px",),
+              "residual radial distortion: bias z^2/(fB) * k * (r/f)^2", _distortion),
+    Candidate("pixel_locking", "bias", ("sin_px", "cos_px"), ("px", "px"),
+              "subpixel estimator locking: disparity error oscillating with the fractional disparity",
+              _pixel_locking),
+    Candidate("thermal_drift", "bias", ("px_per_c", "offset_at_median_px"), ("px/degC", "px"),
+              "disparity drift that follows the device temperature", _thermal,
+              excludes=("disparity_offset",), convert=_thermal_params),
+    Candidate("slant_bias", "bias", ("coefficient",), ("1",),
+              "window foreshortening on slanted surfaces: bias z * (1/cos(theta) - 1)", _slant_bias),
+    Candidate("albedo_bias", "bias", ("dark_offset_m",), ("m",),
+              "dark squares measured at another depth than bright ones", _albedo_bias),
+    Candidate("flying_pixels", "bias", ("amplitude_m",), ("m",),
+              "mixed pixels near depth edges", _flying),
+    Candidate("disparity_noise", "variance", ("sigma_px",), ("px",),
+              "subpixel disparity noise: z std z^2/(fB) * sigma", _var_disparity, squared=True),
+    Candidate("albedo_noise", "variance", ("sigma_px",), ("px",),
+              "extra disparity noise on dark surfaces", _var_albedo, squared=True),
+    Candidate("slant_noise", "variance", ("sigma_px",), ("px",),
+              "extra disparity noise growing with tan(inclination)", _var_slant, squared=True),
+)
+
+
+def own_candidates() -> dict[str, Candidate]:
+    return {c.name: c for c in OWN_CANDIDATES}

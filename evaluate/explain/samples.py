@@ -1,0 +1,142 @@
+"""Per-pixel error samples of one session (real or simulated), the common input of locate and attribute.
+
+Explain never looks at images: it compares two tables of pixels seen on the board, one from the
+real capture and one from the simulation of the same standpoints, evaluated the same way.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass
+class Samples:
+    """One row per (frame, pixel) on the board; `err_m` = measured - reference z-depth (+ = too far).
+
+    `standpoint` indexes `names`. `albedo` is 0 on black squares and 1 on white ones. Time is
+    seconds since the start of the session (so drift across standpoints shows); temperature is NaN
+    where the source has none; `edge_px` is the distance to the nearest depth edge (inf if none).
+    """
+
+    standpoint: IntArray
+    frame: IntArray
+    u: FloatArray
+    v: FloatArray
+    z_ref_m: FloatArray
+    err_m: FloatArray
+    inclination_deg: FloatArray
+    albedo: FloatArray
+    time_s: FloatArray
+    temperature_c: FloatArray
+    edge_px: FloatArray
+    names: list[str] = field(default_factory=list)
+    fx: float = 640.0
+    ppx: float = 320.0
+    ppy: float = 180.0
+    baseline_m: float = 0.095
+
+    ARRAYS = ("standpoint", "frame", "u", "v", "z_ref_m", "err_m", "inclination_deg", "albedo",
+              "time_s", "temperature_c", "edge_px")
+
+    def __len__(self) -> int:
+        return int(self.err_m.size)
+
+    @classmethod
+    def build(cls, *, names: Sequence[str], fx: float, ppx: float, ppy: float, baseline_m: float,
+              standpoint: Any, frame: Any, u: Any, v: Any, z_ref_m: Any, err_m: Any,
+              inclination_deg: Any, albedo: Any, time_s: Any = None, temperature_c: Any = None,
+              edge_px: Any = None) -> Samples:
+        """Arrays of any dtype in, float64/int64 out; optional axes default to 0, NaN and inf."""
+        n = int(np.asarray(err_m).size)
+
+        def f(a: Any, default: float) -> FloatArray:
+            if a is None:
+                return np.full(n, default)
+            return np.broadcast_to(np.asarray(a, dtype=np.float64).ravel(), (n,)).copy()
+
+        return cls(
+            standpoint=np.broadcast_to(np.asarray(standpoint, dtype=np.int64).ravel(), (n,)).copy(),
+            frame=np.broadcast_to(np.asarray(frame, dtype=np.int64).ravel(), (n,)).copy(),
+            u=f(u, 0.0), v=f(v, 0.0), z_ref_m=f(z_ref_m, np.nan), err_m=f(err_m, np.nan),
+            inclination_deg=f(inclination_deg, 0.0), albedo=f(albedo, 1.0), time_s=f(time_s, 0.0),
+            temperature_c=f(temperature_c, np.nan), edge_px=f(edge_px, np.inf),
+            names=list(names), fx=float(fx), ppx=float(ppx), ppy=float(ppy), baseline_m=float(baseline_m),
+        )
+
+    def subset(self, mask: NDArray[Any]) -> Samples:
+        """The rows where `mask` holds (bool mask or index array), same names and camera."""
+        return replace(self, **{k: getattr(self, k)[mask] for k in self.ARRAYS})
+
+    @property
+    def disparity_px(self) -> FloatArray:
+        """True disparity f*B/z of every sample (px)."""
+        return self.fx * self.baseline_m / self.z_ref_m
+
+    @property
+    def k_m_per_px(self) -> FloatArray:
+        """dz/dd = z^2/(f B): metres of z-depth per pixel of disparity at each sample."""
+        return self.z_ref_m ** 2 / (self.fx * self.baseline_m)
+
+    @property
+    def frame_key(self) -> IntArray:
+        """A unique id per (standpoint, frame): the unit of independence for standard errors."""
+        return self.standpoint * 1_000_000 + self.frame
+
+    def context(self) -> dict[str, Any]:
+        """Keyword arguments of a `simulate.effects.base.PixelContext` for these samples."""
+        return {
+            "z_m": self.z_ref_m, "inclination_deg": self.inclination_deg, "u": self.u, "v": self.v,
+            "albedo": self.albedo, "time_s": self.time_s, "temperature_c": self.temperature_c,
+            "edge_distance_px": self.edge_px, "fx": self.fx, "ppx": self.ppx, "ppy": self.ppy,
+            "baseline_m": self.baseline_m,
+        }
+
+
+def concat(parts: Sequence[Samples]) -> Samples:
+    """Join samples of several standpoints; standpoint indices are remapped onto the joined names."""
+    if not parts:
+        raise ValueError("no samples to join")
+    names: list[str] = []
+    arrays: dict[str, list[Any]] = {k: [] for k in Samples.ARRAYS}
+    for p in parts:
+        remap = np.empty(max(len(p.names), 1), dtype=np.int64)
+        for i, nm in enumerate(p.names):
+            if nm not in names:
+                names.append(nm)
+            remap[i] = names.index(nm)
+        for k in Samples.ARRAYS:
+            a = getattr(p, k)
+            arrays[k].append(remap[a] if k == "standpoint" and len(p.names) else a)
+    first = parts[0]
+    kw = {k: np.concatenate(v) for k, v in arrays.items()}
+    return Samples(**kw, names=names, fx=first.fx, ppx=first.ppx, ppy=first.ppy,
+                   baseline_m=first.baseline_m)
+
+
+def thin(s: Samples, max_per_frame: int) -> Samples:
+    """Keep a fixed sub-lattice of pixels so each frame has at most `max_per_frame` samples.
+
+    The same pixels are kept in every frame of a standpoint, so per-pixel temporal variances stay
+    computable; a lattice (not a random draw) keeps the thinning reproducible.
+    """
+    if len(s) == 0:
+        return s
+    counts = np.bincount(np.unique(s.frame_key, return_inverse=True)[1])
+    worst = int(counts.max())
+    if worst <= max_per_frame:
+        return s
+    step = int(np.ceil(np.sqrt(worst / max_per_frame)))
+    keep = (np.round(s.u).astype(np.int64) % step == 0) & (np.round(s.v).astype(np.int64) % step == 0)
+    return s.subset(keep)
+
+
+def samples_field_names() -> list[str]:
+    return [f.name for f in fields(Samples)]
