@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -30,19 +31,37 @@ def dist_coeffs(intr: Intrinsics) -> NDArray[np.float64]:
     return np.zeros(5)
 
 
-def estimate_pose(det: Detection, intr: Intrinsics, refine: bool = True) -> BoardPose | None:
-    """EPnP pose of the board in the colour camera; None when it fails or lies behind the camera."""
-    obj = det.object_points.astype(np.float64)
-    img = det.image_points.astype(np.float64)
-    k = intr.K
-    dist = dist_coeffs(intr)
-    ok, rvec, tvec = cv2.solvePnP(obj, img, k, dist, flags=cv2.SOLVEPNP_EPNP)
+def _solve(obj: NDArray[np.float64], img: NDArray[np.float64], k: NDArray[np.float64],
+           dist: NDArray[np.float64], flag: int, refine: bool) -> tuple[Any, Any, float] | None:
+    ok, rvec, tvec = cv2.solvePnP(obj, img, k, dist, flags=flag)
     if not ok:
         return None
     if refine:
         rvec, tvec = cv2.solvePnPRefineLM(obj, img, k, dist, rvec, tvec)
     proj, _ = cv2.projectPoints(obj, rvec, tvec, k, dist)
     rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
+    return rvec, tvec, rms
+
+
+def estimate_pose(det: Detection, intr: Intrinsics, refine: bool = True,
+                  fallback_px: float = 1.0) -> BoardPose | None:
+    """EPnP pose of the board in the colour camera; None when it fails or lies behind the camera.
+
+    EPnP on a plane can land in a wrong minimum at steep views (reprojection error of pixels);
+    then IPPE, the planar solver, is tried too and the better fit kept.
+    """
+    obj = det.object_points.astype(np.float64)
+    img = det.image_points.astype(np.float64)
+    k = intr.K
+    dist = dist_coeffs(intr)
+    best = _solve(obj, img, k, dist, cv2.SOLVEPNP_EPNP, refine)
+    if best is None or best[2] > fallback_px:
+        ippe = _solve(obj, img, k, dist, cv2.SOLVEPNP_IPPE, refine)
+        if ippe is not None and (best is None or ippe[2] < best[2]):
+            best = ippe
+    if best is None:
+        return None
+    rvec, tvec, rms = best
     m = np.eye(4)
     m[:3, :3] = cv2.Rodrigues(rvec)[0]
     m[:3, 3] = tvec.reshape(3)

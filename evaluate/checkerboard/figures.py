@@ -1,0 +1,176 @@
+"""The paper's figures for the checkerboard study (Fig. 1, 4, 5, 6, 7) as PNG, units on every axis."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from depthstation.board import Board
+from evaluate.checkerboard.study import StandpointResult
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def fig1_poses(path: Path, results: list[StandpointResult], board: Board) -> Path:
+    """Averaged colour-camera poses around the board (axes x, y, z in red, green, blue; 20 cm)."""
+    plt = _plt()
+    fig = plt.figure(figsize=(8, 7))
+    ax = fig.add_subplot(projection="3d")
+    pts = board.corner_points()
+    ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c="grey", s=6, label="board corners")
+    all_pts = [pts]
+    for r in results:
+        if r.camera_in_board is None:
+            continue
+        c = r.camera_in_board[:3, 3]
+        for i, col in enumerate(("r", "g", "b")):
+            e = c + 0.2 * r.camera_in_board[:3, i]
+            ax.plot([c[0], e[0]], [c[1], e[1]], [c[2], e[2]], color=col, lw=1.5)
+        ax.text(c[0], c[1], c[2], f" {r.name}", fontsize=7)
+        all_pts.append(c[None, :])
+    p = np.concatenate(all_pts)
+    mid, span = (p.max(0) + p.min(0)) / 2, float(np.max(p.max(0) - p.min(0))) / 2 + 0.2
+    ax.set_xlim(mid[0] - span, mid[0] + span)
+    ax.set_ylim(mid[1] - span, mid[1] + span)
+    ax.set_zlim(mid[2] - span, mid[2] + span)
+    ax.set_xlabel("board x (m)")
+    ax.set_ylabel("board y (m)")
+    ax.set_zlabel("board z (m)")
+    ax.invert_zaxis()
+    ax.set_title("Fig. 1: averaged camera poses in the board frame (axis length 20 cm)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def _usable(results: list[StandpointResult]) -> list[StandpointResult]:
+    return [r for r in results if r.usable]
+
+
+def fig4_reference_std(path: Path, results: list[StandpointResult]) -> Path:
+    """Spread of the per-frame reference distances per standpoint (pose-estimation noise)."""
+    plt = _plt()
+    rs = _usable(results)
+    fig, ax = plt.subplots(figsize=(8, 5))
+    d = np.array([r.figures["distance_m"] for r in rs])
+    inc = np.array([r.figures["inclination_deg"] for r in rs])
+    std = np.array([r.figures.get("reference_distance_std_m", np.nan) for r in rs]) * 1000
+    sc = ax.scatter(d, std, c=inc, cmap="viridis", s=40, vmin=0, vmax=90)
+    for r, x, y in zip(rs, d, std, strict=True):
+        ax.annotate(r.name, (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    fig.colorbar(sc, ax=ax, label="inclination (deg)")
+    ax.set_xlabel("distance (m)")
+    ax.set_ylabel("std of reference distance over frames (mm)")
+    ax.set_title("Fig. 4: reference-distance spread per standpoint")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def fig5_pixels(path: Path, r: StandpointResult) -> Path | None:
+    """Per-pixel noise (to the frame's plane) and accuracy (to the reference plane) of one frame."""
+    if r.example is None:
+        return None
+    plt = _plt()
+    ex = r.example
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    h, w = ex.noise_map_m.shape
+    extent = (ex.u0 - 0.5, ex.u0 + w - 0.5, ex.v0 + h - 0.5, ex.v0 - 0.5)
+    for ax, img, title in ((axes[0], ex.noise_map_m, "noise: distance to fitted plane"),
+                           (axes[1], ex.accuracy_map_m, "accuracy: distance to reference plane")):
+        mm = img * 1000
+        lim = float(np.nanpercentile(np.abs(mm), 99)) if np.isfinite(mm).any() else 1.0
+        im = ax.imshow(mm, cmap="RdBu_r", vmin=-lim, vmax=lim, extent=extent)
+        fig.colorbar(im, ax=ax, label="signed orthogonal distance (mm), + = behind")
+        ax.set_xlabel("depth pixel u (px)")
+        ax.set_ylabel("depth pixel v (px)")
+        ax.set_title(title)
+    f = r.figures
+    fig.suptitle(f"Fig. 5: {r.name}, frame {ex.index} ({f['distance_m']:.2f} m, "
+                 f"{f['inclination_deg']:.1f} deg)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def fig_over_grid(path: Path, results: list[StandpointResult], key: str, label: str,
+                  number: int) -> Path:
+    """Mean and std over frames of one figure, per standpoint, over distance x inclination."""
+    plt = _plt()
+    rs = _usable(results)
+    d = np.array([r.figures["distance_m"] for r in rs])
+    inc = np.array([r.figures["inclination_deg"] for r in rs])
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
+    for ax, suffix, what in ((axes[0], "_m", "mean"), (axes[1], "_std_m", "std over frames")):
+        vals = np.array([r.figures.get(key + suffix, np.nan) for r in rs]) * 1000
+        cmap = "RdBu_r" if key.startswith("accuracy") and what == "mean" else "viridis"
+        lim = float(np.nanmax(np.abs(vals))) if np.isfinite(vals).any() else 1.0
+        kw = {"vmin": -lim, "vmax": lim} if cmap == "RdBu_r" else {}
+        sc = ax.scatter(d, inc, c=vals, cmap=cmap, s=120, edgecolors="k", **kw)
+        for x, y, v in zip(d, inc, vals, strict=True):
+            ax.annotate(f"{v:.1f}", (x, y), fontsize=7, xytext=(6, 6), textcoords="offset points")
+        fig.colorbar(sc, ax=ax, label=f"{label} {what} (mm)")
+        ax.set_xlabel("distance (m)")
+        ax.set_ylabel("inclination (deg)")
+        ax.set_ylim(-3, 93)
+        ax.grid(alpha=0.3)
+        ax.set_title(f"{label}: {what}")
+    fig.suptitle(f"Fig. {number}: {label} per standpoint over distance x inclination")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def fig_colours(path: Path, results: list[StandpointResult]) -> Path:
+    """Black versus white squares: noise and accuracy with their std over frames."""
+    plt = _plt()
+    rs = _usable(results)
+    x = np.arange(len(rs))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
+    for ax, key in ((axes[0], "noise"), (axes[1], "accuracy")):
+        for off, colour, c in ((-0.15, "black", "k"), (0.15, "white", "0.6")):
+            m = np.array([r.figures.get(f"{key}_{colour}_m", np.nan) for r in rs]) * 1000
+            s = np.array([r.figures.get(f"{key}_{colour}_std_m", np.nan) for r in rs]) * 1000
+            ax.errorbar(x + off, m, yerr=s, fmt="o", color=c, label=f"{colour} squares", capsize=3)
+        ax.set_xticks(x, [r.name for r in rs], rotation=60, fontsize=7)
+        ax.set_ylabel(f"{key} (mm), mean ± std over frames")
+        ax.set_xlabel("standpoint")
+        ax.legend()
+        ax.grid(alpha=0.3)
+    fig.suptitle("Black vs white squares (p-values in standpoints.csv)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def write_figures(out: Path, results: list[StandpointResult], board: Board) -> list[Path]:
+    """All figures of the study; those without data (no usable standpoint) are left out."""
+    paths: list[Path] = []
+    if not _usable(results):
+        return paths
+    paths.append(fig1_poses(out / "fig1_poses.png", results, board))
+    paths.append(fig4_reference_std(out / "fig4_reference_distance_std.png", results))
+    best = min(_usable(results), key=lambda r: abs(r.figures["distance_m"] - 1.7)
+               + abs(r.figures["inclination_deg"] - 42.5) / 50)
+    p5 = fig5_pixels(out / "fig5_pixels.png", best)
+    if p5 is not None:
+        paths.append(p5)
+    paths.append(fig_over_grid(out / "fig6_noise.png", results, "noise", "noise", 6))
+    paths.append(fig_over_grid(out / "fig7_accuracy.png", results, "accuracy", "accuracy", 7))
+    paths.append(fig_colours(out / "fig_black_white.png", results))
+    return paths

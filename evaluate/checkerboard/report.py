@@ -1,0 +1,106 @@
+"""The study's result folder: standpoints.csv, frames.csv, summary.json, result.json."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from depthstation.board import Board
+from depthstation.results import software_versions, write_json, write_result_info
+from evaluate.checkerboard.study import StandpointResult
+
+COLUMNS = ("standpoint", "frames", "frames_read", "distance_m", "inclination_deg",
+           "reference_distance_std_m", "fill_rate", "fill_rate_std", "noise_m", "noise_std_m",
+           "accuracy_m", "accuracy_std_m", "accuracy_rms_m", "accuracy_rms_std_m",
+           "noise_black_m", "noise_black_std_m", "noise_white_m", "noise_white_std_m",
+           "accuracy_black_m", "accuracy_black_std_m", "accuracy_white_m", "accuracy_white_std_m",
+           "noise_black_white_p", "noise_black_white_paired_p", "accuracy_black_white_p",
+           "accuracy_black_white_paired_p", "accuracy_frame_pose_m", "reprojection_px",
+           "corner_shift_px", "pixels_per_frame", "reference_plane")
+FRAME_COLUMNS = ("standpoint", "index", "timestamp_ns", "status", "corners", "reprojection_px",
+                 "corner_shift_px", "reference_distance_m", "board_pixels", "valid_pixels",
+                 "fill_rate", "noise_m", "noise_black_m", "noise_white_m", "accuracy_m",
+                 "accuracy_rms_m", "accuracy_black_m", "accuracy_white_m", "accuracy_own_m",
+                 "temperature_c")
+
+
+def _cell(v: Any) -> Any:
+    if isinstance(v, float):
+        return "" if not math.isfinite(v) else f"{v:.6g}"
+    return v
+
+
+def standpoint_row(r: StandpointResult) -> dict[str, Any]:
+    row = {**r.row(), "reference_plane": r.reference_plane}
+    return {c: _cell(row.get(c, float("nan"))) for c in COLUMNS}
+
+
+def write_tables(out: Path, results: list[StandpointResult]) -> None:
+    """standpoints.csv (one row per standpoint) and frames.csv (one row per frame read)."""
+    with (out / "standpoints.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        w.writeheader()
+        for r in results:
+            w.writerow(standpoint_row(r))
+    with (out / "frames.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=FRAME_COLUMNS)
+        w.writeheader()
+        for r in results:
+            for f in r.frames:
+                w.writerow({"standpoint": r.name, **{c: _cell(getattr(f, c)) for c in FRAME_COLUMNS[1:]}})
+
+
+def summary(results: list[StandpointResult], board: Board, inputs: list[str],
+            parameters: dict[str, Any], device: dict[str, Any]) -> dict[str, Any]:
+    """Everything a reader needs to trust the table: inputs, board, software, per-standpoint detail."""
+    stand: list[dict[str, Any]] = []
+    for r in results:
+        entry: dict[str, Any] = {
+            "name": r.name, "path": r.path, "frames_requested": r.frames_requested,
+            "frames_read": r.frames_read, "frames_used": r.frames_used, "rejected": r.rejected,
+            "notes": r.notes, "reference_plane": r.reference_plane, "figures": r.figures,
+            "pose_board_to_depth": None if r.pose_depth is None else r.pose_depth.tolist(),
+            "camera_in_board": None if r.camera_in_board is None else r.camera_in_board.tolist(),
+        }
+        if r.truth is not None:
+            entry["truth"] = r.truth
+        stand.append(entry)
+    return {
+        "inputs": inputs, "device": device, "board": board.to_dict(), "parameters": parameters,
+        "software": software_versions(), "standpoints": stand,
+        "unusable_standpoints": [r.name for r in results if not r.usable],
+        "frames_rejected": {r.name: r.rejected for r in results if r.rejected},
+        "conventions": "DESIGN §2: distance = z-depth of the board centre in the depth frame; "
+                       "inclination = ray to centre vs board normal; noise = RMS orthogonal "
+                       "residual to the frame's SVD plane; accuracy = mean signed orthogonal "
+                       "distance to the reference plane, positive = behind it (too far).",
+    }
+
+
+def write_study(out: Path, results: list[StandpointResult], board: Board, inputs: list[str],
+                parameters: dict[str, Any], device: dict[str, Any], figures: bool = True) -> list[Path]:
+    """Write the whole result folder; returns the figure files."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_tables(out, results)
+    write_json(out / "summary.json", summary(results, board, inputs, parameters, device))
+    pngs: list[Path] = []
+    if figures:
+        from evaluate.checkerboard.figures import write_figures
+
+        pngs = write_figures(out, results, board)
+    samples = [r for r in results if r.samples is not None]
+    if samples:
+        arrays: dict[str, Any] = {}
+        for r in samples:
+            assert r.samples is not None
+            for k, v in r.samples.to_dict().items():
+                arrays[f"{r.name}/{k}"] = v
+        np.savez_compressed(out / "samples.npz", **arrays)
+    write_result_info(out, "checkerboard", inputs, parameters, device,
+                      extra={"standpoints": len(results), "files": ["standpoints.csv", "frames.csv",
+                             "summary.json", *(p.name for p in pngs)]})
+    return pngs

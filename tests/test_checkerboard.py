@@ -1,0 +1,139 @@
+"""Checkerboard study on exactly rendered boards: known pose, known noise and bias."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from depthstation.board import Board
+from depthstation.camera import Extrinsics, Intrinsics, StreamInfo
+from depthstation.frames import FrameSet
+from depthstation.geometry import rodrigues
+from evaluate.checkerboard.errors import BoardMismatchError
+from evaluate.checkerboard.metrics import fit_plane_moments, moment_matrix, svd_plane_rms
+from evaluate.checkerboard.render import pose_for, still_frames
+from evaluate.checkerboard.study import evaluate_frames
+
+INTR = Intrinsics(640, 360, 320.0, 320.0, 319.5, 179.5)
+ALIGNED = StreamInfo(INTR, INTR, depth_units_m=1e-4, depth_aligned_to_color=True)
+NOISE_REL = 0.002   # sigma_z = 2 mm at 1 m, growing with z^2
+BIAS = 0.003        # measured 3 mm too far (z)
+
+
+def _expected(pose_depth: np.ndarray, u: np.ndarray, v: np.ndarray, intr: Intrinsics) -> tuple[float, float]:
+    """Model truth over the board pixels: orthogonal noise RMS and mean orthogonal bias."""
+    n = pose_depth[:3, 2]
+    dot = n[0] * (u - intr.ppx) / intr.fx + n[1] * (v - intr.ppy) / intr.fy + n[2]
+    z = float(n @ pose_depth[:3, 3]) / dot
+    return float(np.sqrt(np.mean((NOISE_REL * z * z * dot) ** 2))), float(np.mean(BIAS * dot))
+
+
+HD = Intrinsics(1280, 720, 640.0, 640.0, 639.5, 359.5)
+HD_INFO = StreamInfo(HD, HD, depth_units_m=1e-4, depth_aligned_to_color=True)
+
+
+@pytest.mark.parametrize(("distance", "inclination"), [(1.0, 0.0), (1.5, 60.0), (3.0, 30.0)])
+def test_recovers_pose_noise_and_bias(distance: float, inclination: float) -> None:
+    board = Board()
+    pose = pose_for(board, distance, inclination, azimuth_deg=20.0)
+    frames = still_frames(board, pose, HD_INFO, 4, noise_rel=NOISE_REL, bias_m=BIAS)
+    r = evaluate_frames("s", frames, HD_INFO, board, frames_requested=4, collect_samples=True)
+    assert r.frames_used == 4 and r.reference_plane == "average"
+    f = r.figures
+    assert abs(f["distance_m"] - distance) < 0.005 * distance
+    assert abs(f["inclination_deg"] - inclination) < 0.5
+    assert r.samples is not None
+    noise, acc = _expected(pose, r.samples.u, r.samples.v, HD)
+    assert f["noise_m"] == pytest.approx(noise, rel=0.05)
+    # the pose from ~20 px squares carries ~0.05% of the distance (corner-detection bias)
+    assert abs(f["accuracy_m"] - acc) < max(0.001, 0.0006 * distance)
+    assert f["fill_rate"] == pytest.approx(1.0)
+    # the squares are classed by colour as the renderer drew them (checked on the samples)
+    assert r.samples.is_black.sum() > 1000 and r.samples.is_white.sum() > 1000
+    assert not np.any(r.samples.is_black & r.samples.is_white)
+    # a uniform bias makes no colour difference significant... on average; p-values are defined
+    assert 0.0 <= f["noise_black_white_p"] <= 1.0
+
+
+def test_unaligned_depth_through_extrinsics() -> None:
+    """Depth and colour cameras apart (D4xx: colour ~15 mm to the side): the mask follows."""
+    board = Board()
+    color = Intrinsics(640, 360, 330.0, 330.0, 322.0, 178.0)
+    m = np.eye(4)
+    m[:3, :3] = rodrigues([0.0, 0.01, 0.0])
+    m[:3, 3] = [-0.015, 0.0, 0.001]
+    d2c = Extrinsics.from_matrix(m)
+    info = StreamInfo(INTR, color, depth_to_color=d2c, depth_units_m=1e-4)
+    pose_c = pose_for(board, 1.2, 25.0)
+    r = evaluate_frames("s", still_frames(board, pose_c, info, 4, noise_rel=NOISE_REL, bias_m=BIAS),
+                        info, board, frames_requested=4, collect_samples=True)
+    pose_d = np.linalg.inv(d2c.matrix) @ pose_c
+    assert r.pose_depth is not None
+    assert np.allclose(r.pose_depth[:3, 3], pose_d[:3, 3], atol=0.005)
+    assert r.samples is not None
+    noise, acc = _expected(pose_d, r.samples.u, r.samples.v, INTR)
+    assert r.figures["noise_m"] == pytest.approx(noise, rel=0.05)
+    assert abs(r.figures["accuracy_m"] - acc) < 0.0015
+    assert r.figures["fill_rate"] == pytest.approx(1.0)  # a leak onto the wall would show in noise too
+
+
+def test_frames_without_board_are_counted_and_short_recording_noted() -> None:
+    board = Board()
+    frames = list(still_frames(board, pose_for(board, 1.0, 10.0), ALIGNED, 3))
+    assert frames[1].color is not None
+    frames[1] = FrameSet(1, frames[1].timestamp_ns, frames[1].depth, np.full_like(frames[1].color, 120))
+    r = evaluate_frames("s", frames, ALIGNED, board, frames_requested=5)
+    assert r.frames_used == 2
+    assert r.rejected == {"board not found": 1}
+    assert any("fewer frames than asked" in n for n in r.notes)
+
+
+def test_standpoint_without_board_is_reported_not_fatal() -> None:
+    board = Board()
+    frames = [FrameSet(k, k, np.full((360, 640), 10000, np.uint16), np.full((360, 640, 3), 90, np.uint8))
+              for k in range(2)]
+    r = evaluate_frames("empty", frames, ALIGNED, board, frames_requested=2)
+    assert not r.usable and r.rejected == {"board not found": 2}
+    assert any("no usable frame" in n for n in r.notes)
+
+
+def test_board_with_swapped_colours_is_a_clear_error() -> None:
+    printed = Board()
+    described = Board(first_square_black=False)
+    frames = still_frames(printed, pose_for(printed, 1.0, 0.0), ALIGNED, 2)
+    with pytest.raises(BoardMismatchError, match="first_square_black = true"):
+        evaluate_frames("s", frames, ALIGNED, described, frames_requested=2)
+
+
+def test_even_board_half_turn_is_resolved_by_colour() -> None:
+    """An 8 x 6 board seen upside down: OpenCV's corner order flips, the colours set it right."""
+    board = Board(squares_x=8, squares_y=6, square_length_m=0.06)
+    pose = pose_for(board, 1.0, 10.0)
+    turn = np.eye(4)
+    turn[:3, :3] = rodrigues([0.0, 0.0, np.pi])
+    turn[:3, 3] = [*board.size_m, 0.0]
+    upside = pose @ turn  # the board turned by 180 deg about its centre, same colours
+    for p in (pose, upside):
+        r = evaluate_frames("s", still_frames(board, p, ALIGNED, 2), ALIGNED, board, frames_requested=2)
+        assert r.pose_depth is not None and r.frames_used == 2
+        assert np.allclose(r.pose_depth[:3, 3], pose[:3, 3], atol=0.01)
+
+
+def test_charuco_rendered() -> None:
+    board = Board(type="charuco", squares_x=7, squares_y=5, square_length_m=0.075,
+                  marker_length_m=0.05625, dictionary="DICT_4X4_50")
+    pose = pose_for(board, 0.9, 20.0)
+    r = evaluate_frames("s", still_frames(board, pose, ALIGNED, 3, noise_rel=NOISE_REL), ALIGNED, board,
+                        frames_requested=3)
+    assert r.frames_used == 3
+    assert abs(r.figures["distance_m"] - 0.9) < 0.0045
+    assert abs(r.figures["inclination_deg"] - 20.0) < 0.5
+
+
+def test_moment_plane_fit_equals_svd() -> None:
+    rng = np.random.default_rng(1)
+    p = rng.normal(size=(5000, 3)) * [0.3, 0.2, 0.002]
+    p = p @ rodrigues([0.3, -0.2, 0.1]).T + [0.1, 0.0, 2.0]
+    c = p.mean(axis=0)
+    a = moment_matrix(*(p - c).T)
+    assert fit_plane_moments(a)[2] == pytest.approx(svd_plane_rms(p), rel=1e-9)
