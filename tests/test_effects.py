@@ -1,0 +1,119 @@
+"""Every effect of the catalogue: its sampler against its analytic signature (contract 5)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from simulate.effects import EFFECTS, PixelContext
+from simulate.effects.base import Effect
+
+# A non-trivial parameter set per effect (defaults of calibration-type effects are zero).
+TEST_PARAMS: dict[str, dict[str, float]] = {
+    "disparity_noise": {"sigma_px": 0.08},
+    "quantization": {},
+    "dropout": {"dark_probability": 0.2, "base_probability": 0.05},
+    "disparity_offset": {"offset_px": 0.15},
+    "depth_scale": {"scale_error": 0.004},
+    "lr_focal_mismatch": {"ratio": 3e-4},
+    "distortion_residual": {"coeff_px": 0.3},
+    "pixel_locking": {"amplitude_px": 0.05},
+    "thermal_drift": {"coeff_px_per_c": 0.01, "reference_c": 35.0},
+    "slant_noise": {"window_px": 7.0},
+    "slant_bias": {"offset_px_at_45": 0.05},
+    "albedo_bias": {"offset_px_black": 0.1},
+    "albedo_noise": {"sigma_px_black": 0.12},
+    "flying_pixels": {"edge_probability": 0.4, "width_px": 1.5, "spread_ratio": 0.05},
+    "reference_pose_noise": {"corner_sigma_px": 0.2},
+}
+FX, PPX, PPY, B = 674.42, 641.8, 358.1, 0.095
+N = 1500  # samples per cell
+
+
+def _cells(rng: np.random.Generator) -> PixelContext:
+    """N x cells context over distance x inclination x pixel x albedo x edge distance x temperature.
+
+    z is jittered by +-1 % per sample so that quantisation sees a uniform fractional position.
+    """
+    d, inc, u, alb, edge, temp = np.meshgrid([0.6, 1.0, 2.0, 4.0, 6.0], [0.0, 30.0, 60.0, 78.0],
+                                             [60.0, 640.0, 1220.0], [0.05, 0.85], [0.5, 2.5, np.inf],
+                                             [30.0, 45.0], indexing="ij")
+    flat = [a.ravel() for a in (d, inc, u, alb, edge, temp)]
+    z = flat[0][None, :] * (1 + rng.uniform(-0.01, 0.01, (N, flat[0].size)))
+    return PixelContext(z_m=z, inclination_deg=flat[1], u=flat[2], v=flat[2] * 0.5, albedo=flat[3],
+                        time_s=0.0, temperature_c=flat[5], edge_distance_px=flat[4],
+                        fx=FX, ppx=PPX, ppy=PPY, baseline_m=B)
+
+
+def _sample(effect: Effect, ctx: PixelContext, rng: np.random.Generator) -> np.ndarray:
+    z = np.asarray(ctx.z_m, dtype=np.float32)
+    if effect.name == "reference_pose_noise":  # one draw per frame: frames are the samples
+        rows = [effect.apply(PixelContext(**{**ctx.__dict__, "z_m": ctx.z_m[i]}), z[i].copy(), rng)
+                for i in range(N)]
+        return np.asarray(rows, dtype=np.float64)
+    return effect.apply(ctx, z.copy(), rng).astype(np.float64)
+
+
+@pytest.mark.parametrize("name", sorted(EFFECTS))
+def test_effect_sampler_matches_signature(name: str) -> None:
+    rng = np.random.default_rng(7)
+    effect = EFFECTS[name](TEST_PARAMS[name])
+    assert effect.name == name and effect.meaning and set(effect.units) == set(effect.params)
+    ctx = _cells(rng)
+    zt = np.asarray(ctx.z_m, dtype=np.float64)
+    zs = _sample(effect, ctx, rng)
+    bias = np.broadcast_to(effect.bias_m(ctx), zt.shape)
+    var = np.broadcast_to(effect.variance_m2(ctx), zt.shape)
+    keep = np.broadcast_to(effect.valid_probability(ctx), zt.shape)
+    # float32 storage of z adds a rounding error of ~6e-8 z
+    eps = 4e-7 * zt.max()
+
+    valid = np.isfinite(zs)
+    frac = valid.mean(axis=0)
+    p = keep.mean(axis=0)
+    assert np.all(np.abs(frac - p) <= 5 * np.sqrt(p * (1 - p) / N) + 1e-9), "keep probability"
+    if not valid.all():
+        assert name == "dropout"
+        np.testing.assert_array_equal(zs[valid], zt.astype(np.float32)[valid])
+        return
+
+    resid = zs - zt - bias
+    mean = resid.mean(axis=0)
+    pred_var = var.mean(axis=0)
+    samp_var = resid.var(axis=0, ddof=1)
+    se_mean = np.sqrt(pred_var / N)
+    assert np.all(np.abs(mean) <= 5 * se_mean + eps), f"mean residual {np.abs(mean).max():.3g}"
+    m4 = ((resid - mean) ** 4).mean(axis=0)
+    se_var = np.sqrt(np.maximum(m4 - samp_var**2, 0) / N)
+    assert np.all(np.abs(samp_var - pred_var) <= 5 * se_var + eps**2 + 1e-3 * pred_var), "variance"
+    if np.any(pred_var > 0):
+        assert np.any(samp_var > 0) and np.any(np.abs(mean) < 1)  # the noise is really there
+
+
+def test_signatures_have_their_physical_shape() -> None:
+    z = np.array([1.0, 2.0, 4.0])
+    ctx = PixelContext(z_m=z, fx=FX, ppx=PPX, ppy=PPY, baseline_m=B)
+    fb = FX * B
+    off = EFFECTS["disparity_offset"]({"offset_px": 0.1}).bias_m(ctx)
+    np.testing.assert_allclose(off, -z**2 * 0.1 / (fb + z * 0.1), rtol=1e-9)  # ~ z^2, + offset = nearer
+    assert np.all(off < 0)
+    np.testing.assert_allclose(EFFECTS["depth_scale"]({"scale_error": 0.01}).bias_m(ctx), 0.01 * z)
+    rms = np.sqrt(EFFECTS["disparity_noise"]().variance_m2(ctx))
+    np.testing.assert_allclose(rms, z**2 * 0.08 / fb, rtol=1e-3)  # Intel's formula
+    us = np.array([PPX - 300, PPX, PPX + 300])
+    wedge = PixelContext(z_m=2.0, u=us, fx=FX, ppx=PPX, ppy=PPY, baseline_m=B)
+    b = EFFECTS["lr_focal_mismatch"]({"ratio": 1e-3}).bias_m(wedge)
+    assert b[0] > 0 and abs(b[1]) < 1e-12 and b[2] < 0  # a wedge that changes sign at cx
+    drop = EFFECTS["dropout"]()
+    near = PixelContext(z_m=np.array([0.45, 0.55, 3.0, 7.5]), fx=FX, baseline_m=B)
+    keep = drop.valid_probability(near)
+    assert keep[0] == 0 and keep[1] > 0.95 and keep[2] > 0.95 and keep[3] < 0.1  # min-z 0.51 m, range
+    steep = PixelContext(z_m=2.0, inclination_deg=np.array([30.0, 85.0]), albedo=np.array([1.0, 1.0]))
+    assert drop.valid_probability(steep)[1] < 0.2 < drop.valid_probability(steep)[0]
+
+
+def test_unknown_parameter_is_refused() -> None:
+    from depthstation.errors import SimulationError
+
+    with pytest.raises(SimulationError, match="unknown parameter"):
+        EFFECTS["disparity_noise"]({"sigma": 0.1})
