@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from depthstation.capture.mcap_writer import McapFileWriter
 from depthstation.capture.samples import sample_frames, sample_info
 
@@ -81,4 +83,7 @@ def test_compact_rewrites_with_zstd(tmp_path: Path) -> None:
 
     rec = open_recording(tmp_path / "b.mcap")
     assert rec.metadata["standpoint"] == {"distance_m": 2.0}
-    assert all((a.depth == b.depth).all() for a, b in zip(frames, rec.frames(), strict=True))
+    assert all(
+        np.array_equal(np.asarray(a.depth), np.asarray(b.depth))
+        for a, b in zip(frames, rec.frames(), strict=True)
+    )

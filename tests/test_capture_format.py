@@ -5,28 +5,16 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
-from depthstation.camera import StreamInfo
 from depthstation.capture.mcap_writer import write_mcap
 from depthstation.capture.reader import McapRecording, open_inputs, open_recording
 from depthstation.capture.samples import sample_frames, sample_info
 from depthstation.capture.session import Session
 from depthstation.errors import InputError
-
-
-def assert_same_info(a: StreamInfo, b: StreamInfo, tol: float = 1e-6) -> None:
-    for x, y in ((a.depth_intrinsics, b.depth_intrinsics), (a.color_intrinsics, b.color_intrinsics)):
-        if x is None or y is None:
-            assert x is y
-            continue
-        assert (x.width, x.height, x.model) == (y.width, y.height, y.model)
-        np.testing.assert_allclose([x.fx, x.fy, x.ppx, x.ppy], [y.fx, y.fy, y.ppx, y.ppy], rtol=tol)
-        np.testing.assert_allclose(x.coeffs, y.coeffs, atol=tol)
-    np.testing.assert_allclose(a.depth_to_color.matrix, b.depth_to_color.matrix, atol=tol)
-    assert a.depth_units_m == pytest.approx(b.depth_units_m, rel=tol)
 
 
 def test_mcap_round_trip_is_bit_exact(tmp_path: Path) -> None:
@@ -81,13 +69,13 @@ def test_truncated_mcap_recovers_complete_chunks(tmp_path: Path, caplog: pytest.
     with caplog.at_level(logging.WARNING, logger="depthstation.capture"):
         got = list(rec.frames())
     # Every frame whose chunk survived: count the complete chunks independently.
-    from mcap.records import Chunk, Message
+    from mcap.records import Chunk
     from mcap.stream_reader import StreamReader
 
-    with full.open("rb") as f:
+    with full.open("rb") as fh:
         n_expected = 0
-        for r in StreamReader(f, emit_chunks=True).records:
-            if isinstance(r, Chunk) and r.data and f.tell() <= len(data) // 2:
+        for r in StreamReader(fh, emit_chunks=True).records:
+            if isinstance(r, Chunk) and r.data and fh.tell() <= len(data) // 2:
                 n_expected = max(n_expected, r.message_end_time)
     survived = [fr for fr in frames if fr.timestamp_ns <= n_expected]
     assert 5 < len(got) < 40
@@ -153,7 +141,9 @@ def test_session_lifecycle_crash_and_resume(tmp_path: Path) -> None:
     import subprocess
     import sys
 
-    proc = subprocess.run([sys.executable, "-c", script, str(sdir)], capture_output=True, text=True, timeout=60)
+    proc = subprocess.run(
+        [sys.executable, "-c", script, str(sdir)], capture_output=True, text=True, timeout=60
+    )
     assert proc.returncode == 9, proc.stderr
     on_disk = json.loads((sdir / "session.json").read_text())
     assert [e["status"] for e in on_disk["standpoints"]] == ["complete", "recording"]
@@ -212,16 +202,64 @@ def test_rosbags_anyreader_opens_our_mcap(tmp_path: Path) -> None:
         assert topics["/camera/depth/camera_info"] == "sensor_msgs/msg/CameraInfo"
         assert topics["/tf_static"] == "tf2_msgs/msg/TFMessage"
         conns = [c for c in reader.connections if c.topic == "/camera/depth/image_rect_raw"]
-        msgs = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(connections=conns)]
+        msgs: list[Any] = [
+            reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(connections=conns)
+        ]
         assert msgs[0].encoding == "16UC1"
         np.testing.assert_array_equal(np.frombuffer(msgs[0].data, np.uint16).reshape(48, 64), frames[0].depth)
-        ci = [reader.deserialize(raw, c.msgtype) for c, _, raw in
-              reader.messages(connections=[c for c in reader.connections if c.topic == "/camera/color/camera_info"])]
+        ci: list[Any] = [
+            reader.deserialize(raw, c.msgtype)
+            for c, _, raw in reader.messages(
+                connections=[c for c in reader.connections if c.topic == "/camera/color/camera_info"]
+            )
+        ]
         assert ci[0].k[0] == pytest.approx(info.color_intrinsics.fx)  # type: ignore[union-attr]
-        tf = [reader.deserialize(raw, c.msgtype) for c, _, raw in
-              reader.messages(connections=[c for c in reader.connections if c.topic == "/tf_static"])]
+        tf: list[Any] = [
+            reader.deserialize(raw, c.msgtype)
+            for c, _, raw in reader.messages(
+                connections=[c for c in reader.connections if c.topic == "/tf_static"]
+            )
+        ]
         # /tf_static holds the pose of the colour frame in the depth frame: colour->depth.
         from depthstation.capture.rosmsgs import extrinsics_from_transform
 
         pose = extrinsics_from_transform(tf[0].transforms[0].transform)
         np.testing.assert_allclose(pose.matrix, info.depth_to_color.inverse().matrix, atol=1e-12)
+
+
+def test_rerun_mcap_importer_sees_depth_image_with_pinhole(tmp_path: Path) -> None:
+    """Rerun's own MCAP importer (the CLI the viewer uses) decodes a DepthImage under a Pinhole."""
+    import re
+    import shutil
+    import subprocess
+    import sys
+
+    exe = Path(sys.executable).parent / "rerun"
+    if not exe.exists():
+        found = shutil.which("rerun")
+        if found is None:
+            pytest.skip("rerun CLI not installed")
+        exe = Path(found)
+    info = sample_info()
+    path = tmp_path / "x.mcap"
+    write_mcap(path, info, sample_frames(info, 2))
+    rrd = tmp_path / "x.rrd"
+    subprocess.run(
+        [str(exe), "mcap", "convert", str(path), "-o", str(rrd)], check=True, capture_output=True, timeout=120
+    )
+    text = subprocess.run(
+        [str(exe), "rrd", "print", "-vvv", str(rrd)], check=True, capture_output=True, text=True, timeout=120
+    ).stdout
+    depth_rows = [
+        ln for ln in text.splitlines() if "channel_datatype" in ln and "camera_depth_optical_frame" in ln
+    ]
+    assert len(depth_rows) == 2  # one DepthImage per frame, in the depth camera's image plane
+    assert "DepthImage:buffer" in text
+    pinhole = [
+        ln
+        for ln in text.splitlines()
+        if "[camera_depth_optical_frame_image_plane]" in ln and "[camera_depth_optical_frame]" in ln
+    ]
+    assert pinhole, "no Pinhole from the depth CameraInfo"
+    fx = float(re.search(r"\[\[([0-9.]+), 0\.0", pinhole[0]).group(1))  # type: ignore[union-attr]
+    assert fx == pytest.approx(info.depth_intrinsics.fx, rel=1e-5)

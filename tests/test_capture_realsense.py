@@ -7,12 +7,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from depthstation.camera import StreamInfo
 from depthstation.capture.importer import import_recordings
 from depthstation.capture.reader import open_inputs, open_recording
 from depthstation.capture.rsrecord import write_realsense_recording
 from depthstation.capture.samples import sample_frames, sample_info
 from depthstation.errors import InputError
-from tests.test_capture_format import assert_same_info
+
+
+def assert_same_info(a: StreamInfo, b: StreamInfo, tol: float = 1e-6) -> None:
+    """Intrinsics (relative), distortion, extrinsics and depth units agree to `tol`."""
+    for x, y in ((a.depth_intrinsics, b.depth_intrinsics), (a.color_intrinsics, b.color_intrinsics)):
+        assert x is not None and y is not None
+        assert (x.width, x.height, x.model) == (y.width, y.height, y.model)
+        np.testing.assert_allclose([x.fx, x.fy, x.ppx, x.ppy], [y.fx, y.fy, y.ppx, y.ppy], rtol=tol)
+        np.testing.assert_allclose(x.coeffs, y.coeffs, atol=tol)
+    np.testing.assert_allclose(a.depth_to_color.matrix, b.depth_to_color.matrix, atol=tol)
+    assert a.depth_units_m == pytest.approx(b.depth_units_m, rel=tol)
 
 
 def test_real_d435_bag(d435_bag: Path) -> None:

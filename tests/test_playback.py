@@ -1,0 +1,67 @@
+"""PlaybackCamera: a recording behaves like a live camera (same pipeline, frames, geometry, options)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acquire.camera import Camera
+from acquire.playback import PlaybackCamera
+from depthstation.capture.rsrecord import write_realsense_recording
+from depthstation.capture.samples import sample_frames, sample_info
+from depthstation.errors import InputError
+from depthstation.protocol import Streams
+
+
+def test_playback_of_recorded_db3_delivers_every_frame(tmp_path: Path) -> None:
+    info = sample_info(64, 48)
+    frames = list(sample_frames(info, 5, seed=3))
+    path = tmp_path / "rec.db3"
+    write_realsense_recording(path, info, frames)
+    cam = PlaybackCamera(path)
+    assert isinstance(cam, Camera)
+    got_info = cam.start(Streams(width=64, height=48))
+    try:
+        assert got_info.depth_units_m == pytest.approx(0.001, rel=1e-6)
+        assert got_info.baseline_m == pytest.approx(0.095, rel=1e-6)
+        assert got_info.depth_intrinsics.fx == pytest.approx(info.depth_intrinsics.fx, rel=1e-6)
+        assert got_info.color_intrinsics is not None
+        assert got_info.color_intrinsics.model == "inverse_brown_conrady"
+        np.testing.assert_allclose(got_info.depth_to_color.matrix, info.depth_to_color.matrix, atol=1e-6)
+        assert cam.device_info()["serial_number"] == "000000000001"
+        assert "depth_units" in cam.options()
+        got = []
+        with pytest.raises(EOFError):
+            for _ in range(20):
+                got.append(cam.wait_for_frames(timeout_s=1.0))
+    finally:
+        cam.stop()
+    assert [f.index for f in got] == [f.index for f in frames]
+    for a, b in zip(frames, got, strict=True):
+        np.testing.assert_array_equal(a.depth, b.depth)
+        assert abs(b.timestamp_ns - a.timestamp_ns) < 1000
+    assert any(
+        np.array_equal(np.asarray(b.color), np.asarray(a.color)) for a, b in zip(frames, got, strict=True)
+    )
+
+
+def test_playback_real_bag(d435_bag: Path) -> None:
+    with PlaybackCamera(d435_bag) as cam:
+        info = cam.start(Streams(width=640, height=480, fps=6))
+        assert info.depth_intrinsics.fx == pytest.approx(390.43, abs=0.01)
+        assert info.baseline_m == pytest.approx(0.05017, abs=1e-5)
+        assert cam.temperatures()["asic"] == pytest.approx(29.0)
+        fs = cam.wait_for_frames(2.0)
+        assert fs.depth is not None and fs.depth.shape == (480, 640)
+
+
+def test_playback_refuses_non_recordings(tmp_path: Path) -> None:
+    with pytest.raises(InputError):
+        PlaybackCamera(tmp_path / "missing.db3")
+    bad = tmp_path / "bad.db3"
+    bad.write_bytes(b"nothing")
+    cam = PlaybackCamera(bad)
+    with pytest.raises(InputError):
+        cam.start(None)
