@@ -1,0 +1,71 @@
+"""`depthstation evaluate scan`: a thin typer command over `evaluate.scan.run.run_scan`.
+
+Registered by `evaluate/cli.py` with `app.command("scan")(scan)`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+
+def scan(
+    sequence: Path = typer.Option(..., "--sequence", help="Depth sequence: .mcap/.bag/.db3 capture or a "
+                                                          "TUM RGB-D folder (depth.txt or associations)."),
+    poses: Path = typer.Option(..., "--poses", help="TUM trajectory (timestamp tx ty tz qx qy qz qw), "
+                                                    "camera-to-world, e.g. from ORB-SLAM3."),
+    reference: Path = typer.Option(..., "--reference", help="Reference cloud (PLY/PCD/XYZ, E57/LAS with "
+                                                            "pye57/laspy) or mesh."),
+    out: Path = typer.Option(..., "--out", help="Result folder (created)."),
+    similarity: Path | None = typer.Option(None, "--similarity",
+                                           help="4x4 similarity text file: trajectory -> reference."),
+    pass_points: Path | None = typer.Option(None, "--pass-points",
+                                            help="CSV x,y,z,x_ref,y_ref,z_ref (Umeyama with scale)."),
+    icp: bool = typer.Option(True, "--icp/--no-icp", help="Refine by ICP with scale on depth pixels "
+                                                          "in the 0.5-2.0 m band."),
+    frames: int | None = typer.Option(None, "--frames", min=1, help="Evaluate at most N frames."),
+    every: int = typer.Option(1, "--every", min=1, help="Use every N-th frame."),
+    per_frame_grids: bool = typer.Option(False, "--per-frame-grids",
+                                         help="Also save one grid per frame (frame_grids/)."),
+    workers: int = typer.Option(1, "--workers", min=1, help="Processes (one ray-casting thread each "
+                                                            "when > 1)."),
+    tolerance_s: float = typer.Option(0.01, "--pose-tolerance-s", help="Max |t_frame - t_pose| (s)."),
+    intrinsics: Path | None = typer.Option(None, "--intrinsics",
+                                           help="Intrinsics file for a TUM folder (camera.json or "
+                                                "'fx fy cx cy [w h] [factor]')."),
+    rrd: Path | None = typer.Option(None, "--rrd", help="Write a rerun recording."),
+    spawn: bool = typer.Option(False, "--spawn", help="Stream to a rerun viewer."),
+    serve: bool = typer.Option(False, "--serve", help="Serve a local rerun web viewer."),
+    distance_bin_m: float = typer.Option(0.005, "--distance-bin-m", help="Grid distance bin (m)."),
+    inclination_bin_deg: float = typer.Option(0.1, "--inclination-bin-deg",
+                                              help="Grid inclination bin (deg)."),
+    distance_max_m: float = typer.Option(6.0, "--distance-max-m", help="Grid distance range (m)."),
+    min_count_frame: int = typer.Option(10, "--min-count-frame",
+                                        help="Cells shown in the one-frame figure need this many samples."),
+    min_count_sequence: int = typer.Option(2000, "--min-count-sequence",
+                                           help="Cells shown in the sequence figure need this many."),
+    figure_frame: int | None = typer.Option(None, "--figure-frame",
+                                            help="Frame index for the Fig. 8/9 pictures (default: middle)."),
+    poisson_depth: int = typer.Option(9, "--poisson-depth", help="Poisson octree depth for a cloud."),
+    density_quantile: float = typer.Option(0.05, "--density-quantile",
+                                           help="Drop Poisson vertices below this density quantile."),
+) -> None:
+    """The reference-scan study (paper Section 3.2): per-pixel depth error against a TLS reference,
+    gridded over distance x inclination."""
+    from depthstation.viz import RerunTarget
+    from evaluate.scan.run import ScanOptions, run_scan
+
+    opts = ScanOptions(similarity=similarity, pass_points=pass_points, icp=icp, frames=frames, every=every,
+                       per_frame_grids=per_frame_grids, workers=workers, tolerance_s=tolerance_s,
+                       distance_bin_m=distance_bin_m, inclination_bin_deg=inclination_bin_deg,
+                       distance_max_m=distance_max_m, min_count_frame=min_count_frame,
+                       min_count_sequence=min_count_sequence, figure_frame=figure_frame,
+                       intrinsics=intrinsics, poisson_depth=poisson_depth,
+                       density_quantile=density_quantile, target=RerunTarget(rrd, spawn, serve))
+    s = run_scan(sequence, poses, reference, out, opts)
+    reg = s["registration"]
+    c2c = reg["mean_c2c_m"]
+    typer.echo(f"{s['frames']['used']} frames, {s['pixels']['evaluated']} pixels evaluated; "
+               f"scale {reg['scale']:.5f}, mean c2c {c2c * 100 if c2c is not None else float('nan'):.2f} cm "
+               f"-> {out / 'grid.npz'}")

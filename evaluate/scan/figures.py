@@ -1,0 +1,106 @@
+"""The study's pictures: paper Fig. 8 (one frame's maps) and Fig. 9/10 (grid heatmaps).
+
+Heatmaps put distance (m) on x and inclination (deg) on y, mask cells below a count threshold
+(paper: 10 for one frame, 2000 for a sequence) and show mean and std in millimetres.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from evaluate.grid import Grid
+from evaluate.scan.raycast import FrameImages
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def frame_figure(images: FrameImages, path: Path, title: str = "") -> Path:
+    """Measured depth, reference depth, inclination and depth error of one frame (Fig. 8)."""
+    plt = _plt()
+    fig, axes = plt.subplots(2, 2, figsize=(11, 8), constrained_layout=True)
+    both = np.concatenate([images.measured_m[np.isfinite(images.measured_m)],
+                           images.reference_m[np.isfinite(images.reference_m)]])
+    vmax = float(np.percentile(both, 99.5)) if both.size else 1.0
+    err_mm = images.error_m * 1000.0
+    finite = err_mm[np.isfinite(err_mm)]
+    lim = float(np.percentile(np.abs(finite), 98)) if finite.size else 1.0
+    panels = [
+        (images.measured_m, "(a) measured depth", "depth (m)", "viridis", 0.0, vmax),
+        (images.reference_m, "(b) reference depth (ray cast)", "depth (m)", "viridis", 0.0, vmax),
+        (images.inclination_deg, "(c) inclination", "inclination (deg)", "magma", 0.0, 90.0),
+        (err_mm, "(d) depth error, measured - reference", "error (mm)", "RdBu_r", -lim, lim),
+    ]
+    for ax, (img, name, unit, cmap, lo, hi) in zip(axes.ravel(), panels, strict=True):
+        cm = plt.get_cmap(cmap).copy()
+        cm.set_bad("black")
+        im = ax.imshow(np.ma.masked_invalid(img), cmap=cm, vmin=lo, vmax=hi, interpolation="nearest")
+        ax.set_title(name)
+        ax.set_xlabel("u (px)")
+        ax.set_ylabel("v (px)")
+        fig.colorbar(im, ax=ax, label=unit)
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def grid_figure(grid: Grid, path: Path, min_count: int, title: str = "") -> Path:
+    """Count, mean error and std per distance x inclination cell (Fig. 9 / Fig. 10)."""
+    plt = _plt()
+    from matplotlib.colors import LogNorm
+
+    count, mean, std = grid.masked(min_count)
+    de, ie = grid.distance_edges_m, grid.inclination_edges_deg
+    used = np.nonzero(grid.count.sum(axis=1))[0]
+    dmax = float(de[used[-1] + 1]) if used.size else float(de[-1])
+    extent = (float(de[0]), float(de[-1]), float(ie[0]), float(ie[-1]))
+    fig, axes = plt.subplots(1, 3, figsize=(17, 5), constrained_layout=True)
+    mean_mm = mean * 1000.0
+    std_mm = std * 1000.0
+    lim = float(np.percentile(np.abs(mean_mm.compressed()), 98)) if mean_mm.count() else 1.0
+    smax = float(np.percentile(std_mm.compressed(), 98)) if std_mm.count() else 1.0
+    cmax = max(int(grid.count.max()), 2)
+    panels = [
+        (count, "(a) samples per cell", "count", "viridis", LogNorm(vmin=1, vmax=cmax)),
+        (mean_mm, f"(b) mean error (cells with >= {min_count} samples)", "mean error (mm)",
+         "RdBu_r", plt.Normalize(-lim, lim)),
+        (std_mm, f"(c) std of error (cells with >= {min_count} samples)", "std (mm)", "magma",
+         plt.Normalize(0.0, smax)),
+    ]
+    for ax, (data, name, unit, cmap, norm) in zip(axes, panels, strict=True):
+        cm = plt.get_cmap(cmap).copy()
+        cm.set_bad("white")
+        im = ax.imshow(data.T, origin="lower", aspect="auto", extent=extent, cmap=cm, norm=norm,
+                       interpolation="nearest")
+        ax.set_xlim(float(de[0]), dmax)
+        ax.set_title(name)
+        ax.set_xlabel("distance: reference z-depth (m)")
+        ax.set_ylabel("inclination (deg)")
+        fig.colorbar(im, ax=ax, label=unit)
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def colorize(values: np.ndarray[Any, Any], cmap: str, lo: float, hi: float) -> np.ndarray[Any, Any]:
+    """RGB uint8 image of a masked/NaN array (for rerun), NaN -> black."""
+    plt = _plt()
+    data = np.ma.masked_invalid(np.ma.filled(np.ma.asarray(values, dtype=np.float64), np.nan))
+    norm = (data - lo) / max(hi - lo, 1e-12)
+    rgba = plt.get_cmap(cmap)(np.ma.filled(np.clip(norm, 0, 1), np.nan))
+    rgb = (rgba[..., :3] * 255).astype(np.uint8)
+    rgb[np.ma.getmaskarray(data)] = 0
+    return rgb
