@@ -153,7 +153,8 @@ def run_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     grid = result.grid
     grid.save(out / GRID_FILE)
     figures: dict[str, str] = {}
-    fig_index = opt.figure_frame if opt.figure_frame is not None else sorted(result.used)[len(result.used) // 2]
+    fig_index = (opt.figure_frame if opt.figure_frame is not None
+                 else sorted(result.used)[len(result.used) // 2])
     caster = MeshCaster(mesh_path, source.info.depth_intrinsics)
     images = frame_images(caster, source, posed, fig_index, opt.tolerance_s)
     if images is not None:
