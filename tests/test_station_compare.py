@@ -184,10 +184,11 @@ def test_compare_simulated_d455_against_d435(tmp_path: Path) -> None:
 
     protocol_path = PROTOCOL_DIR / "demo-d455.toml"
     protocol = load_protocol(protocol_path)
+    chosen = [sp.name for sp in protocol.plan.standpoints() if sp.distance_m > 1.5][:3]
     results = {}
     for name in ("d455", "d435"):
         session = sim.simulate_checkerboard(protocol, load_model(name), tmp_path / f"session-{name}",
-                                            seed=3, frames=4)
+                                            seed=3, frames=4, standpoints=chosen)
         results[name] = tmp_path / f"cb-{name}"
         run_study([session], protocol_path, results[name], frames=4)
     again = tmp_path / "cb-d455-again"
