@@ -1,0 +1,148 @@
+"""Simulated checkerboard sessions: OpenCV finds the board, captures read back, .db3 plays back."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from depthstation.camera import Intrinsics, project
+from depthstation.protocol import load_protocol
+from simulate.checkerboard import simulate_checkerboard
+from simulate.model import load_model
+from simulate.poses import standpoint_pose, standpoint_truth
+from simulate.render import encode_srgb, render_color_linear
+from simulate.scene import board_scene
+
+
+def test_opencv_finds_board_at_every_standpoint_full_resolution() -> None:
+    """All 65 standpoints of checkerboard-d455 (1 to 5.8 m, 0 to 60 deg) at 1280x720 colour.
+
+    Only the window round the board is ray cast (same intrinsics, shifted principal point), which
+    is the full-resolution image cropped; corners must also land where the true pose projects them.
+    """
+    proto = load_protocol("checkerboard-d455")
+    model = load_model("d455")
+    info = model.camera.stream_info(1280, 720)
+    ci = info.color_intrinsics
+    assert ci is not None
+    scene = board_scene(proto.board)
+    rc = scene.raycasting_scene()
+    rng = np.random.default_rng(3)
+    missed = []
+    for sp in proto.plan.standpoints():
+        assert sp.distance_m <= model.camera.max_range_m
+        pose = standpoint_pose(proto.board, sp.distance_m, sp.inclination_deg, sp.side)
+        cpose = pose @ np.linalg.inv(info.depth_to_color.matrix)
+        b2c = np.linalg.inv(cpose)
+        uv = project(ci, proto.board.corner_points() @ b2c[:3, :3].T + b2c[:3, 3])
+        lo = np.maximum(np.floor(uv.min(0) - 60), 0).astype(int)
+        hi = np.minimum(np.ceil(uv.max(0) + 60), [ci.width - 1, ci.height - 1]).astype(int)
+        assert np.all(uv.min(0) > 0) and np.all(uv.max(0) < [ci.width - 1, ci.height - 1])
+        crop = Intrinsics(int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1), ci.fx, ci.fy,
+                          ci.ppx - lo[0], ci.ppy - lo[1])
+        img = encode_srgb(render_color_linear(scene, crop, cpose, rc)).astype(np.int16)
+        img += np.rint(2.0 * rng.standard_normal(img.shape)).astype(np.int16)
+        gray = cv2.cvtColor(np.clip(img, 0, 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        ok, corners = cv2.findChessboardCorners(gray, proto.board.inner_corners, flags=flags)
+        if not ok:
+            missed.append(sp.name)
+            continue
+        corners = cv2.cornerSubPix(gray, corners, (3, 3), (-1, -1),
+                                   (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01))
+        c = corners.reshape(-1, 2) + lo
+        err = min(np.abs(c - uv).max(), np.abs(c[::-1] - uv).max())  # OpenCV may start at either end
+        assert err < 0.6, f"{sp.name}: corners {err:.2f} px off the true projection"
+    assert not missed, f"board not found at {missed}"
+
+
+def test_standpoint_pose_is_exact() -> None:
+    proto = load_protocol("checkerboard-d455")
+    for sp in proto.plan.standpoints()[::7]:
+        pose = standpoint_pose(proto.board, sp.distance_m, sp.inclination_deg)
+        d, inc = standpoint_truth(proto.board, pose)
+        assert d == pytest.approx(sp.distance_m, abs=1e-9)
+        assert inc == pytest.approx(sp.inclination_deg, abs=1e-6)
+
+
+def test_session_reads_back_with_truth(tmp_path: Path) -> None:
+    from depthstation.capture.reader import open_inputs
+
+    out = simulate_checkerboard("demo-d455", "d455", tmp_path / "sim", frames=3,
+                                standpoints=["standpoint_01", "standpoint_05"])
+    truth = json.loads((out / "truth.json").read_text())
+    assert [s["name"] for s in truth["standpoints"]] == ["standpoint_01", "standpoint_05"]
+    assert "[effects.disparity_noise]" in truth["model"] and truth["seed"] == 0
+    recs = open_inputs([out])
+    assert [r.name for r in recs] == ["standpoint_01", "standpoint_05"]
+    for rec, t in zip(recs, truth["standpoints"], strict=True):
+        frames = list(rec.frames())
+        assert len(frames) == 3
+        assert rec.info.depth_intrinsics.width == 640 and rec.info.depth_units_m == 0.001
+        # the board centre pixel reads the true distance within the noise
+        pose = np.array(t["board_to_depth_camera"])
+        c = pose[:3, :3] @ proto_center() + pose[:3, 3]
+        u, v = np.rint(project(rec.info.depth_intrinsics, c[None])[0]).astype(int)
+        z = np.nanmedian([f.depth_m(rec.info.depth_units_m)[v - 2:v + 3, u - 2:u + 3] for f in frames])
+        assert z == pytest.approx(t["distance_m"], abs=0.01)
+        assert frames[0].color is not None and frames[0].color.shape == (360, 640, 3)
+    # never overwrite
+    from depthstation.errors import InputError
+
+    with pytest.raises(InputError, match="not empty"):
+        simulate_checkerboard("demo-d455", "d455", out, frames=1)
+
+
+def proto_center() -> np.ndarray:
+    return load_protocol("demo-d455").board.center
+
+
+def test_same_seed_same_frames(tmp_path: Path) -> None:
+    from depthstation.capture.reader import open_recording
+
+    a, b = (simulate_checkerboard("demo-d455", "d455", tmp_path / n, frames=2,
+                                  standpoints=["standpoint_02"], seed=5) for n in ("a", "b"))
+    fa = list(open_recording(a / "standpoint_02.mcap").frames())
+    fb = list(open_recording(b / "standpoint_02.mcap").frames())
+    for x, y in zip(fa, fb, strict=True):
+        np.testing.assert_array_equal(x.depth, y.depth)
+        np.testing.assert_array_equal(x.color, y.color)
+    assert not np.array_equal(fa[0].depth, fa[1].depth)  # new noise every frame
+
+
+def test_db3_plays_back_through_pyrealsense2(tmp_path: Path) -> None:
+    rs = pytest.importorskip("pyrealsense2")
+    out = simulate_checkerboard("demo-d455", "d455", tmp_path / "db", fmt="db3", frames=5,
+                                standpoints=["standpoint_01"])
+    path = out / "standpoint_01.db3"
+    model = load_model("d455")
+    info = model.camera.stream_info(640, 360)
+    cfg = rs.config()
+    cfg.enable_device_from_file(str(path), repeat_playback=False)
+    pipe = rs.pipeline()
+    prof = pipe.start(cfg)
+    try:
+        prof.get_device().as_playback().set_real_time(False)
+        dprof = prof.get_stream(rs.stream.depth).as_video_stream_profile()
+        cprof = prof.get_stream(rs.stream.color).as_video_stream_profile()
+        di = dprof.get_intrinsics()
+        assert (di.width, di.height) == (640, 360)
+        assert di.fx == pytest.approx(info.depth_intrinsics.fx, rel=1e-6)
+        assert di.ppx == pytest.approx(info.depth_intrinsics.ppx, abs=1e-4)
+        assert di.ppy == pytest.approx(info.depth_intrinsics.ppy, abs=1e-4)
+        ci = cprof.get_intrinsics()
+        assert ci.fx == pytest.approx(info.color_intrinsics.fx, rel=1e-6)
+        ext = dprof.get_extrinsics_to(cprof)
+        np.testing.assert_allclose(ext.translation, [-0.059, 0.0, 0.0], atol=1e-6)
+        np.testing.assert_allclose(np.array(ext.rotation).reshape(3, 3), np.eye(3), atol=1e-6)
+        scale = prof.get_device().first_depth_sensor().get_depth_scale()
+        assert scale == pytest.approx(0.001, rel=1e-6)
+        frames = pipe.wait_for_frames(5000)
+        depth = np.asanyarray(frames.get_depth_frame().get_data())
+        assert depth.shape == (360, 640) and np.count_nonzero(depth) > 0.5 * depth.size
+    finally:
+        pipe.stop()
