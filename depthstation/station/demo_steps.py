@@ -25,9 +25,8 @@ def evaluate_checkerboard_session(inputs: list[Path], out: Path, ctx: DemoContex
 def _checkerboard_step(ctx: DemoContext) -> tuple[Path, str]:
     session = ctx.results.get("session")
     if session is None:
-        from simulate.checkerboard import simulate_checkerboard
-
         from depthstation.protocol import load_protocol
+        from simulate.checkerboard import simulate_checkerboard
         from simulate.model import load_model
 
         session = simulate_checkerboard(load_protocol(DEMO_PROTOCOL), load_model(DEMO_MODEL),
@@ -51,10 +50,9 @@ CHECKERBOARD = Step("checkerboard", "checkerboard study of the session",
 
 
 def _compare_step(ctx: DemoContext) -> tuple[Path, str]:
-    from simulate.checkerboard import simulate_checkerboard
-
     from depthstation.protocol import load_protocol
     from depthstation.station.compare_write import run_compare
+    from simulate.checkerboard import simulate_checkerboard
     from simulate.model import load_model
 
     ref = ctx.results.get("checkerboard")
@@ -82,8 +80,35 @@ def _not_wired(ctx: DemoContext) -> tuple[Path, Any]:
     raise RuntimeError(msg)
 
 
+# ------------------------------------------------------------------------------ guided session
+
+WARMUP_INTERVAL_S = 15.0     # simulated seconds between temperature samples
+WARMUP_ACCELERATE = 300.0    # the simulated clock runs this much faster: 10 min of warm-up in 2 s
+MAX_GUIDANCE_S = 60.0        # give up a standpoint the simulated operator cannot reach
+
+
+def _session_step(ctx: DemoContext) -> tuple[Path, str]:
+    """Warm-up on an accelerated clock, calibration, then the guided capture with a simulated operator
+    (the same functions `depthstation acquire session --camera sim` runs)."""
+    from acquire.cli import Station, do_calibrate, do_capture, do_warmup
+
+    folder = ctx.out / "session"
+    st = Station("sim:" + DEMO_MODEL, DEMO_PROTOCOL, folder, False, 1, False)
+    target = ctx.target(folder.parent, "session")
+    warm = do_warmup(st, WARMUP_INTERVAL_S, WARMUP_ACCELERATE, target if not ctx.rrd else
+                     ctx.target(folder.parent, "session-warmup"))
+    cal = do_calibrate(st, True, write=False)
+    do_capture(st, target if not ctx.rrd else ctx.target(folder.parent, "session-capture"), MAX_GUIDANCE_S)
+    done = [e["name"] for e in st.session.standpoints if e.get("status") == "complete"]
+    ctx.facts["session"] = {"warmup": warm, "calibration_skipped": cal.get("skipped", False),
+                            "complete": done}
+    return folder, (f"{len(done)} standpoints recorded; warm-up: {warm.get('reason', '?')}; "
+                    f"calibration: {'skipped' if cal.get('skipped') else 'done'}")
+
+
 SESSION = Step("session", "guided session with the simulated D455 (warm-up, calibration, capture)",
-               ("acquire.session:run_session", "simulate.camera:SimulatedCamera"), _not_wired)
+               ("acquire.cli:Station", "acquire.cli:do_warmup", "acquire.cli:do_calibrate",
+                "acquire.cli:do_capture", "simulate.camera:SimulatedCamera"), _session_step)
 SCAN = Step("scan", "reference-scan study of a simulated room walk",
             ("simulate.scan:simulate_scan", "evaluate.scan.run:evaluate_scan"), _not_wired)
 EXPLAIN = Step("explain", "explain a capture with a concealed effect",
