@@ -28,6 +28,11 @@ RealTimeOpt = typer.Option(False, "--real-time",
                            help="pace a simulated camera or a recording at its frame rate")
 
 
+def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
+    """A stored protocol without its unset (null) keys, which the TOML form leaves out."""
+    return {k: _drop_none(v) if isinstance(v, dict) else v for k, v in d.items() if v is not None}
+
+
 class Station:
     """The objects one command works on: protocol, camera spec, camera, session."""
 
@@ -42,8 +47,8 @@ class Station:
         if resume:
             self.session = Session.open(session)
             stored = self.session.data.get("protocol")
-            self.protocol = (protocol_from_dict(stored, session / SESSION_FILE) if isinstance(stored, dict)
-                             else load_protocol(protocol))
+            self.protocol = (protocol_from_dict(_drop_none(stored), session / SESSION_FILE)
+                             if isinstance(stored, dict) else load_protocol(protocol))
         else:
             if (session / SESSION_FILE).exists():
                 raise InputError(session, "holds a session already: add --resume to continue it")
