@@ -28,7 +28,8 @@ class FakeDevice:
         return CalibrationResult("on_chip", self.table + b"+occ", (self.health, 0.0))
 
     def run_tare_calibration(self, ground_truth_m: float, timeout_s: float = 30.0) -> CalibrationResult:
-        return CalibrationResult("tare", self.table + b"+tare", (self.health,), {"ground_truth_m": ground_truth_m})
+        return CalibrationResult("tare", self.table + b"+tare", (self.health,),
+                                 {"ground_truth_m": ground_truth_m})
 
     def set_calibration_table(self, table: bytes) -> None:
         self.table = table
@@ -47,7 +48,8 @@ def test_health_bands(h: float, level: str, apply: bool) -> None:
 def test_applies_only_after_confirmation() -> None:
     dev = FakeDevice(0.5)
     said: list[str] = []
-    rec = run_calibration(dev, Calibration(on_chip=True, tare=False), confirm=lambda q: False, say=said.append)
+    rec = run_calibration(dev, Calibration(on_chip=True, tare=False), confirm=lambda q: False,
+                          say=said.append)
     assert dev.table == b"factory" and not rec["changed"] and not rec["steps"][0]["applied"]
     assert any("can be improved" in s for s in said)
     rec = run_calibration(dev, Calibration(on_chip=True, tare=True, tare_distance_m=1.0),

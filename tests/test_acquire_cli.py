@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_acquire_loop import INTR, RenderedBoardCamera  # noqa: E402
+from test_acquire_loop import INTR, RenderedBoardCamera
 
-from acquire.select import parse_camera  # noqa: E402
-from depthstation.board import Board  # noqa: E402
-from depthstation.camera import StreamInfo  # noqa: E402
-from depthstation.errors import InputError  # noqa: E402
-from depthstation.protocol import Streams  # noqa: E402
-from simulate.operator import Stance  # noqa: E402
+from acquire.select import parse_camera
+from depthstation.board import Board
+from depthstation.camera import StreamInfo
+from depthstation.errors import InputError
+from depthstation.protocol import Streams
+from simulate.operator import Stance
 
 ROOT = Path(__file__).resolve().parents[1]
 EXE = str(ROOT / ".venv" / "bin" / "depthstation")
@@ -113,7 +113,8 @@ def test_capture_from_a_recording(tmp_path: Path) -> None:
     assert r.returncode == 2 and "--resume" in r.stderr and "Traceback" not in r.stderr
     # calibration and warm-up on a recording: said and recorded, nothing applied
     r = subprocess.run([EXE, "acquire", "calibrate", "--camera", str(rec), "--protocol", str(proto),
-                        "--session", str(sess), "--resume", "--yes"], capture_output=True, text=True, timeout=120)
+                        "--session", str(sess), "--resume", "--yes"],
+                       capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     data = json.loads((sess / "session.json").read_text())
     assert data["calibration"]["skipped"]
