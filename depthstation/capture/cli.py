@@ -17,7 +17,7 @@ def import_cmd(
         list[Path], typer.Argument(help=".bag, .db3, .mcap files, PNG folders or dataset roots")
     ],
     out: Annotated[Path, typer.Option("--out", "-o", help="new session directory")],
-    compression: Annotated[str, typer.Option(help="lz4 (default), none or zstd")] = "lz4",
+    compression: Annotated[str, typer.Option(help="none (default, fastest to read), lz4 or zstd")] = "none",
 ) -> None:
     """Import recordings into a capture session (one MCAP per standpoint)."""
     from depthstation.capture.importer import import_recordings

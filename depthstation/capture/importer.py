@@ -14,7 +14,7 @@ def import_recordings(
     sources: Sequence[Path],
     out: Path,
     *,
-    compression: str = "lz4",
+    compression: str = "none",
     on_frame: Callable[[Recording, int], None] | None = None,
 ) -> Session:
     """Convert every standpoint of `sources` into one MCAP each in the new session `out`.

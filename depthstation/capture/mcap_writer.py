@@ -34,7 +34,7 @@ DEPTH_FRAME_ID = "camera_depth_optical_frame"
 COLOR_FRAME_ID = "camera_color_optical_frame"
 INFRARED_FRAME_ID = "camera_infra1_optical_frame"
 
-COMPRESSIONS = ("lz4", "none", "zstd")
+COMPRESSIONS = ("none", "lz4", "zstd")
 
 
 def _json(value: Any) -> str:
@@ -52,7 +52,7 @@ class McapFileWriter:
         info: StreamInfo,
         metadata: dict[str, Any] | None = None,
         *,
-        compression: str = "lz4",
+        compression: str = "none",
         chunk_size: int = 4 * 1024 * 1024,
     ) -> None:
         from mcap.writer import CompressionType, Writer
@@ -219,7 +219,7 @@ def write_mcap(
     frames: Iterable[FrameSet],
     metadata: dict[str, Any] | None = None,
     *,
-    compression: str = "lz4",
+    compression: str = "none",
     temperatures: Iterable[tuple[int, dict[str, float]]] = (),
 ) -> int:
     """Write a whole recording at once (never overwrites); returns the number of frame sets written."""

@@ -183,7 +183,7 @@ class Session:
         info: StreamInfo,
         standpoint: dict[str, Any] | None = None,
         *,
-        compression: str = "lz4",
+        compression: str = "none",
         queue_frames: int = 64,
         metadata: dict[str, Any] | None = None,
         blocking: bool = False,
