@@ -122,6 +122,7 @@ def test_session_lifecycle_crash_and_resume(tmp_path: Path) -> None:
         for f in sample_frames(info, 4):
             assert w.write(f)
         w.write_temperature(1, {"asic": 40.0})
+        w.update_standpoint(measured_distance_m=1.02)
     assert w.dropped == 0
     assert (sdir / "standpoint_01.mcap").is_file()
     assert s.status("standpoint_01") == "complete"
@@ -152,7 +153,12 @@ def test_session_lifecycle_crash_and_resume(tmp_path: Path) -> None:
     assert (sdir / "standpoint_02.mcap.partial").is_file()
     recs = open_inputs([sdir])
     assert [r.name for r in recs] == ["standpoint_01"]
-    assert recs[0].metadata["standpoint"]["distance_m"] == 1.0
+    assert recs[0].metadata["standpoint"] == {
+        "distance_m": 1.0,
+        "measured_distance_m": 1.02,
+        "name": "standpoint_01",
+    }
+    assert s2.standpoints[0]["standpoint"]["measured_distance_m"] == 1.02
     assert recs[0].metadata["protocol"] == {"name": "demo"}
     # Resume: re-record standpoint_02; the crashed attempt is kept aside, not overwritten.
     with s2.standpoint_writer("standpoint_02", info, {"distance_m": 1.5}) as w3:

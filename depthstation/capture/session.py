@@ -310,6 +310,11 @@ class StandpointWriter:
         """Add/replace a metadata record (e.g. the measured standpoint); the last one wins."""
         self._queue.put(("meta", (name, value)))  # blocking: rare and must not be lost
 
+    def update_standpoint(self, **values: Any) -> None:
+        """Record measured values (distance_m, inclination_deg, ...) in the MCAP and session.json."""
+        self.entry.setdefault("standpoint", {}).update(values)
+        self.set_metadata("standpoint", dict(self.entry["standpoint"], name=self.final.name.split(".")[0]))
+
     def close(self, ok: bool = True) -> None:
         """Drain the queue, finish the MCAP, rename it into place, mark the standpoint complete."""
         if self._closed:
