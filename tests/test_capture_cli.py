@@ -46,11 +46,21 @@ def test_bad_inputs_exit_2_one_line(tmp_path: Path) -> None:
     junk.write_bytes(b"#ROSBAG V2.0\n" + b"\0" * 64)
     text = tmp_path / "readme.mcap"
     text.write_text("not an mcap")
-    for path in (junk, text, tmp_path / "missing.mcap"):
+    nodepth = tmp_path / "nodepth.mcap"
+    from mcap.writer import Writer
+
+    with nodepth.open("wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2")
+        w.add_metadata("streams", {"json": json.dumps(sample_info().to_dict())})
+        w.finish()
+    for path in (junk, text, nodepth, tmp_path / "missing.mcap"):
         p = run("info", str(path))
         assert p.returncode == 2, (path, p.stderr)
         lines = p.stderr.strip().splitlines()
         assert len(lines) == 1 and "Traceback" not in p.stderr and str(path) in lines[0]
+        if path == nodepth:
+            assert "no depth" in lines[0]
 
 
 def test_truncated_mcap_info_warns_once(tmp_path: Path) -> None:

@@ -115,3 +115,37 @@ def test_png_dataset(charuco_dir: Path) -> None:
     assert fs.depth.shape == (1080, 1920) and fs.color is not None and fs.color.shape == (1080, 1920, 3)
     # A single standpoint folder opens on its own too (camera.json one level up).
     assert open_recording(charuco_dir / "pose05").frame_count == rec.frame_count
+
+
+def _copy_to_rosbag2_dir(src: Path, out: Path, drop: str | None = None) -> None:
+    """Re-store a librealsense .db3 as a rosbag2 directory (metadata.yaml + db3), optionally without
+    the topics containing `drop`."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    with AnyReader([src], default_typestore=ts) as r, Writer(out, version=8) as w:
+        conns = {
+            c.id: w.add_connection(c.topic, c.msgtype, typestore=ts)
+            for c in r.connections
+            if drop is None or drop not in c.topic
+        }
+        for c, t, raw in r.messages():
+            if c.id in conns:
+                w.write(conns[c.id], t, raw)
+
+
+def test_rosbag2_directory_and_missing_depth(db3: tuple[Path, list], tmp_path: Path) -> None:  # type: ignore[type-arg]
+    path, frames = db3
+    bagdir = tmp_path / "standpoint_08"
+    _copy_to_rosbag2_dir(path, bagdir)
+    rec = open_recording(bagdir)
+    assert rec.name == "standpoint_08" and rec.frame_count == 4
+    for a, b in zip(frames, rec.frames(), strict=True):
+        np.testing.assert_array_equal(a.depth, b.depth)
+        np.testing.assert_array_equal(a.color, b.color)
+    nodepth = tmp_path / "nodepth"
+    _copy_to_rosbag2_dir(path, nodepth, drop="Depth_0/image")
+    with pytest.raises(InputError, match="no depth"):
+        open_recording(nodepth)
