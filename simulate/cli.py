@@ -2,6 +2,72 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
 
-app = typer.Typer(no_args_is_help=True)
+app = typer.Typer(no_args_is_help=True, help="Render captures with the simulated D455 (or D435, D415).")
+
+
+@app.command("checkerboard")
+def checkerboard_cmd(
+    protocol: str = typer.Option("checkerboard-d455", "--protocol", "-p",
+                                 help="protocol name in protocols/ or a protocol TOML"),
+    model: str = typer.Option("d455", "--model", "-m", help="preset (d455, d435, d415) or a model TOML"),
+    out: Path = typer.Option(..., "--out", "-o", help="new (or empty) output folder"),
+    fmt: str = typer.Option("mcap", "--format", help="mcap (capture session) or db3 (RealSense recordings)"),
+    seed: int = typer.Option(0, "--seed", help="random seed of the sensor noise"),
+    frames: int | None = typer.Option(None, "--frames",
+                                      help="frames per standpoint (default: the protocol's)"),
+    standpoint: list[str] | None = typer.Option(None, "--standpoint",
+                                                help="only these standpoints (repeatable)"),
+) -> None:
+    """Simulate every standpoint of a checkerboard protocol, with truth.json beside the captures."""
+    from depthstation.results import write_result_info
+    from simulate.checkerboard import load_truth, simulate_checkerboard
+
+    path = simulate_checkerboard(protocol, model, out, fmt=fmt, seed=seed, frames=frames,
+                                 standpoints=standpoint or None, progress=True)
+    truth = load_truth(path)
+    write_result_info(path, "simulate-checkerboard", [protocol, model],
+                      {"protocol": protocol, "model": model, "format": fmt, "seed": seed, "frames": frames},
+                      device=truth["stream_info"]["device"],
+                      extra={"standpoints": [s["name"] for s in truth["standpoints"]]})
+    n = len(truth["standpoints"])
+    typer.echo(f"{n} standpoints simulated into {path} (truth in {path / 'truth.json'})")
+
+
+@app.command("scan")
+def scan_cmd(
+    scene: str = typer.Option("room", "--scene", "-s", help="'room' (procedural) or a PLY/OBJ mesh"),
+    trajectory: str = typer.Option("walk", "--trajectory", "-t",
+                                   help="'walk' (round the table) or a TUM trajectory file"),
+    model: str = typer.Option("d455", "--model", "-m", help="preset (d455, d435, d415) or a model TOML"),
+    out: Path = typer.Option(..., "--out", "-o", help="new (or empty) output folder"),
+    seed: int = typer.Option(0, "--seed", help="random seed of the sensor noise"),
+    frames: int | None = typer.Option(None, "--frames", help="limit the number of frames"),
+    width: int = typer.Option(640, "--width"),
+    height: int = typer.Option(480, "--height"),
+    fps: float = typer.Option(30.0, "--fps"),
+) -> None:
+    """Simulate a scan sequence: sequence.mcap, trajectory.txt (TUM), scene.ply, truth.json."""
+    from depthstation.results import write_result_info
+    from simulate.checkerboard import load_truth
+    from simulate.scan import simulate_scan
+
+    path = simulate_scan(scene, trajectory, model, out, seed=seed, frames=frames, width=width,
+                         height=height, fps=fps, progress=True)
+    truth = load_truth(path)
+    write_result_info(path, "simulate-scan", [scene, trajectory, model],
+                      {"scene": scene, "trajectory": trajectory, "model": model, "seed": seed,
+                       "frames": frames, "width": width, "height": height, "fps": fps},
+                      device=truth["stream_info"]["device"])
+    typer.echo(f"{truth['frames']} frames simulated into {path}")
+
+
+@app.command("model")
+def model_cmd(model: str = typer.Argument("d455", help="preset or model TOML")) -> None:
+    """Print a model as TOML (every effect with its parameters and units)."""
+    from simulate.model import load_model
+
+    typer.echo(load_model(model).to_toml(), nl=False)
