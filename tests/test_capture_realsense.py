@@ -66,7 +66,7 @@ def test_real_d435_bag(d435_bag: Path) -> None:
 
 @pytest.fixture()
 def db3(tmp_path: Path) -> tuple[Path, list]:  # type: ignore[type-arg]
-    info = sample_info(64, 48)
+    info = sample_info(64, 48, infrared=True)
     frames = list(sample_frames(info, 4, seed=7, start_ns=1_700_000_000_000_000_000))
     path = tmp_path / "standpoint_07.db3"
     assert write_realsense_recording(path, info, frames) == 4
@@ -91,6 +91,7 @@ def test_db3_record_import_read_is_bit_exact(db3: tuple[Path, list], tmp_path: P
     for a, b in zip(frames, got, strict=True):
         np.testing.assert_array_equal(a.depth, b.depth)
         np.testing.assert_array_equal(a.color, b.color)
+        np.testing.assert_array_equal(a.infrared, b.infrared)
         assert abs(a.timestamp_ns - b.timestamp_ns) < 1000  # ms double in the file: sub-microsecond
 
 
