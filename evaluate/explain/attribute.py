@@ -170,7 +170,9 @@ def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, 
                           for j in range(cols.shape[1])], axis=1)
         X[c.name] = tiles[ia]
     sp, bl = ur[ia, 0], ur[ia, 1]
-    return Table("bias", y, w, X, sp * 1000 + bl, _folds(sp, bl), sp)
+    # clusters = standpoints: the real reference plane's error is shared by all tiles of a standpoint
+    clusters = sp if len(np.unique(sp)) >= 3 else sp * 1000 + bl
+    return Table("bias", y, w, X, clusters, _folds(sp, bl), sp)
 
 
 def variance_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *,

@@ -161,3 +161,67 @@ OWN_CANDIDATES: tuple[Candidate, ...] = (
 
 def own_candidates() -> dict[str, Candidate]:
     return {c.name: c for c in OWN_CANDIDATES}
+
+
+# --- candidates from the simulator's own effect modules (contract 5) -------------------------------
+
+_BIAS_MAIN = {"disparity_offset": "offset_px", "depth_scale": "scale_error", "lr_focal_mismatch": "ratio",
+              "distortion_residual": "coeff_px", "pixel_locking": "amplitude_px",
+              "slant_bias": "offset_px_at_45", "albedo_bias": "offset_px_black"}
+_VAR_MAIN = {"disparity_noise": "sigma_px", "albedo_noise": "sigma_px_black", "slant_noise": "window_px",
+             "reference_pose_noise": "corner_sigma_px"}
+
+
+def _module_column(name: str, param: str, kind: str, present: dict[str, dict[str, float]]) -> Columns:
+    """d(bias)/d(param) at the model's current value (central difference), or the variance at param=1."""
+    def cols(s: Samples) -> FloatArray:
+        from simulate.effects import EFFECTS, PixelContext
+
+        ctx = PixelContext(**s.context())
+        base = dict(present.get(name, {}))
+        if kind == "bias":
+            p0 = float(base.get(param, 0.0))
+            h = 1e-3 * max(abs(p0), 1.0)
+            hi = EFFECTS[name]({**base, param: p0 + h}).bias_m(ctx)
+            lo = EFFECTS[name]({**base, param: p0 - h}).bias_m(ctx)
+            out = (np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)) / (2 * h)
+        else:
+            one = EFFECTS[name]({**base, param: 1.0}).variance_m2(ctx)
+            out = np.asarray(one, dtype=np.float64)
+        out = np.broadcast_to(out, (len(s),))
+        return _col(np.where(np.isfinite(out), out, 0.0))
+    return cols
+
+
+def module_candidates(present: dict[str, dict[str, float]] | None = None) -> list[Candidate]:
+    """The catalogue as fit bases from `simulate.effects`, in the units of the model TOML.
+
+    Falls back to the own forms above when the simulator is not importable. Thermal drift keeps
+    the two-column form (slope and temperature of zero drift), written as the module's parameters.
+    """
+    present = present or {}
+    try:
+        from simulate.effects import EFFECTS
+    except ImportError:
+        return list(OWN_CANDIDATES)
+    own = own_candidates()
+    out: list[Candidate] = []
+    for name, param in _BIAS_MAIN.items():
+        cls = EFFECTS[name]
+        out.append(Candidate(name, "bias", (param,), (cls.PARAMS[param][1],), cls.meaning,
+                             _module_column(name, param, "bias", present)))
+    th = own["thermal_drift"]
+    out.append(Candidate("thermal_drift", "bias", ("coeff_px_per_c", "offset_at_median_px"),
+                         ("px/degC", "px"), EFFECTS["thermal_drift"].meaning, th.columns,
+                         excludes=("disparity_offset",), convert=_thermal_module_params))
+    for name, param in _VAR_MAIN.items():
+        cls = EFFECTS[name]
+        out.append(Candidate(name, "variance", (param,), (cls.PARAMS[param][1],), cls.meaning,
+                             _module_column(name, param, "variance", present), squared=True))
+    return out
+
+
+def _thermal_module_params(coef: FloatArray, s: Samples) -> dict[str, float]:
+    p = _thermal_params(coef, s)
+    # the module's shift is c (T - T0) with + = too near; ours is the z-bias -K c (T - T0): same sign
+    return {"coeff_px_per_c": p["px_per_c"], "reference_c": p["reference_c"]}

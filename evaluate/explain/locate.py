@@ -132,6 +132,10 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
     sv = sim.err_m if sim_values is None else sim_values
     rs = _stand_stats(*_frame_table(rv, groups.real, real))
     ss = _stand_stats(*_frame_table(sv, groups.sim, sim))
+    # the real reference plane carries one pose error per standpoint that no frame statistic sees;
+    # its size comes from the simulation, where the estimated and the true plane are both known
+    ref = _stand_stats(*_frame_table(sim.ref_err_m, groups.sim, sim)) if kind == "bias" else {}
+    ref_floor = float(np.mean(sim.ref_err_m ** 2)) if kind == "bias" and len(sim) else 0.0
     out: list[GroupTest] = []
     for g, label in enumerate(groups.labels):
         pairs = [(k, rs[k], ss[k]) for k in rs if k[0] == g and k in ss]
@@ -146,11 +150,16 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
         a_s = np.array([s[1] / s[2] for _, _, s in pairs]) * w ** 2
         df_r = np.array([r[2] - 1 for _, r, _ in pairs], dtype=np.float64)
         df_s = np.array([s[2] - 1 for _, _, s in pairs], dtype=np.float64)
-        var = float(a_r.sum() + a_s.sum())
+        ref_var = [ref[k][0] ** 2 for k in ref if k[0] == g]
+        # one draw per standpoint is a poor variance estimate: floor it by the pixel-level mean
+        v_ref = max(float(np.mean(ref_var)) if ref_var else 0.0, ref_floor)
+        a_ref = w ** 2 * v_ref
+        var = float(a_r.sum() + a_s.sum() + a_ref.sum())
         diff = float((w * d).sum())
         real_m = float(sum(wi * r[0] for wi, (_, r, _) in zip(w, pairs, strict=True)))
         sim_m = float(sum(wi * s[0] for wi, (_, _, s) in zip(w, pairs, strict=True)))
-        denom = float((a_r ** 2 / df_r).sum() + (a_s ** 2 / df_s).sum())
+        denom = float((a_r ** 2 / df_r).sum() + (a_s ** 2 / df_s).sum()
+                      + (a_ref.sum() ** 2 / max(len(ref_var), 1) if v_ref > 0 else 0.0))
         dof = var ** 2 / denom if denom > 0 else float("inf")
         se = float(np.sqrt(var))
         if se > 0:

@@ -37,6 +37,7 @@ class Samples:
     time_s: FloatArray
     temperature_c: FloatArray
     edge_px: FloatArray
+    ref_err_m: FloatArray            # simulated side only: estimated minus true reference z (else 0)
     names: list[str] = field(default_factory=list)
     fx: float = 640.0
     ppx: float = 320.0
@@ -44,7 +45,7 @@ class Samples:
     baseline_m: float = 0.095
 
     ARRAYS = ("standpoint", "frame", "u", "v", "z_ref_m", "err_m", "inclination_deg", "albedo",
-              "time_s", "temperature_c", "edge_px")
+              "time_s", "temperature_c", "edge_px", "ref_err_m")
 
     def __len__(self) -> int:
         return int(self.err_m.size)
@@ -53,7 +54,7 @@ class Samples:
     def build(cls, *, names: Sequence[str], fx: float, ppx: float, ppy: float, baseline_m: float,
               standpoint: Any, frame: Any, u: Any, v: Any, z_ref_m: Any, err_m: Any,
               inclination_deg: Any, albedo: Any, time_s: Any = None, temperature_c: Any = None,
-              edge_px: Any = None) -> Samples:
+              edge_px: Any = None, ref_err_m: Any = None) -> Samples:
         """Arrays of any dtype in, float64/int64 out; optional axes default to 0, NaN and inf."""
         n = int(np.asarray(err_m).size)
 
@@ -68,6 +69,7 @@ class Samples:
             u=f(u, 0.0), v=f(v, 0.0), z_ref_m=f(z_ref_m, np.nan), err_m=f(err_m, np.nan),
             inclination_deg=f(inclination_deg, 0.0), albedo=f(albedo, 1.0), time_s=f(time_s, 0.0),
             temperature_c=f(temperature_c, np.nan), edge_px=f(edge_px, np.inf),
+            ref_err_m=f(ref_err_m, 0.0),
             names=list(names), fx=float(fx), ppx=float(ppx), ppy=float(ppy), baseline_m=float(baseline_m),
         )
 

@@ -1,0 +1,226 @@
+"""Explain end to end: evaluate real, simulate the same standpoints, locate, attribute, refit, check.
+
+The simulation re-renders every real standpoint at the pose the real evaluation estimated, frame
+for frame with the real frames' time stamps and temperatures, and is evaluated by the same
+checkerboard study (contract 3), so both sides share every step but the sensor.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from depthstation.board import Board
+from depthstation.camera import StreamInfo
+from depthstation.errors import EvaluationError
+from depthstation.frames import FrameSet
+from evaluate.explain.attribute import Attribution, attribute
+from evaluate.explain.basis import Candidate, module_candidates
+from evaluate.explain.locate import LocateResult, locate
+from evaluate.explain.samples import Samples, concat, thin
+
+MAX_SAMPLES_PER_FRAME = 20_000
+# Each frame against its own board pose: the reference-plane error then varies from frame to frame
+# and the frame-level standard errors include it (an averaged pose would carry one error per
+# standpoint that no frame statistic can see, and real and sim would differ by it).
+REFERENCE = "frame"
+Progress = Callable[[str], None]
+
+
+@dataclass
+class FrameClock:
+    """Per frame of a standpoint: index, timestamp and temperature the simulation copies."""
+
+    index: list[int]
+    timestamp_ns: list[int]
+    temperature_c: list[float]
+
+
+@dataclass
+class Side:
+    """One evaluated session (real or simulated): samples plus what the simulation needs."""
+
+    samples: Samples
+    poses: dict[str, Any]               # standpoint -> board-to-depth-camera 4x4 (averaged)
+    clocks: dict[str, FrameClock]
+    info: StreamInfo
+    figures: dict[str, dict[str, float]]
+
+
+def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: float,
+                         t0_ns: int | None = None, true_poses: dict[str, Any] | None = None) -> Samples:
+    """Contract-3 `PixelSamples` of several standpoints into one `Samples` (z-depth errors).
+
+    Pixels that are neither black nor white (square edges, ChArUco markers) are left out, so the
+    albedo axis stays two clean classes.
+    """
+    names = [r.name for r in results if r.samples is not None and len(r.samples)]
+    if not names:
+        raise EvaluationError("no standpoint gave board pixels to compare")
+    if t0_ns is None:
+        t0_ns = min(int(r.samples.timestamp_ns.min()) for r in results if r.samples is not None
+                    and len(r.samples))
+    intr = info.depth_intrinsics
+    parts = []
+    for r in results:
+        ps = r.samples
+        if ps is None or not len(ps):
+            continue
+        keep = ps.is_black | ps.is_white
+        z_ref = ps.z_ref_m[keep].astype(np.float64)
+        ref_err = np.zeros_like(z_ref)
+        if true_poses is not None and r.name in true_poses:
+            # simulated: errors against the rendered (true) board, the estimate's error kept aside
+            z_true = _plane_z(true_poses[r.name], info, ps.u[keep], ps.v[keep])
+            ref_err = z_ref - z_true
+            z_ref = z_true
+        parts.append(Samples.build(
+            names=names, fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy, baseline_m=baseline_m,
+            standpoint=names.index(r.name), frame=ps.frame[keep], u=ps.u[keep], v=ps.v[keep],
+            z_ref_m=z_ref, err_m=ps.z_meas_m[keep].astype(np.float64) - z_ref,
+            inclination_deg=ps.inclination_deg[keep], albedo=ps.is_white[keep].astype(np.float64),
+            time_s=(ps.timestamp_ns[keep] - t0_ns) / 1e9, temperature_c=ps.temperature_c[keep],
+            ref_err_m=ref_err))
+    return thin(concat(parts), MAX_SAMPLES_PER_FRAME)
+
+
+def _plane_z(board_to_cam: Any, info: StreamInfo, u: Any, v: Any) -> Any:
+    """z-depth of the board plane along the rays of pixels (u, v)."""
+    intr = info.depth_intrinsics
+    p = np.asarray(board_to_cam, dtype=np.float64)
+    n, t = p[:3, 2], p[:3, 3]
+    dot = n[0] * (np.asarray(u) - intr.ppx) / intr.fx + n[1] * (np.asarray(v) - intr.ppy) / intr.fy + n[2]
+    return float(n @ t) / dot
+
+
+def _side(results: Sequence[Any], info: StreamInfo, baseline_m: float, t0_ns: int | None = None,
+          true_poses: dict[str, Any] | None = None) -> Side:
+    ok = [r for r in results if r.usable and r.samples is not None]
+    poses = {r.name: r.pose_depth for r in ok if r.pose_depth is not None}
+    clocks = {r.name: FrameClock([f.index for f in r.frames if f.ok],
+                                 [int(f.timestamp_ns) for f in r.frames if f.ok],
+                                 [float(f.temperature_c) for f in r.frames if f.ok]) for r in ok}
+    figures = {r.name: dict(r.figures) for r in ok}
+    return Side(samples_from_results(ok, info, baseline_m, t0_ns, true_poses), poses, clocks, info, figures)
+
+
+def _stride(info: StreamInfo) -> int:
+    return max(1, round(info.depth_intrinsics.width / 320))
+
+
+def evaluate_real(paths: Sequence[Path], board: Board, *, frames: int, baseline_m: float,
+                  tick: Progress | None = None) -> Side:
+    """The checkerboard study of the real inputs, with per-pixel samples."""
+    from depthstation.capture.reader import open_inputs
+    from evaluate.checkerboard.study import evaluate_recording
+
+    recs = open_inputs(list(paths))
+    if not recs:
+        raise EvaluationError("no recordings in the inputs")
+    results = []
+    for rec in recs:
+        if tick:
+            tick(f"evaluate {rec.name}")
+        results.append(evaluate_recording(rec, board, frames=frames, collect_samples=True,
+                                          sample_stride=_stride(rec.info), reference=REFERENCE))
+    info = recs[0].info
+    return _side(results, info, info.baseline_m or baseline_m)
+
+
+def simulate_like(real: Side, board: Board, model: Any, *, seed: int = 0,
+                  tick: Progress | None = None) -> Side:
+    """Render and evaluate every real standpoint with `model` at the real pose, time and temperature."""
+    from evaluate.checkerboard.study import evaluate_frames
+    from simulate.renderer import ViewRenderer
+    from simulate.scene import board_scene
+
+    info = replace(real.info, baseline_m=real.info.baseline_m or model.camera.baseline_m)
+    renderer = ViewRenderer(board_scene(board), model, info, seed=seed, color=True)
+    results = []
+    for k, (name, pose) in enumerate(real.poses.items()):
+        if tick:
+            tick(f"simulate {name}")
+        renderer.set_pose(np.linalg.inv(pose))
+        clock = real.clocks[name]
+        t0 = clock.timestamp_ns[0] if clock.timestamp_ns else 0
+
+        def frames(clock: FrameClock = clock, t0: int = t0, k: int = k) -> Any:
+            for i, (idx, ts, temp) in enumerate(zip(clock.index, clock.timestamp_ns, clock.temperature_c,
+                                                    strict=True)):
+                rng = np.random.default_rng([seed, k, i])
+                t = temp if np.isfinite(temp) else 40.0
+                fs: FrameSet = renderer.frame(idx, ts, (ts - t0) / 1e9, t, rng=rng)
+                if not np.isfinite(temp):
+                    fs.metadata.pop("temperature_c", None)
+                yield fs
+
+        results.append(evaluate_frames(name, frames(), info, board, frames_requested=len(clock.index),
+                                       collect_samples=True, sample_stride=_stride(info),
+                                       reference=REFERENCE))
+    t0_ns = min((c.timestamp_ns[0] for c in real.clocks.values() if c.timestamp_ns), default=0)
+    return _side(results, info, info.baseline_m or model.camera.baseline_m, t0_ns, true_poses=real.poses)
+
+
+def present_effects(model: Any) -> dict[str, dict[str, float]]:
+    """The model's effects and their parameters: refitting one of these is calibration."""
+    return {e.name: dict(e.params) for e in model.effects}
+
+
+def noise_variance(model: Any) -> Callable[[Samples], Any]:
+    """The noise model's per-pixel z variance (weights of the bias fit)."""
+    from simulate.effects import PixelContext
+
+    def var(s: Samples) -> Any:
+        v = np.asarray(model.variance_m2(PixelContext(**s.context())), dtype=np.float64)
+        v = np.broadcast_to(v, (len(s),))
+        return np.where(np.isfinite(v) & (v > 0), v, np.nanmedian(v[v > 0]) if (v > 0).any() else 1e-6)
+    return var
+
+
+def improved_model(model: Any, attribution: Attribution) -> Any:
+    """The base model with every selected effect added or its parameters replaced by the fit."""
+    new = model
+    for c in attribution.selected:
+        params = {k: v for k, v in c.params.items() if np.isfinite(v)}
+        if c.kind == "variance":
+            params = {k: abs(v) for k, v in params.items()}
+        new = new.with_effect(c.effect, **params)
+    return new
+
+
+@dataclass
+class Explanation:
+    real: Side
+    sim: Side
+    before: LocateResult
+    attribution: Attribution
+    model: Any
+    new_model: Any
+    resim: Side | None
+    after: LocateResult | None
+    candidates: list[Candidate]
+
+
+def explain_sides(real: Side, sim: Side, model: Any, board: Board, *, seed: int = 0, resimulate: bool = True,
+                  tick: Progress | None = None) -> Explanation:
+    """Locate, attribute, build the improved model and (optionally) check it by simulating again."""
+    present = present_effects(model)
+    cands = module_candidates(present)
+    if tick:
+        tick("locate")
+    before = locate(real.samples, sim.samples)
+    if tick:
+        tick("attribute")
+    attr = attribute(real.samples, sim.samples, cands, present, noise_var=noise_variance(model))
+    new_model = improved_model(model, attr)
+    resim = after = None
+    if resimulate:
+        resim = simulate_like(real, board, new_model, seed=seed + 1, tick=tick)
+        if tick:
+            tick("locate after")
+        after = locate(real.samples, resim.samples)
+    return Explanation(real, sim, before, attr, model, new_model, resim, after, cands)

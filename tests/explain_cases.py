@@ -1,0 +1,75 @@
+"""Concealed-effect sessions for the explain tests, generated WITHOUT the fitting code's forms.
+
+Frames come from the simulator with the plain D455 model; the hidden effect is then written into
+the depth maps here, in its own physical parameterisation (z error in mm per m^2, a per-column
+disparity term, a reflectance-dependent range error, a warm-up exponential in time), never through
+`simulate.effects` or `evaluate.explain.basis`.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from depthstation.board import Board
+from depthstation.capture.mcap_writer import write_mcap
+from depthstation.capture.reader import open_inputs
+from depthstation.frames import FrameSet
+
+# hidden(z, u, v, black, t_s, temperature, cam) -> z error (m); cam holds fx, ppx, ppy, baseline_m
+Hidden = Callable[..., Any]
+WARM_C = 40.0
+
+
+def board_black(board: Board, cam_to_board: np.ndarray, fx: float, fy: float, ppx: float, ppy: float,
+                shape: tuple[int, int]) -> np.ndarray:
+    """Which depth pixels see a black square: rays intersected with the board plane z = 0."""
+    v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float64)
+    rays = np.stack([(u - ppx) / fx, (v - ppy) / fy, np.ones_like(u)], axis=-1)
+    r, t = cam_to_board[:3, :3], cam_to_board[:3, 3]
+    d = rays @ r.T
+    s = -t[2] / d[..., 2]
+    p = t + d * s[..., None]
+    return board.is_black(p[..., 0], p[..., 1])
+
+
+def conceal(sim_dir: Path, out_dir: Path, hidden: Hidden | None, *, warmup_tau_s: float | None = None,
+            warmup_rise_c: float = 0.0) -> Path:
+    """Copy a simulated session into `out_dir` as plain MCAP files with the hidden effect added.
+
+    With `warmup_tau_s`, the device temperature rises as T = 40 - rise exp(-t / tau) over the
+    session (an unfinished warm-up) and every frame carries it in its metadata.
+    """
+    truth = json.loads((sim_dir / "truth.json").read_text())
+    board = Board.from_dict(truth["board"])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    recs = open_inputs([sim_dir])
+    t_start = None
+    for rec in recs:
+        sp = next(s for s in truth["standpoints"] if s["name"] == rec.name)
+        intr = rec.info.depth_intrinsics
+        units = rec.info.depth_units_m
+        cam = {"fx": intr.fx, "ppx": intr.ppx, "ppy": intr.ppy, "baseline_m": rec.info.baseline_m}
+        black = board_black(board, np.asarray(sp["depth_camera_to_board"]), intr.fx, intr.fy, intr.ppx,
+                            intr.ppy, (intr.height, intr.width))
+        v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
+        frames: list[FrameSet] = []
+        for fs in rec.frames():
+            if t_start is None:
+                t_start = fs.timestamp_ns
+            t_s = (fs.timestamp_ns - t_start) / 1e9
+            temp = WARM_C if warmup_tau_s is None else WARM_C - warmup_rise_c * np.exp(-t_s / warmup_tau_s)
+            assert fs.depth is not None
+            z = fs.depth.astype(np.float64) * units
+            valid = fs.depth > 0
+            if hidden is not None:
+                z = z + hidden(z, u, v, black, t_s, temp, cam)
+            depth = np.where(valid, np.clip(np.rint(z / units), 1, 65535), 0).astype(np.uint16)
+            frames.append(FrameSet(fs.index, fs.timestamp_ns, depth, fs.color, fs.infrared,
+                                   {**fs.metadata, "temperature_c": float(temp)}))
+        write_mcap(out_dir / f"{rec.name}.mcap", rec.info, frames, dict(rec.metadata))
+    return out_dir
