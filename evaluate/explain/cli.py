@@ -13,7 +13,7 @@ def register(app: typer.Typer) -> None:
 
 
 def explain(
-    real: list[Path] = typer.Argument(..., help="Real captures: session dirs, MCAP/.bag/.db3 files, PNG sets."),
+    real: list[Path] = typer.Argument(..., help="Real captures: sessions, MCAP/.bag/.db3, PNG sets."),
     board: Path = typer.Option(..., "--board", help="board.json or a protocol TOML with [board]."),
     model: str = typer.Option("d455", "--model", help="Preset (d455, d435, d415) or a model TOML."),
     out: Path = typer.Option(..., "--out", help="Result folder (must be new or empty)."),

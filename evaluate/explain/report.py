@@ -137,8 +137,9 @@ def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
         if cal else "none") + ".")
     after = data.get("mismatch_after")
     if after is not None:
-        lines.append(f"- After re-simulating with the new model (`model.toml`): "
-                     f"{'still significant in ' + str(len(after['regions'])) + ' regions' if after['significant'] else 'no significant mismatch remains'}.")
+        state = (f"still significant in {len(after['regions'])} regions" if after["significant"]
+                 else "no significant mismatch remains")
+        lines.append(f"- After re-simulating with the new model (`model.toml`): {state}.")
     lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs]
     lines += ["", "Notes: errors are z-depth (measured - reference, + = too far); standard errors come from "
               "per-frame means within standpoints plus the reference-pose error the simulation measures; "
@@ -147,7 +148,8 @@ def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_outputs(ex: Explanation, out: Path, inputs: list[str], parameters: dict[str, Any]) -> dict[str, Any]:
+def write_outputs(ex: Explanation, out: Path, inputs: list[str], parameters: dict[str, Any]
+                  ) -> dict[str, Any]:
     from depthstation.results import write_json, write_result_info
 
     out.mkdir(parents=True, exist_ok=True)
