@@ -30,7 +30,7 @@ def standpoint_pose(board: Board, distance_m: float, inclination_deg_: float, si
     a = np.radians(inclination_deg_)
     sign = -1.0 if side == "left" else 1.0
     eye = c + distance_m * np.array([sign * np.sin(a), 0.0, -np.cos(a)])
-    pose = look_at(eye, c, up=np.array([0.0, -1.0, 0.0]))
+    pose = look_at(eye, c, up=(0.0, -1.0, 0.0))
     if roll_deg:
         from depthstation.geometry import rodrigues
 
@@ -67,7 +67,7 @@ def walk_around(center: NDArray[Any] = (0.0, -0.75, 0.0), radius_m: float = 2.0,
         eye = np.array([centre[0] + radius_m * np.cos(phi),
                         -eye_height_m + bob_m * np.sin(2 * np.pi * 0.9 * t),
                         centre[2] + radius_m * np.sin(phi)])
-        poses.append(look_at(eye, centre, up=np.array([0.0, -1.0, 0.0])))
+        poses.append(look_at(eye, centre, up=(0.0, -1.0, 0.0)))
     return poses
 
 

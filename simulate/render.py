@@ -63,8 +63,9 @@ def camera_rays(intr: Intrinsics, cam_to_world: NDArray[Any], sub: tuple[float, 
 
 
 def _cast(rc: Any, rays: F32) -> dict[str, NDArray[Any]]:
-    import open3d as o3d
+    import open3d
 
+    o3d: Any = open3d
     res = rc.cast_rays(o3d.core.Tensor(rays))
     return {k: res[k].numpy() for k in ("t_hit", "geometry_ids", "primitive_normals")}
 

@@ -44,8 +44,9 @@ class Scene:
 
     def raycasting_scene(self, nthreads: int = 0) -> Any:
         """An Open3D RaycastingScene holding every surface; geometry id = index in `surfaces`."""
-        import open3d as o3d
+        import open3d
 
+        o3d: Any = open3d  # the stubs reject numpy arrays where the runtime takes them
         scene = o3d.t.geometry.RaycastingScene(nthreads=nthreads)
         for i, s in enumerate(self.surfaces):
             mesh = o3d.t.geometry.TriangleMesh()
@@ -75,7 +76,9 @@ class Scene:
 
     def save_mesh(self, path: Path) -> Path:
         """All surfaces as one PLY/OBJ mesh (the reference scan of the scan study)."""
-        import open3d as o3d
+        import open3d
+
+        o3d: Any = open3d
 
         verts, tris, off = [], [], 0
         for s in self.surfaces:
@@ -95,7 +98,7 @@ def quad(corners: NDArray[Any]) -> tuple[NDArray[np.float64], NDArray[np.int64]]
     return np.asarray(corners, dtype=np.float64), np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64)
 
 
-def box(lo: NDArray[Any], hi: NDArray[Any]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+def box(lo: Any, hi: Any) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Axis-aligned box from corner lo to corner hi (12 outward-facing triangles)."""
     lo = np.asarray(lo, dtype=np.float64)
     hi = np.asarray(hi, dtype=np.float64)
@@ -105,7 +108,7 @@ def box(lo: NDArray[Any], hi: NDArray[Any]) -> tuple[NDArray[np.float64], NDArra
     return v, t
 
 
-def cylinder(center: NDArray[Any], radius: float, y_top: float, y_bottom: float,
+def cylinder(center: Any, radius: float, y_top: float, y_bottom: float,
              segments: int = 64) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Closed vertical cylinder (y is down in our world frames) around `center` (x, z)."""
     a = np.linspace(0, 2 * np.pi, segments, endpoint=False)
@@ -207,7 +210,9 @@ def room_scene(width_m: float = 6.0, depth_m: float = 8.0, height_m: float = 2.7
 
 def mesh_scene(path: Path, albedo: float = 0.6) -> Scene:
     """Any PLY/OBJ triangle mesh as one surface (metres, in its own frame)."""
-    import open3d as o3d
+    import open3d
+
+    o3d: Any = open3d
 
     p = Path(path)
     if not p.is_file():
