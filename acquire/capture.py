@@ -25,6 +25,13 @@ from depthstation.frames import FrameSet
 from depthstation.geometry import average_poses
 from depthstation.protocol import Protocol, Standpoint
 
+
+class CaptureInterrupted(CaptureError):
+    """Ctrl-C: the open standpoint was closed as a finished '.partial' MCAP; exit code 130 (SIGINT)."""
+
+    exit_code = 130
+
+
 END_OF_RANGE_FRAMES = 10  # consecutive frames with a collapsed fill rate before we call it
 
 

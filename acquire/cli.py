@@ -177,7 +177,7 @@ def do_capture(st: Station, target: Any, max_guidance_s: float | None) -> list[A
     """The guided loop with the panel and rerun; a recording's end stops it cleanly."""
     import sys
 
-    from acquire.capture import GuidedCapture, LiveState
+    from acquire.capture import CaptureInterrupted, GuidedCapture, LiveState
     from acquire.views import BOARD_HELP, RerunView, TerminalPanel, blueprint
     from depthstation.viz import recording
 
@@ -209,6 +209,12 @@ def do_capture(st: Station, target: Any, max_guidance_s: float | None) -> list[A
         except EOFError:
             _say("the recording ended: the standpoints done so far are in the session; "
                  "the rest stay open for --resume with another recording or a camera")
+        except KeyboardInterrupt as exc:
+            open_ = [e["name"] for e in st.session.standpoints if e.get("status") == "partial"]
+            msg = (f"interrupted: finished standpoints are safe in {st.session.dir}"
+                   + (f"; {', '.join(open_)} kept as partial" if open_ else "")
+                   + "; --resume continues")
+            raise CaptureInterrupted(msg) from exc
         finally:
             if panel is not None:
                 panel.__exit__(None, None, None)

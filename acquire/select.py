@@ -61,4 +61,4 @@ def open_camera(spec: CameraSpec, **sim_options: Any) -> Any:
         return PlaybackCamera(spec.path)
     from simulate.camera import SimulatedCamera
 
-    return SimulatedCamera(spec.model, **sim_options)
+    return SimulatedCamera(spec.model or "d455", **sim_options)

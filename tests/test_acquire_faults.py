@@ -1,0 +1,91 @@
+"""Faults lose nothing: SIGKILL mid-standpoint (finished ones readable, --resume re-records only the
+broken one) and Ctrl-C (SIGINT closes the open MCAP properly), in a real subprocess."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_acquire_cli import EXE, SMALL_TOML, make_recording
+
+# two standpoints the recorded pose satisfies (1.0 m at 0 and at 1 degree, tolerance 3 degrees)
+TWO_HERE = SMALL_TOML.replace("max_distance_m = 1.5", "max_distance_m = 1.0").replace(
+    "inclinations_deg = [0.0]", "inclinations_deg = [0.0, 1.0]")
+
+
+def start(rec: Path, proto: Path, sess: Path, *extra: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([EXE, "acquire", "capture", "--camera", str(rec), "--protocol", str(proto),
+                             "--session", str(sess), *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def wait_for(path: Path, proc: subprocess.Popen[str], timeout: float = 60.0) -> None:
+    t_end = time.monotonic() + timeout
+    while not path.exists():
+        if proc.poll() is not None:
+            raise AssertionError(f"exited early: {proc.stderr.read() if proc.stderr else ''}")
+        if time.monotonic() > t_end:
+            proc.kill()
+            raise AssertionError(f"{path.name} never appeared")
+        time.sleep(0.01)
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return make_recording(tmp_path_factory.mktemp("rec") / "board.db3", n=240)
+
+
+def test_sigkill_then_resume_rerecords_only_the_broken_standpoint(recording: Path, tmp_path: Path) -> None:
+    from depthstation.capture.reader import open_recording
+
+    proto = tmp_path / "two.toml"
+    proto.write_text(TWO_HERE.replace("frames_per_standpoint = {frames}", "frames_per_standpoint = 80"))
+    sess = tmp_path / "s"
+    proc = start(recording, proto, sess)
+    wait_for(sess / "standpoint_02.mcap.partial", proc)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    first = sess / "standpoint_01.mcap"
+    assert first.is_file()
+    mtime = first.stat().st_mtime_ns
+    assert open_recording(first).frame_count == 80  # the finished standpoint is readable
+    r = subprocess.run([EXE, "acquire", "capture", "--camera", str(recording), "--protocol", str(proto),
+                        "--session", str(sess), "--resume"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    data = json.loads((sess / "session.json").read_text())
+    status = [(e["name"], e["status"]) for e in data["standpoints"]]
+    assert status == [("standpoint_01", "complete"), ("standpoint_02", "partial"), ("standpoint_02", "complete")]
+    assert first.stat().st_mtime_ns == mtime  # untouched
+    assert open_recording(sess / "standpoint_02.mcap").frame_count == 80
+    # the broken attempt is kept aside, never deleted
+    assert list(sess.glob("standpoint_02.attempt-*.mcap.partial"))
+
+
+def test_sigint_finalises_the_open_file(recording: Path, tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+
+    proto = tmp_path / "one.toml"
+    proto.write_text(TWO_HERE.replace("frames_per_standpoint = {frames}", "frames_per_standpoint = 120"))
+    sess = tmp_path / "s"
+    proc = start(recording, proto, sess)
+    partial = sess / "standpoint_01.mcap.partial"
+    wait_for(partial, proc)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    proc.wait(timeout=30)
+    err = proc.stderr.read() if proc.stderr else ""
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "--resume" in err
+    with partial.open("rb") as f:
+        summary = make_reader(f).get_summary()  # a finished MCAP has its summary section
+    assert summary is not None and summary.statistics is not None
+    assert summary.statistics.message_count > 0
+    data = json.loads((sess / "session.json").read_text())
+    assert data["standpoints"][0]["status"] == "partial" and data["standpoints"][0]["frames"] > 0
