@@ -22,9 +22,11 @@ DEFAULT_DISTANCE_MAX_M = 6.0
 DEFAULT_DISTANCE_BIN_M = 0.005
 DEFAULT_INCLINATION_MAX_DEG = 90.0
 DEFAULT_INCLINATION_BIN_DEG = 0.1
+# fast maths without the no-NaN/no-inf promises: NaN and inf mark missing samples here
+_FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def bin_index(x: float, lo: float, step: float, n: int) -> int:
     """Cell of x in n uniform bins from lo; -1 outside. The top edge belongs to the last bin
     (inclination is folded into [0, 90], so 90 must not fall out)."""
@@ -36,7 +38,7 @@ def bin_index(x: float, lo: float, step: float, n: int) -> int:
     return k
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def welford_add(count: Any, mean: Any, m2: Any, k: int, j: int, x: float) -> None:
     """One Welford update of cell (k, j); kept tiny so fused kernels elsewhere can inline it."""
     n = count[k, j] + 1
@@ -47,7 +49,7 @@ def welford_add(count: Any, mean: Any, m2: Any, k: int, j: int, x: float) -> Non
     m2[k, j] += delta * (x - mu)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _add_batch(count: Any, mean: Any, m2: Any, dist: Any, incl: Any, val: Any,
                d_lo: float, d_step: float, nd: int, i_lo: float, i_step: float, ni: int) -> int:
     added = 0
@@ -68,7 +70,7 @@ def _add_batch(count: Any, mean: Any, m2: Any, dist: Any, incl: Any, val: Any,
     return added
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _chan_merge(count: Any, mean: Any, m2: Any, ocount: Any, omean: Any, om2: Any) -> None:
     nd, ni = count.shape
     for k in range(nd):
