@@ -128,7 +128,10 @@ def _mcap_messages(f: Any, topics: dict[int, str]) -> Iterator[tuple[int, memory
 
 
 class McapRecording(Recording):
-    """Our capture format (see docs/capture-format.md); tolerates files cut short by a crash."""
+    """Our capture format (see docs/capture-format.md); tolerates files cut short by a crash.
+
+    Frame arrays are read-only views of the file data (zero-copy for speed): copy to modify.
+    """
 
     truncated: bool = False
     recovered_frames: int | None = None
