@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,8 @@ class SensorModel:
 
     def __post_init__(self) -> None:
         self.effects = sorted(self.effects, key=lambda e: e.stage)
+        self._lock = threading.Lock()
+        self._fused: tuple[Any, ...] | None = None  # (key, sampler, ctx, z) of the last context
 
     def effect(self, name: str) -> Effect | None:
         """The effect of that catalogue name, or None when the model lacks it."""
@@ -58,8 +61,24 @@ class SensorModel:
             out = out * e.valid_probability(ctx)
         return out
 
-    def sample(self, ctx: PixelContext, z_m: Array, rng: np.random.Generator) -> Array:
-        """One measured z map (float32, NaN = no depth) from a true one; z_m is not modified."""
+    def sample(self, ctx: PixelContext, z_m: Array, rng: np.random.Generator, *,
+               fused: bool = True) -> Array:
+        """One measured z map (float32, NaN = no depth) from a true one; z_m is not modified.
+
+        Models made only of disparity shifts/noise, scale, quantisation, flying pixels and dropout
+        (the default ones) run through one fused pass (`simulate.fastpath`), the same model in
+        distribution; others apply effect by effect (`fused=False` forces that).
+        """
+        if fused and ctx is not None:
+            from simulate.fastpath import FusedSampler, fusable
+
+            if fusable(self.effects):
+                with self._lock:
+                    key = (id(ctx), id(z_m))
+                    if self._fused is None or self._fused[0] != key:
+                        self._fused = (key, FusedSampler(self.effects, ctx, z_m), ctx, z_m)
+                    sampler = self._fused[1]
+                return sampler.sample(rng)
         z = np.array(z_m, dtype=np.float32, copy=True)
         for e in self.effects:
             z = e.apply(ctx, z, rng)

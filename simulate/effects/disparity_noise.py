@@ -2,20 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 
-from simulate.effects.base import (
-    Array,
-    Effect,
-    PixelContext,
-    second_order_bias_from_disparity_variance,
-    shift_depth,
-)
+from simulate.effects.base import Array, DisparityJitter, PixelContext
 
 
-class DisparityNoise(Effect):
+class DisparityNoise(DisparityJitter):
     """The stereo matcher finds the disparity to within `sigma_px` (Intel's 'subpixel RMS').
 
     Source: Intel, 'Tuning depth cameras for best performance' (RMS error = z^2 * subpixel /
@@ -33,18 +27,5 @@ class DisparityNoise(Effect):
         if self.params["sigma_px"] < 0:
             raise ValueError("sigma_px must be >= 0")
 
-    def bias_m(self, ctx: PixelContext) -> Array:
-        s = self.params["sigma_px"]
-        return second_order_bias_from_disparity_variance(ctx, s * s)
-
-    def variance_m2(self, ctx: PixelContext) -> Array:
-        # z = fB/(d+n): Var = z^2 (s^2 + 8 s^4) with s = sigma/d (series to 4th order)
-        z = np.asarray(ctx.z_m, dtype=np.float64)
-        s = self.params["sigma_px"] / ctx.disparity_px()
-        return np.asarray(z * z * (s * s + 8 * s**4))
-
-    def apply(self, ctx: PixelContext, z_m: Array, rng: np.random.Generator) -> Array:
-        sigma = np.float32(self.params["sigma_px"])
-        noise: Any = rng.standard_normal(z_m.shape, dtype=np.float32)
-        noise *= sigma
-        return shift_depth(ctx, z_m, noise)
+    def sigma_px(self, ctx: PixelContext) -> Array:
+        return np.asarray(self.params["sigma_px"])

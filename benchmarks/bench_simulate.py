@@ -1,0 +1,78 @@
+"""Benchmark: one standpoint of 150 frames of 1280x720 depth + colour (target <= 10 s on 2 cores).
+
+Run: .venv/bin/python benchmarks/bench_simulate.py [--frames 150] [--standpoint standpoint_07]
+Prints the time of each stage, the frame rate, and the ratio to the 10 s budget, for
+(a) rendering the frames only and (b) the whole `simulate_checkerboard` call writing the MCAP.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+BUDGET_S = 10.0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--standpoint", default="standpoint_07")  # 3.4 m, frontal
+    ap.add_argument("--compression", default="lz4")
+    args = ap.parse_args()
+
+    t0 = time.perf_counter()
+    import open3d  # noqa: F401  (import cost reported apart)
+
+    from depthstation.protocol import load_protocol
+    from simulate.checkerboard import render_frames, simulate_checkerboard, stream_info_for
+    from simulate.model import load_model
+    from simulate.poses import standpoint_pose
+    from simulate.renderer import ViewRenderer
+    from simulate.scene import board_scene
+
+    t_import = time.perf_counter() - t0
+    proto = load_protocol("checkerboard-d455")
+    model = load_model("d455")
+    sp = next(s for s in proto.plan.standpoints() if s.name == args.standpoint)
+    info = stream_info_for(proto, model)
+    di = info.depth_intrinsics
+    print(f"standpoint {sp.name}: {sp.distance_m} m, {sp.inclination_deg} deg; "
+          f"{di.width}x{di.height} depth + colour, {args.frames} frames")
+    print(f"imports (open3d, ...)        {t_import:7.2f} s (not counted)")
+
+    t = time.perf_counter()
+    scene = board_scene(proto.board)
+    renderer = ViewRenderer(scene, model, info, seed=0)
+    t_setup = time.perf_counter() - t
+    t = time.perf_counter()
+    renderer.set_pose(standpoint_pose(proto.board, sp.distance_m, sp.inclination_deg, sp.side))
+    t_pose = time.perf_counter() - t
+    t = time.perf_counter()
+    n = 0
+    for fs in render_frames(renderer, args.frames, seed=0, start_ns=0, fps=30.0):
+        n += int(fs.depth is not None and fs.color is not None)
+    t_frames = time.perf_counter() - t
+    total = t_setup + t_pose + t_frames
+    print(f"scene + ray-casting scene    {t_setup:7.2f} s")
+    print(f"geometry + colour (once)     {t_pose:7.2f} s")
+    print(f"{n} frames (effects, noise)  {t_frames:7.2f} s  ({n / t_frames:.1f} fps, "
+          f"{t_frames / n * 1e3:.1f} ms/frame)")
+    print(f"(a) render only              {total:7.2f} s  = {total / BUDGET_S:.2f} x budget")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        t = time.perf_counter()
+        out = simulate_checkerboard(proto, model, Path(tmp) / "sim", frames=args.frames,
+                                    standpoints=[sp.name], compression=args.compression)
+        t_all = time.perf_counter() - t
+        size = sum(p.stat().st_size for p in out.iterdir()) / 1e6
+    print(f"(b) simulate_checkerboard + MCAP ({args.compression}, {size:.0f} MB)"
+          f" {t_all:7.2f} s  = {t_all / BUDGET_S:.2f} x budget")
+    print("PASS" if max(total, t_all) <= BUDGET_S else "OVER BUDGET", f"(budget {BUDGET_S:.0f} s)")
+    print(f"machine load average (1 min): {__import__('os').getloadavg()[0]:.1f} on "
+          f"{__import__('os').cpu_count()} cores (other work slows every figure)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,99 @@
+"""A fused sampler for models built from disparity shifts, disparity noise, scale, quantisation and dropout.
+
+Mathematically the same model as applying the effects one by one (shifts add in disparity; the
+sum of independent zero-mean Gaussian disparity noises is one Gaussian with the summed variance;
+dropout is independent of the values), but one pass over the image instead of ten: what makes a
+150-frame 1280x720 standpoint take seconds. Random numbers come from numpy's Generator, so the
+result does not depend on threads.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from simulate.effects.base import DisparityJitter, DisparityShift, Effect, PixelContext
+from simulate.effects.depth_scale import DepthScale
+from simulate.effects.dropout import Dropout
+from simulate.effects.flying_pixels import FlyingPixels
+from simulate.effects.quantization import Quantization
+
+FUSABLE = (DisparityShift, DisparityJitter, DepthScale, Quantization, Dropout, FlyingPixels)
+
+
+@njit(cache=True, nogil=True)
+def _fused(d0: Any, sigma: Any, noise: Any, fb: float, step: float, scale: float, unit: float,
+           keep: Any, draw: Any, out: Any) -> None:  # pragma: no cover - compiled
+    nan = np.float32(np.nan)
+    for i in range(d0.size):
+        d = d0[i] + sigma[i] * noise[i]
+        if not d > 0 or draw[i] >= keep[i]:
+            out[i] = nan
+            continue
+        if step > 0:
+            d = math.floor(d / step + 0.5) * step
+            if d <= 0:
+                out[i] = nan
+                continue
+        z = fb / d * scale
+        if unit > 0:
+            z = math.floor(z / unit + 0.5) * unit
+        out[i] = z
+
+
+def fusable(effects: list[Effect]) -> bool:
+    """Whether every effect has a fused form (at most one quantisation, dropout and flying pixels)."""
+    if not all(isinstance(e, FUSABLE) for e in effects):
+        return False
+    return all(sum(isinstance(e, t) for e in effects) <= 1 for t in (Quantization, Dropout, FlyingPixels))
+
+
+class FusedSampler:
+    """Static maps of one context (disparity with all shifts, total noise RMS, keep probability)."""
+
+    def __init__(self, effects: list[Effect], ctx: PixelContext, z_m: NDArray[Any]) -> None:
+        shape = np.shape(z_m)
+        self.shape = shape
+        self.ctx = ctx
+        self.fb = float(ctx.focal_baseline)
+        z = np.asarray(z_m, dtype=np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = self.fb / z
+        var = np.zeros(shape)
+        keep = np.ones(shape)
+        self.scale = 1.0
+        self.step = 0.0
+        self.unit = 0.0
+        self.flying: FlyingPixels | None = None
+        for e in effects:
+            if isinstance(e, DisparityShift):
+                d = d + np.broadcast_to(e.shift_px(ctx), shape)
+            elif isinstance(e, DisparityJitter):
+                var = var + np.broadcast_to(np.asarray(e.sigma_px(ctx), dtype=np.float64) ** 2, shape)
+            elif isinstance(e, DepthScale):
+                self.scale *= 1.0 + e.params["scale_error"]
+            elif isinstance(e, Quantization):
+                self.step = e.params["disparity_step_px"]
+                self.unit = e.params["depth_unit_m"]
+            elif isinstance(e, Dropout):
+                keep = keep * np.broadcast_to(e.valid_probability(ctx), shape)
+            elif isinstance(e, FlyingPixels):
+                self.flying = e
+        self.d0 = np.ascontiguousarray(np.nan_to_num(d, nan=-1.0), dtype=np.float32).ravel()
+        self.sigma = np.ascontiguousarray(np.sqrt(var), dtype=np.float32).ravel()
+        self.keep = np.ascontiguousarray(keep, dtype=np.float32).ravel()
+
+    def sample(self, rng: np.random.Generator) -> NDArray[np.float32]:
+        """One measured z map (float32, NaN = no depth)."""
+        noise = rng.standard_normal(self.d0.size, dtype=np.float32)
+        draw = rng.random(self.d0.size, dtype=np.float32)
+        out = np.empty(self.d0.size, dtype=np.float32)
+        _fused(self.d0, self.sigma, noise, self.fb, self.step, self.scale, self.unit, self.keep, draw, out)
+        z = out.reshape(self.shape)
+        if self.flying is not None:
+            z = self.flying.apply(self.ctx, z, rng)
+        return z
