@@ -193,7 +193,10 @@ class FrameEvaluator:
         w = colour == WHITE
         a_b = moment_matrix(x[b], y[b], zc[b])
         a_w = moment_matrix(x[w], y[w], zc[w])
-        res.moments = {"all": a_all, "black": a_b, "white": a_w}
+        # disparity-space moments: 1/z is linear in the ray (rx, ry) on a plane, with the noise in
+        # 1/z alone (stereo noise is in disparity), so the standpoint's plane tilt is fitted there
+        a_inv = moment_matrix(mask.ray_x[ui], mask.ray_y[vi], 1.0 / z)
+        res.moments = {"all": a_all, "black": a_b, "white": a_w, "inverse_depth": a_inv}
         res.noise_m = fit_plane_moments(a_all)[2]
         res.noise_black_m = fit_plane_moments(a_b)[2]
         res.noise_white_m = fit_plane_moments(a_w)[2]

@@ -60,3 +60,14 @@ def svd_plane_rms(points: NDArray[np.floating]) -> float:
     q = p - p.mean(axis=0)
     _, s, _ = np.linalg.svd(q, full_matrices=False)
     return float(s[-1] / np.sqrt(len(p)))
+
+
+def shift_moments(a: FloatArray, delta: FloatArray) -> FloatArray:
+    """Moments of the same points relative to an origin moved by -delta: p' = p + delta.
+
+    Frames keep moments about their own board centre; shifting them to one common origin lets a
+    standpoint fit one plane to the points of all its frames without re-reading a frame.
+    """
+    m = np.eye(4)
+    m[1:, 0] = delta
+    return np.asarray(m @ a @ m.T)
