@@ -117,3 +117,28 @@ def test_unknown_parameter_is_refused() -> None:
 
     with pytest.raises(SimulationError, match="unknown parameter"):
         EFFECTS["disparity_noise"]({"sigma": 0.1})
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_model_sample_matches_model_signature(fused: bool) -> None:
+    """The whole default model plus calibration effects, fused pass and effect-by-effect alike."""
+    from simulate.model import load_model
+
+    model = (load_model("d455").with_effect("disparity_offset", offset_px=0.1)
+             .with_effect("albedo_noise", sigma_px_black=0.1).with_effect("depth_scale", scale_error=0.002)
+             .with_effect("lr_focal_mismatch", ratio=2e-4))
+    rng = np.random.default_rng(11)
+    z = np.repeat(np.array([0.8, 1.5, 3.0, 5.0]), 6)[None, :] * (1 + rng.uniform(-0.01, 0.01, (4000, 24)))
+    alb = np.tile([0.05, 0.85], 12)
+    u = np.tile([100.0, 100.0, 640.0, 640.0, 1180.0, 1180.0], 4)
+    ctx = PixelContext(z_m=z, u=u, albedo=alb, fx=FX, ppx=PPX, ppy=PPY, baseline_m=B)
+    zs = model.sample(ctx, z.astype(np.float32), rng, fused=fused).astype(np.float64)
+    keep = model.valid_probability(ctx).mean(axis=0)
+    frac = np.isfinite(zs).mean(axis=0)
+    assert np.all(np.abs(frac - keep) <= 5 * np.sqrt(keep * (1 - keep) / 4000) + 1e-9)
+    resid = np.where(np.isfinite(zs), zs - z - model.bias_m(ctx), np.nan)
+    var = model.variance_m2(ctx).mean(axis=0)
+    n = np.isfinite(resid).sum(axis=0)
+    assert np.all(np.abs(np.nanmean(resid, axis=0)) <= 5 * np.sqrt(var / n) + 2e-5)
+    # first-order sum of variances; the effects' interaction (1/d nonlinearity) stays within 5 %
+    np.testing.assert_allclose(np.nanvar(resid, axis=0), var, rtol=0.05 + 5 * np.sqrt(2 / n.min()))
