@@ -41,8 +41,7 @@ def frame_figure(images: FrameImages, path: Path, title: str = "") -> Path:
         (err_mm, "(d) depth error, measured - reference", "error (mm)", "RdBu_r", -lim, lim),
     ]
     for ax, (img, name, unit, cmap, lo, hi) in zip(axes.ravel(), panels, strict=True):
-        cm = plt.get_cmap(cmap).copy()
-        cm.set_bad("black")
+        cm = plt.get_cmap(cmap).with_extremes(bad="black")
         im = ax.imshow(np.ma.masked_invalid(img), cmap=cm, vmin=lo, vmax=hi, interpolation="nearest")
         ax.set_title(name)
         ax.set_xlabel("u (px)")
@@ -79,8 +78,7 @@ def grid_figure(grid: Grid, path: Path, min_count: int, title: str = "") -> Path
          plt.Normalize(0.0, smax)),
     ]
     for ax, (data, name, unit, cmap, norm) in zip(axes, panels, strict=True):
-        cm = plt.get_cmap(cmap).copy()
-        cm.set_bad("white")
+        cm = plt.get_cmap(cmap).with_extremes(bad="white")
         im = ax.imshow(data.T, origin="lower", aspect="auto", extent=extent, cmap=cm, norm=norm,
                        interpolation="nearest")
         ax.set_xlim(float(de[0]), dmax)

@@ -1,0 +1,146 @@
+"""Scan study inputs and the command: TUM trajectories and folders, registration files, reference
+clouds (Poisson + cache), and a whole result folder."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from depthstation.errors import InputError
+from depthstation.geometry import rodrigues
+from evaluate.scan.reference import PoissonParams, load_reference, reference_mesh
+from evaluate.scan.registration import read_pass_points, read_similarity
+from evaluate.scan.sequence import open_sequence
+from evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
+from evaluate.scan.trajectory import compose_similarity, read_tum, write_tum
+
+
+def test_tum_roundtrip_and_matching(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    poses = np.tile(np.eye(4), (5, 1, 1))
+    for k in range(5):
+        poses[k, :3, :3] = rodrigues(rng.normal(size=3))
+        poses[k, :3, 3] = rng.normal(size=3)
+    t = 1.7e9 + np.arange(5) / 30.0
+    path = write_tum(tmp_path / "traj.txt", t[::-1], poses[::-1])  # unsorted on disk
+    traj = read_tum(path)
+    np.testing.assert_allclose(traj.poses, poses, atol=1e-8)
+    assert traj.match(t[2] + 0.004, 0.005) is not None
+    assert traj.match(t[2] + 0.016, 0.005) is None
+    np.testing.assert_allclose(traj.match(t[3] - 0.001, 0.01), poses[3], atol=1e-8)
+
+
+def test_tum_rejects_bad_lines(tmp_path: Path) -> None:
+    p = tmp_path / "bad.txt"
+    p.write_text("# header\n1.0 0 0 0 0 0 0\n")
+    with pytest.raises(InputError, match="line 2: expected 8 values"):
+        read_tum(p)
+
+
+def test_similarity_and_pass_point_files(tmp_path: Path) -> None:
+    S = compose_similarity(0.98, rodrigues(np.array([0.1, 0.2, 0.3])), np.array([1.0, 2.0, 3.0]))
+    np.savetxt(tmp_path / "s.txt", S)
+    np.testing.assert_allclose(read_similarity(tmp_path / "s.txt"), S)
+    bad = S.copy()
+    bad[0, 1] += 0.1
+    np.savetxt(tmp_path / "bad.txt", bad)
+    with pytest.raises(InputError, match="not a scaled rotation"):
+        read_similarity(tmp_path / "bad.txt")
+    (tmp_path / "pp.csv").write_text("x,y,z,x_ref,y_ref,z_ref\n" + "\n".join(
+        f"{i},{i * 2},{i * 3},{i + 1},{i},{-i}" for i in range(4)))
+    src, dst = read_pass_points(tmp_path / "pp.csv")
+    assert src.shape == dst.shape == (4, 3) and dst[2, 0] == 3.0
+    (tmp_path / "few.csv").write_text("1,2,3,4,5,6\n")
+    with pytest.raises(InputError, match="at least 3"):
+        read_pass_points(tmp_path / "few.csv")
+
+
+def test_unsupported_reference_formats_give_clear_errors(tmp_path: Path) -> None:
+    for name in ("scan.e57", "scan.las"):
+        p = tmp_path / name
+        p.write_bytes(b"\0" * 16)
+        try:
+            import laspy  # noqa: F401
+            import pye57  # noqa: F401
+        except ImportError:
+            with pytest.raises(InputError, match="optional package"):
+                load_reference(p)
+    (tmp_path / "x.foo").write_text("1")
+    with pytest.raises(InputError, match="unknown reference format"):
+        load_reference(tmp_path / "x.foo")
+
+
+def test_cloud_reference_is_meshed_trimmed_and_cached(tmp_path: Path) -> None:
+    import open3d as o3d
+
+    mesh = Room().mesh(segments=64)
+    o3d.utility.random.seed(0)
+    cloud = mesh.sample_points_uniformly(40_000, use_triangle_normal=True)
+    o3d.io.write_point_cloud(str(tmp_path / "cloud.ply"), cloud)
+    out = tmp_path / "res"
+    m1, path1, info1 = reference_mesh(tmp_path / "cloud.ply", out,
+                                      params=PoissonParams(depth=6))
+    assert info1["kind"] == "cloud" and not info1["cached"] and path1.is_file()
+    assert info1["triangles"] > 1000
+    # trimmed mesh lies on the room: vertices within a few cm of the true surface
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    d = scene.compute_distance(o3d.core.Tensor(np.asarray(m1.vertices, dtype=np.float32))).numpy()
+    assert np.median(d) < 0.03
+    _, path2, info2 = reference_mesh(tmp_path / "cloud.ply", out,
+                                     params=PoissonParams(depth=6))
+    assert info2["cached"] and path2 == path1
+
+
+def test_scan_command_writes_a_result_folder(tmp_path: Path) -> None:
+    import open3d as o3d
+    import typer
+    from typer.testing import CliRunner
+
+    from evaluate.scan.cli import scan
+
+    seq = make_sequence(frames=8, width=80, height=60, seed=2)
+    write_tum_folder(seq, tmp_path / "seq")
+    t = np.asarray(seq.timestamps_ns) * 1e-9
+    keep = np.arange(8) != 5  # the tracker lost frame 5
+    write_tum(tmp_path / "poses.txt", t[keep], seq.poses[keep])
+    o3d.io.write_triangle_mesh(str(tmp_path / "room.ply"), Room().mesh(segments=128))
+    np.savetxt(tmp_path / "identity.txt", np.eye(4))
+    assert open_sequence(tmp_path / "seq").frame_count == 8
+
+    app = typer.Typer()
+    app.command()(scan)
+    app.command("noop")(lambda: None)
+    out = tmp_path / "out"
+    res = CliRunner().invoke(app, ["scan", "--sequence", str(tmp_path / "seq"), "--poses",
+                                   str(tmp_path / "poses.txt"), "--reference", str(tmp_path / "room.ply"),
+                                   "--out", str(out), "--similarity", str(tmp_path / "identity.txt"),
+                                   "--no-icp", "--distance-bin-m", "0.05", "--inclination-bin-deg", "1",
+                                   "--min-count-sequence", "20", "--rrd", str(out / "scan.rrd")])
+    assert res.exit_code == 0, res.output
+    with np.load(out / "grid.npz") as z:
+        assert z["count"].shape == (120, 90) and z["mean_m"].shape == z["var_m2"].shape
+        assert int(z["count"].sum()) > 0.99 * 7 * 80 * 60 - 200
+    s = json.loads((out / "summary.json").read_text())
+    assert s["frames"]["used"] == 7 and s["frames"]["skipped_no_pose"] == 1
+    assert s["registration"]["scale"] == pytest.approx(1.0)
+    assert s["pixels"]["pixels"] == 7 * 80 * 60
+    assert s["pixels"]["evaluated"] + s["pixels"]["no_depth"] >= s["pixels"]["pixels"] - s["pixels"]["no_hit"]
+    # the model reads too far (positive bias a z^2 + b (inc/90)^2): the pooled mean error is > 0
+    assert s["grid"]["mean_m"] > 0.002
+    for f in ("fig8_frame.png", "fig9_frame_grid.png", "fig10_sequence_grid.png", "result.json", "scan.rrd"):
+        assert (out / f).is_file(), f
+    assert json.loads((out / "result.json").read_text())["kind"] == "scan"
+
+
+def test_scan_rejects_conflicting_registration_inputs(tmp_path: Path) -> None:
+    from evaluate.scan.run import ScanOptions, run_scan
+
+    with pytest.raises(InputError, match="either --similarity or --pass-points"):
+        run_scan(tmp_path, tmp_path / "p.txt", tmp_path / "r.ply", tmp_path / "o",
+                 ScanOptions(similarity=tmp_path / "s.txt", pass_points=tmp_path / "p.csv"))
+    with pytest.raises(InputError, match="sequence not found"):
+        run_scan(tmp_path / "nope", tmp_path / "p.txt", tmp_path / "r.ply", tmp_path / "o")
