@@ -65,3 +65,8 @@ def test_steps_report_and_go_on(tmp_path: Path, capsys: pytest.CaptureFixture[st
 def test_unknown_skip_is_input_error(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="unknown step"):
         run_demo(tmp_path / "d", steps=[Step("ok", "works", (), _ok)], skip={"nope"})
+
+
+def test_step_dependencies() -> None:
+    assert missing_requirement(("step:checkerboard",), set()) == "the checkerboard step"
+    assert missing_requirement(("step:checkerboard", "json:dumps"), {"checkerboard"}) is None

@@ -59,14 +59,19 @@ class Step:
     needs: Callable[[DemoContext], tuple[str, ...]] | None = None
 
 
-def missing_requirement(requires: tuple[str, ...]) -> str | None:
-    """The first 'module:attribute' this build lacks, or None.
+def missing_requirement(requires: tuple[str, ...],
+                        done: set[str] | frozenset[str] = frozenset()) -> str | None:
+    """The first 'module:attribute' this build lacks (or 'step:NAME' not done before), or None.
 
     Only a missing module or attribute counts; an import that fails inside an existing module is
     a bug and propagates.
     """
     for req in requires:
         mod_name, _, attr = req.partition(":")
+        if mod_name == "step":
+            if attr not in done:
+                return f"the {attr} step"
+            continue
         try:
             mod = importlib.import_module(mod_name)
         except ModuleNotFoundError as exc:
@@ -101,7 +106,8 @@ def run_steps(ctx: DemoContext, steps: list[Step], skip: set[str]) -> dict[str, 
             stderr_console.print(f"{head}: skipped (--skip {step.name})")
             outcomes[step.name] = StepOutcome("skipped")
             continue
-        missing = missing_requirement(step.requires + (step.needs(ctx) if step.needs else ()))
+        missing = missing_requirement(step.requires + (step.needs(ctx) if step.needs else ()),
+                                      set(ctx.results))
         if missing is not None:
             msg = f"step {step.name}: not available in this build (needs {missing})"
             stderr_console.print(f"{head}\n  [yellow]{msg}[/]")

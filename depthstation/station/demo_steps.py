@@ -33,8 +33,10 @@ def _checkerboard_step(ctx: DemoContext) -> tuple[Path, str]:
                                         ctx.out / "session-simulated", seed=1)
         ctx.facts["checkerboard_input"] = "simulated session (the guided session step did not run)"
     out = evaluate_checkerboard_session([session], ctx.out / "checkerboard", ctx, "checkerboard")
-    rows = ctx.facts["checkerboard_standpoints"]
-    noise = [r.get("noise_m") for r in rows if r.get("noise_m") is not None]
+    from depthstation.station.resultdir import STANDPOINTS_FILE, read_standpoints
+
+    rows = read_standpoints(out / STANDPOINTS_FILE)
+    noise = [float(r["noise_m"]) for r in rows if r.get("noise_m") == r.get("noise_m")]
     text = f"{len(rows)} standpoints"
     if noise:
         text += f", noise {1e3 * min(noise):.2f} to {1e3 * max(noise):.2f} mm"
@@ -55,10 +57,7 @@ def _compare_step(ctx: DemoContext) -> tuple[Path, str]:
     from simulate.checkerboard import simulate_checkerboard
     from simulate.model import load_model
 
-    ref = ctx.results.get("checkerboard")
-    if ref is None:
-        msg = "needs the checkerboard step"
-        raise RuntimeError(msg)
+    ref = ctx.results["checkerboard"]
     sess = simulate_checkerboard(load_protocol(DEMO_PROTOCOL), load_model("d435"), ctx.out / "session-d435",
                                  seed=2)
     other = evaluate_checkerboard_session([sess], ctx.out / "checkerboard-d435", ctx, "checkerboard_d435")
@@ -71,7 +70,8 @@ def _compare_step(ctx: DemoContext) -> tuple[Path, str]:
 
 
 COMPARE = Step("compare", "compare with a simulated D435 (shorter baseline)",
-               ("simulate.checkerboard:simulate_checkerboard", "simulate.model:load_model",
+               ("step:checkerboard", "simulate.checkerboard:simulate_checkerboard",
+                "simulate.model:load_model",
                 "evaluate.checkerboard.run:run_study"), _compare_step)
 
 
