@@ -20,14 +20,13 @@ FRAMES = 4
 
 def test_noise_accuracy_and_geometry_match_the_model() -> None:
     pytest.importorskip("open3d")
+    from evaluate.checkerboard.study import evaluate_frames
     from simulate.checkerboard import render_frames
     from simulate.effects.base import PixelContext
     from simulate.model import load_model
     from simulate.poses import standpoint_pose, standpoint_truth
     from simulate.renderer import ViewRenderer
     from simulate.scene import board_scene
-
-    from evaluate.checkerboard.study import evaluate_frames
 
     board = Board()
     model = load_model("d455")
