@@ -146,3 +146,27 @@ def test_db3_plays_back_through_pyrealsense2(tmp_path: Path) -> None:
         assert depth.shape == (360, 640) and np.count_nonzero(depth) > 0.5 * depth.size
     finally:
         pipe.stop()
+
+
+def test_charuco_board_is_detected_with_its_ids() -> None:
+    from depthstation.board import Board
+
+    board = Board(type="charuco", squares_x=7, squares_y=5, square_length_m=0.06, marker_length_m=0.045,
+                  dictionary="DICT_4X4_50")
+    model = load_model("d435")
+    info = model.camera.stream_info(1280, 720)
+    ci = info.color_intrinsics
+    assert ci is not None
+    scene = board_scene(board)
+    pose = standpoint_pose(board, 0.9, 20.0)
+    cpose = pose @ np.linalg.inv(info.depth_to_color.matrix)
+    img = encode_srgb(render_color_linear(scene, ci, cpose))
+    gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+    cb = cv2.aruco.CharucoBoard((7, 5), 0.06, 0.045, dictionary)
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(cb).detectBoard(gray)
+    assert ids is not None and len(ids) >= 20
+    b2c = np.linalg.inv(cpose)
+    truth = project(ci, board.corner_points() @ b2c[:3, :3].T + b2c[:3, 3])
+    err = np.abs(corners.reshape(-1, 2) - truth[ids.ravel()])
+    assert err.max() < 0.5
