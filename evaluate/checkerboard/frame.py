@@ -13,7 +13,8 @@ from depthstation.frames import FrameSet
 from evaluate.checkerboard.detection import BoardDetector, Detection
 from evaluate.checkerboard.errors import BoardMismatchError
 from evaluate.checkerboard.mask import BLACK, WHITE, BoardMask, board_mask, board_to_depth
-from evaluate.checkerboard.metrics import fit_plane_moments, moment_matrix
+from evaluate.checkerboard.kernels import board_moments
+from evaluate.checkerboard.metrics import fit_plane_moments
 from evaluate.checkerboard.pose import BoardPose, estimate_pose, flip_board, square_contrast
 
 MIN_CONTRAST = 5.0  # grey levels white minus black below which the colours count as swapped
@@ -174,34 +175,21 @@ class FrameEvaluator:
         assert fs.depth is not None
         rows, cols = mask.box
         raw = fs.depth[rows, cols]
-        valid = mask.inside & (raw > 0)
         res.board_pixels = int(np.count_nonzero(mask.inside))
-        res.valid_pixels = int(np.count_nonzero(valid))
+        res.valid_pixels, res.moments = board_moments(raw, mask.inside, mask.colour, mask.ray_x,
+                                                      mask.ray_y, self.info.depth_units_m, res.origin)
         res.fill_rate = res.valid_pixels / res.board_pixels if res.board_pixels else float("nan")
         if res.valid_pixels < self.min_pixels:
             res.status = "too few depth pixels on the board"
             return res, None
-        vi, ui = np.nonzero(valid)
-        z = raw[vi, ui].astype(np.float64) * self.info.depth_units_m
-        o = res.origin
-        x = z * mask.ray_x[ui] - o[0]
-        y = z * mask.ray_y[vi] - o[1]
-        zc = z - o[2]
-        colour = mask.colour[vi, ui]
-        a_all = moment_matrix(x, y, zc)
-        b = colour == BLACK
-        w = colour == WHITE
-        a_b = moment_matrix(x[b], y[b], zc[b])
-        a_w = moment_matrix(x[w], y[w], zc[w])
-        # disparity-space moments: 1/z is linear in the ray (rx, ry) on a plane, with the noise in
-        # 1/z alone (stereo noise is in disparity), so the standpoint's plane tilt is fitted there
-        a_inv = moment_matrix(mask.ray_x[ui], mask.ray_y[vi], 1.0 / z)
-        res.moments = {"all": a_all, "black": a_b, "white": a_w, "inverse_depth": a_inv}
-        res.noise_m = fit_plane_moments(a_all)[2]
-        res.noise_black_m = fit_plane_moments(a_b)[2]
-        res.noise_white_m = fit_plane_moments(a_w)[2]
+        res.noise_m = fit_plane_moments(res.moments["all"])[2]
+        res.noise_black_m = fit_plane_moments(res.moments["black"])[2]
+        res.noise_white_m = fit_plane_moments(res.moments["white"])[2]
         pixels = None
         if keep_pixels:
+            vi, ui = np.nonzero(mask.inside & (raw > 0))
+            z = raw[vi, ui].astype(np.float32) * np.float32(self.info.depth_units_m)
+            colour = mask.colour[vi, ui]
             pixels = FramePixels((ui + mask.u0).astype(np.int32), (vi + mask.v0).astype(np.int32),
                                  z.astype(np.float32), colour)
         return res, pixels
