@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 from depthstation.station.demo import DEMO_MODEL, DEMO_PROTOCOL, DemoContext, Step
 
@@ -73,11 +72,6 @@ COMPARE = Step("compare", "compare with a simulated D435 (shorter baseline)",
                ("step:checkerboard", "simulate.checkerboard:simulate_checkerboard",
                 "simulate.model:load_model",
                 "evaluate.checkerboard.run:run_study"), _compare_step)
-
-
-def _not_wired(ctx: DemoContext) -> tuple[Path, Any]:
-    msg = "not wired yet"
-    raise RuntimeError(msg)
 
 
 # ------------------------------------------------------------------------------ guided session
@@ -150,7 +144,67 @@ def _scan_step(ctx: DemoContext) -> tuple[Path, str]:
 SCAN = Step("scan", "reference-scan study of a simulated room walk",
             ("simulate.scan:simulate_scan", "simulate.poses:walk_around", "evaluate.scan.run:run_scan"),
             _scan_step)
+# ------------------------------------------------------------------------------ explain
+
+HIDDEN_EFFECT = "disparity_offset"
+HIDDEN_OFFSET_PX = 0.06      # below the 0.08 px disparity noise: the bias hides under the per-frame noise
+EXPLAIN_FRAMES = 20
+
+
+def _explain_step(ctx: DemoContext) -> tuple[Path, str]:
+    """A capture made with a D455 model that carries a concealed disparity offset; explain is given
+    only the capture and the plain D455 model, and must find, name and fit what is missing."""
+    from depthstation.protocol import load_protocol
+    from depthstation.viz import RerunTarget
+    from evaluate.explain.pipeline import evaluate_real, explain_sides, simulate_like
+    from evaluate.explain.report import write_outputs
+    from simulate.checkerboard import simulate_checkerboard
+    from simulate.model import load_model, model_from_toml
+
+    protocol = load_protocol(DEMO_PROTOCOL)
+    base = load_model(DEMO_MODEL)
+    extra = f"\n[effects.{HIDDEN_EFFECT}]\noffset_px = {HIDDEN_OFFSET_PX}\n"
+    hidden = model_from_toml(base.to_toml() + extra, f"{DEMO_MODEL}-concealed")
+    capture = simulate_checkerboard(protocol, hidden, ctx.out / "explain-capture", seed=5,
+                                    frames=EXPLAIN_FRAMES, progress=True)
+    out = ctx.out / "explain"
+
+    def tick(msg: str) -> None:
+        from depthstation.progress import stderr_console
+
+        stderr_console.print(f"  explain: {msg}")
+
+    real = evaluate_real([capture], protocol.board, frames=EXPLAIN_FRAMES,
+                         baseline_m=base.camera.baseline_m, tick=tick)
+    sim = simulate_like(real, protocol.board, base, seed=0, tick=tick)
+    ex = explain_sides(real, sim, base, protocol.board, seed=0, resimulate=True, tick=tick)
+    data = write_outputs(ex, out, [str(capture)], {"board": DEMO_PROTOCOL, "model": DEMO_MODEL,
+                                                   "frames": EXPLAIN_FRAMES, "seed": 0})
+    target: RerunTarget = ctx.target(out, "explain")
+    if target.enabled:
+        from evaluate.explain.rerun_log import log_explanation
+
+        log_explanation(ex, target)
+    top = data["candidates"][0] if data.get("candidates") else None
+    ctx.facts["explain"] = {"hidden": {HIDDEN_EFFECT: {"offset_px": HIDDEN_OFFSET_PX}},
+                            "significant": data["mismatch"]["significant"], "selected": data["selected"],
+                            "top": top}
+    text = (f"concealed {HIDDEN_EFFECT} {HIDDEN_OFFSET_PX} px; mismatch "
+            f"{'significant' if data['mismatch']['significant'] else 'not significant'}")
+    if top is not None:
+        params = ", ".join(f"{k} {v['value']:.4g} {v.get('unit', '')}" if isinstance(v, dict) else f"{k} {v}"
+                           for k, v in top.get("params", {}).items())
+        before, after = top.get("heldout_rmse_before_m"), top.get("heldout_rmse_after_m")
+        text += f"; ranked first: {top['effect']} ({params})"
+        if before is not None and after is not None:
+            text += f", held-out RMSE {1e3 * before:.2f} -> {1e3 * after:.2f} mm"
+    text += f"; selected: {', '.join(data['selected']) or 'nothing'}"
+    return out, text
+
+
 EXPLAIN = Step("explain", "explain a capture with a concealed effect",
-               ("evaluate.explain.run:explain",), _not_wired)
+               ("simulate.checkerboard:simulate_checkerboard", "simulate.model:model_from_toml",
+                "evaluate.explain.pipeline:explain_sides", "evaluate.explain.report:write_outputs"),
+               _explain_step)
 
 DEMO_STEPS = [SESSION, CHECKERBOARD, SCAN, EXPLAIN, COMPARE]
