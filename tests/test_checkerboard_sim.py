@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -44,7 +45,7 @@ def test_db3_gives_the_same_table_as_mcap(tmp_path: Path) -> None:
 
     proto = load_protocol("demo-d455")
     names = ["standpoint_01", "standpoint_05"]
-    rows: dict[str, list[dict[str, object]]] = {}
+    rows: dict[str, list[dict[str, Any]]] = {}
     infos = {}
     for fmt in ("mcap", "db3"):
         out = simulate_checkerboard(proto, "d455", tmp_path / fmt, fmt=fmt, frames=3, standpoints=names,

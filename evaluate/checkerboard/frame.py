@@ -12,8 +12,8 @@ from depthstation.camera import StreamInfo
 from depthstation.frames import FrameSet
 from evaluate.checkerboard.detection import BoardDetector, Detection
 from evaluate.checkerboard.errors import BoardMismatchError
-from evaluate.checkerboard.mask import BLACK, WHITE, BoardMask, board_mask, board_to_depth
 from evaluate.checkerboard.kernels import board_moments
+from evaluate.checkerboard.mask import BoardMask, board_mask, board_to_depth
 from evaluate.checkerboard.metrics import fit_plane_moments
 from evaluate.checkerboard.pose import BoardPose, estimate_pose, flip_board, square_contrast
 

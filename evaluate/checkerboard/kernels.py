@@ -50,7 +50,7 @@ def _moments(raw: NDArray[np.uint16], inside: NDArray[np.bool_], colour: NDArray
             p3 = z - oz
             _add(out[ALL], p1, p2, p3)
             c = colour[i, j]
-            if c == BLACK_M or c == WHITE_M:
+            if c != 0:  # BLACK_M or WHITE_M (mask classes 1, 2); 0 = neither
                 _add(out[c], p1, p2, p3)
             _add(out[INVERSE], rx, ry, 1.0 / z)
     return valid
