@@ -8,12 +8,16 @@ moments, aggregation) in one process.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 from depthstation.board import Board
 from depthstation.camera import Intrinsics, StreamInfo
-from evaluate.checkerboard.render import pose_for, still_frames
 from evaluate.checkerboard.study import evaluate_frames
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from checkerboard_render import pose_for, still_frames
 
 
 def main() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from checkerboard_render import pose_for, still_frames
 
 from depthstation.board import Board
 from depthstation.camera import Extrinsics, Intrinsics, StreamInfo
@@ -11,7 +12,6 @@ from depthstation.frames import FrameSet
 from depthstation.geometry import rodrigues
 from evaluate.checkerboard.errors import BoardMismatchError
 from evaluate.checkerboard.metrics import fit_plane_moments, moment_matrix, svd_plane_rms
-from evaluate.checkerboard.render import pose_for, still_frames
 from evaluate.checkerboard.study import evaluate_frames
 
 INTR = Intrinsics(640, 360, 320.0, 320.0, 319.5, 179.5)

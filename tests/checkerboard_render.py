@@ -1,7 +1,9 @@
 """A board on a wall rendered exactly (colour by homography, depth by ray-plane intersection).
 
-For tests and the benchmark: known pose, known noise and bias, no camera physics. The simulated
-D455 with its effects lives in `simulate/`; this is the minimal ground truth the study must recover.
+For the checkerboard tests and benchmark only (moved out of evaluate/): known pose, an exactly
+known z noise (sigma = k z^2) and z bias, no camera physics and no open3d. The simulated D455
+(`simulate/`) covers the physical case; this stays because it lets a test set noise and bias
+directly and runs where open3d is absent.
 """
 
 from __future__ import annotations
