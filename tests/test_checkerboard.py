@@ -60,7 +60,7 @@ def test_unaligned_depth_through_extrinsics() -> None:
     board = Board()
     color = Intrinsics(640, 360, 330.0, 330.0, 322.0, 178.0)
     m = np.eye(4)
-    m[:3, :3] = rodrigues([0.0, 0.01, 0.0])
+    m[:3, :3] = rodrigues(np.array([0.0, 0.01, 0.0]))
     m[:3, 3] = [-0.015, 0.0, 0.001]
     d2c = Extrinsics.from_matrix(m)
     info = StreamInfo(INTR, color, depth_to_color=d2c, depth_units_m=1e-4)
@@ -110,7 +110,7 @@ def test_even_board_half_turn_is_resolved_by_colour() -> None:
     board = Board(squares_x=8, squares_y=6, square_length_m=0.06)
     pose = pose_for(board, 1.0, 10.0)
     turn = np.eye(4)
-    turn[:3, :3] = rodrigues([0.0, 0.0, np.pi])
+    turn[:3, :3] = rodrigues(np.array([0.0, 0.0, np.pi]))
     turn[:3, 3] = [*board.size_m, 0.0]
     upside = pose @ turn  # the board turned by 180 deg about its centre, same colours
     for p in (pose, upside):
@@ -133,7 +133,7 @@ def test_charuco_rendered() -> None:
 def test_moment_plane_fit_equals_svd() -> None:
     rng = np.random.default_rng(1)
     p = rng.normal(size=(5000, 3)) * [0.3, 0.2, 0.002]
-    p = p @ rodrigues([0.3, -0.2, 0.1]).T + [0.1, 0.0, 2.0]
+    p = p @ rodrigues(np.array([0.3, -0.2, 0.1])).T + [0.1, 0.0, 2.0]
     c = p.mean(axis=0)
     a = moment_matrix(*(p - c).T)
     assert fit_plane_moments(a)[2] == pytest.approx(svd_plane_rms(p), rel=1e-9)
