@@ -73,14 +73,28 @@ def pose_metrics(board: Board, r: FloatArray, t: FloatArray) -> tuple[float, flo
 
 
 def detect_corners(color: NDArray[np.uint8], board: Board, refine: bool = True) -> FloatArray | None:
-    """Inner corners (N x 2, OpenCV order) of a plain checkerboard, or None when none is seen."""
+    """Inner corners (N x 2, OpenCV order) of a plain checkerboard, or None when none is seen.
+
+    The fast detector first; on small images (squares of ~10 px, far away) it fails, so it runs
+    again on the image upsampled twice, and the sector-based detector is the last resort.
+    """
     import cv2
 
     gray = cv2.cvtColor(color, cv2.COLOR_RGB2GRAY) if color.ndim == 3 else color
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
-    found, corners = cv2.findChessboardCorners(gray, board.inner_corners, flags=flags)
+    pattern = board.inner_corners
+    found, corners = cv2.findChessboardCorners(gray, pattern, flags=flags)
+    if not found and gray.shape[1] < 1000:
+        big = cv2.resize(gray, None, fx=2.0, fy=2.0, interpolation=cv2.INTER_LINEAR)
+        found, corners = cv2.findChessboardCorners(big, pattern, flags=flags)
+        if found and corners is not None:
+            corners = (corners - 0.5) / 2.0  # pixel centres: u_big = 2 u + 0.5
+    if not found:
+        found, corners = cv2.findChessboardCornersSB(gray, pattern, flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
+        refine = False  # the SB detector is sub-pixel already
     if not found or corners is None:
         return None
+    corners = np.ascontiguousarray(corners, dtype=np.float32).reshape(-1, 1, 2)
     if refine:
         criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
         corners = cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1), criteria)

@@ -119,7 +119,9 @@ class StillnessTracker:
     seconds: float
     translation_m: float
     rotation_deg: float
+    grace_frames: int = 3  # a detection missed on this many frames in a row does not restart the window
     _samples: deque[tuple[int, NDArray[np.float64]]] = field(default_factory=deque)
+    _missed: int = 0
 
     @classmethod
     def from_tolerances(cls, tol: Tolerances) -> StillnessTracker:
@@ -138,8 +140,11 @@ class StillnessTracker:
         """Add one frame's board centre (camera frame; None = board lost, which restarts the
         window); True when the centre stayed put for the whole window."""
         if center is None:
-            self._samples.clear()
+            self._missed += 1
+            if self._missed > self.grace_frames:
+                self._samples.clear()
             return False
+        self._missed = 0
         c = np.asarray(center, dtype=np.float64)
         self._samples.append((t_ns, c))
         # keep the longest run of recent samples that all agree with the latest one

@@ -124,7 +124,12 @@ def test_stillness_needs_the_whole_window() -> None:
     for i in range(40):
         tr2.update(int(i * 1e9 / 30), c2)
     assert not tr2.update(int(40 * 1e9 / 30), c3)
+    # one missed detection does not restart the window; four in a row do
     assert not tr.update(int(81 * 1e9 / 30), None)
+    assert tr.update(int(82 * 1e9 / 30), c2)
+    for i in range(83, 87):
+        tr.update(int(i * 1e9 / 30), None)
+    assert not tr.update(int(87 * 1e9 / 30), c2)
 
 
 def test_end_of_range_and_fill_rate() -> None:
