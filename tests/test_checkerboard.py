@@ -137,3 +137,23 @@ def test_moment_plane_fit_equals_svd() -> None:
     c = p.mean(axis=0)
     a = moment_matrix(*(p - c).T)
     assert fit_plane_moments(a)[2] == pytest.approx(svd_plane_rms(p), rel=1e-9)
+
+
+def test_tracking_follows_a_still_board_and_lets_go_of_a_moved_one() -> None:
+    """Corners are tracked from frame to frame only while they stay on the board's X-junctions."""
+    from evaluate.checkerboard.detection import BoardDetector
+
+    board = Board()
+    det = BoardDetector(board)
+    a = next(still_frames(board, pose_for(board, 1.0, 10.0), ALIGNED, 1))
+    b = next(still_frames(board, pose_for(board, 1.3, 30.0, azimuth_deg=40.0), ALIGNED, 1))
+    assert a.color is not None and b.color is not None
+    first = det.detect(a.color)
+    again = det.detect(a.color)  # tracked: the same corners
+    assert first is not None and again is not None
+    assert np.allclose(again.image_points, first.image_points, atol=0.02)
+    moved = det.detect(b.color)  # the board jumped: a fresh search, not stale corners
+    fresh = BoardDetector(board).detect(b.color)
+    assert moved is not None and fresh is not None
+    assert np.allclose(moved.image_points, fresh.image_points, atol=0.02)
+    assert det.detect(np.full_like(a.color, 120)) is None  # blank image: nothing tracked
