@@ -12,6 +12,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from depthstation.board import Board
 from depthstation.camera import Intrinsics, StreamInfo
 from evaluate.checkerboard.study import evaluate_frames
@@ -32,8 +34,15 @@ def main() -> None:
     board = Board()
     frames = list(still_frames(board, pose_for(board, a.distance, a.inclination, 20.0), info, a.frames,
                                noise_rel=0.002))
-    for fs in frames[1:]:
-        fs.color = frames[0].color  # one shared colour image keeps memory low
+    # colour sensor noise (2 grey levels RMS, as the simulator's) so that corner tracking works on
+    # changing images; 8 noisy copies cycled keep memory low
+    rng = np.random.default_rng(1)
+    base = frames[0].color
+    assert base is not None
+    noisy = [np.clip(base + rng.normal(0.0, 2.0, base.shape[:2])[..., None], 0, 255).astype(np.uint8)
+             for _ in range(8)]
+    for k, fs in enumerate(frames):
+        fs.color = noisy[k % len(noisy)]
     times = []
     r = None
     for _ in range(a.repeat):
