@@ -41,6 +41,7 @@ class Table:
     cluster: IntArray
     fold: IntArray
     standpoint: IntArray
+    Z: FloatArray | None = None     # per-standpoint random plane error basis z^2 (1, x/z, y/z)
 
     def __len__(self) -> int:
         return int(self.y.size)
@@ -170,9 +171,14 @@ def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, 
                           for j in range(cols.shape[1])], axis=1)
         X[c.name] = tiles[ia]
     sp, bl = ur[ia, 0], ur[ia, 1]
+    xn, yn = (real.u - real.ppx) / real.fx, (real.v - real.ppy) / real.fx
+    z2 = real.z_ref_m ** 2
+    zcols = [z2, z2 * xn, z2 * yn]
+    Z = np.stack([np.bincount(inv_r[ok], weights=c[ok], minlength=len(ur)) / np.maximum(nr, 1)
+                  for c in zcols], axis=1)[ia]
     # clusters = standpoints: the real reference plane's error is shared by all tiles of a standpoint
     clusters = sp if len(np.unique(sp)) >= 3 else sp * 1000 + bl
-    return Table("bias", y, w, X, clusters, _folds(sp, bl), sp)
+    return Table("bias", y, w, X, clusters, _folds(sp, bl), sp, Z)
 
 
 def variance_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *,
@@ -229,14 +235,82 @@ def wls(X: FloatArray, y: FloatArray, w: FloatArray) -> FloatArray:
     return np.asarray(beta)
 
 
+@dataclass
+class Fit:
+    beta: FloatArray
+    cov: FloatArray
+    loglik: float
+
+
+def gls(t: Table, names: Sequence[str], rows: NDArray[Any] | None = None, iterations: int = 4) -> Fit:
+    """Mixed model y = X b + Z g_s + e: every standpoint's reference plane is off by a random g_s.
+
+    The real reference pose (from the colour image) is wrong by a different small offset and tilt at
+    every standpoint; those errors are shared by all tiles of the standpoint, so they are modelled
+    as random plane coefficients whose variances are estimated from the between-standpoint scatter
+    (moments, iterated with GLS). Without Z (variance tables) this is plain WLS with a fitted scale.
+    """
+    idx_all = np.arange(len(t)) if rows is None else np.asarray(rows)
+    X = _design(t, names)[idx_all]
+    y, w = t.y[idx_all], t.w[idx_all]
+    n, k = X.shape
+    sps = t.standpoint[idx_all]
+    beta = wls(X, y, w)
+    use_z = t.Z is not None and len(np.unique(sps)) >= 3
+    if not use_z:
+        r = y - X @ beta
+        s2 = float((w * r ** 2).sum()) / max(n - k, 1)
+        xw = X * w[:, None]
+        cov = np.linalg.pinv(X.T @ xw) * s2 if k else np.zeros((0, 0))
+        ll = -0.5 * float(np.sum(np.log(2 * np.pi * s2 / w)) + (w * r ** 2).sum() / s2)
+        return Fit(beta, cov, ll)
+    assert t.Z is not None
+    Z = t.Z[idx_all]
+    groups = [np.flatnonzero(sps == s) for s in np.unique(sps)]
+    tau = np.zeros(Z.shape[1])
+    s2 = 1.0
+    A = np.zeros((k, k))
+    for _ in range(iterations):
+        r = y - X @ beta
+        gam, rss, dof = [], 0.0, 0
+        for g in groups:
+            gg = wls(Z[g], r[g], w[g])
+            gam.append(gg)
+            rss += float((w[g] * (r[g] - Z[g] @ gg) ** 2).sum())
+            dof += max(len(g) - Z.shape[1], 0)
+        s2 = rss / max(dof, 1)
+        tau = np.var(np.array(gam), axis=0, ddof=1) / s2
+        A = np.zeros((k, k))
+        b = np.zeros(k)
+        for g in groups:
+            vx, vy = _vinv(Z[g], w[g], tau, X[g]), _vinv(Z[g], w[g], tau, y[g][:, None])
+            A += X[g].T @ vx
+            b += (X[g].T @ vy).ravel()
+        beta = np.asarray(np.linalg.lstsq(A, b, rcond=None)[0], dtype=np.float64) if k else np.zeros(0)
+    r = y - X @ beta
+    ll = 0.0
+    for g in groups:
+        zw = Z[g] * w[g][:, None]
+        logdet = float(np.sum(np.log(s2 / w[g]))) + float(np.linalg.slogdet(
+            np.eye(Z.shape[1]) + tau[:, None] * (Z[g].T @ zw))[1])
+        quad = float((r[g] * _vinv(Z[g], w[g], tau, r[g][:, None]).ravel()).sum()) / s2
+        ll += -0.5 * (len(g) * np.log(2 * np.pi) + logdet + quad)
+    cov = np.asarray(np.linalg.pinv(A) * s2, dtype=np.float64) if k else np.zeros((0, 0))
+    return Fit(beta, cov, ll)
+
+
+def _vinv(Z: FloatArray, w: FloatArray, tau: FloatArray, a: FloatArray) -> FloatArray:
+    """(W^-1 + Z T Z')^-1 a by Woodbury, T = diag(tau)."""
+    wz = Z * w[:, None]
+    m = np.diag(1.0 / np.maximum(tau, 1e-30)) + Z.T @ wz
+    wa = a * w[:, None]
+    return np.asarray(wa - wz @ np.linalg.solve(m, wz.T @ a))
+
+
 def bic(t: Table, names: Sequence[str]) -> float:
-    """Gaussian BIC with the noise scale estimated: n ln(RSS_w / n) + k ln n."""
-    X = _design(t, names)
-    beta = wls(X, t.y, t.w)
-    r = t.y - X @ beta
-    n = len(t)
-    rss = float((t.w * r ** 2).sum())
-    return n * np.log(max(rss, 1e-300) / n) + X.shape[1] * np.log(n)
+    """BIC of the mixed model: -2 log L + k ln n."""
+    fit = gls(t, names)
+    return -2 * fit.loglik + len(fit.beta) * np.log(len(t))
 
 
 def heldout_rmse(t: Table, names: Sequence[str]) -> float:
@@ -245,45 +319,26 @@ def heldout_rmse(t: Table, names: Sequence[str]) -> float:
     res = np.empty(len(t))
     for f in np.unique(t.fold):
         test = t.fold == f
-        train = ~test
-        beta = wls(X[train], t.y[train], t.w[train]) if train.any() else np.zeros(X.shape[1])
+        train = np.flatnonzero(~test)
+        beta = gls(t, names, train).beta if len(train) else np.zeros(X.shape[1])
         res[test] = t.y[test] - X[test] @ beta
     return float(np.sqrt((t.w * res ** 2).sum() / t.w.sum()))
 
 
-def robust_cov(t: Table, names: Sequence[str]) -> tuple[FloatArray, FloatArray]:
-    """WLS estimate and its cluster-robust (sandwich, CR1) covariance, clusters = frame blocks."""
-    X = _design(t, names)
-    beta = wls(X, t.y, t.w)
-    if X.shape[1] == 0:
-        return beta, np.zeros((0, 0))
-    r = t.y - X @ beta
-    xw = X * t.w[:, None]
-    bread = np.linalg.pinv(X.T @ xw)
-    cl, inv = np.unique(t.cluster, return_inverse=True)
-    g = len(cl)
-    scores = np.zeros((g, X.shape[1]))
-    np.add.at(scores, inv.ravel(), xw * r[:, None])
-    meat = scores.T @ scores
-    n, k = X.shape
-    corr = g / max(g - 1, 1) * (n - 1) / max(n - k, 1)
-    return beta, bread @ meat @ bread * corr
-
-
 def wald_p(t: Table, names: Sequence[str], name: str) -> tuple[float, FloatArray, FloatArray]:
-    """Cluster-robust Wald p-value of one candidate's columns within a model; beta and SEs."""
-    beta, cov = robust_cov(t, names)
+    """Wald p-value (chi^2) of one candidate's columns within the mixed model; its beta and SEs."""
+    fit = gls(t, names)
     start = sum(t.X[n].shape[1] for n in names[:list(names).index(name)])
     k = t.X[name].shape[1]
-    b = beta[start:start + k]
-    c = cov[start:start + k, start:start + k]
+    b = fit.beta[start:start + k]
+    c = fit.cov[start:start + k, start:start + k]
     try:
         stat = float(b @ np.linalg.solve(c, b))
     except np.linalg.LinAlgError:
         return 1.0, b, np.full(k, np.nan)
-    g = len(np.unique(t.cluster))
-    p = float(stats.f.sf(stat / k, k, max(g - 1, 1))) if g > 1 else 1.0
-    return p, b, np.sqrt(np.clip(np.diag(c), 0, None))
+    if not np.isfinite(stat) or stat < 0:
+        return 1.0, b, np.full(k, np.nan)
+    return float(stats.chi2.sf(stat, k)), b, np.sqrt(np.clip(np.diag(c), 0, None))
 
 
 def _usable(t: Table, name: str) -> bool:
@@ -331,7 +386,8 @@ def forward_select(t: Table, candidates: Sequence[Candidate], present: dict[str,
         break
     # final parameters of the selected effects come from the joint fit
     if selected:
-        beta, cov = robust_cov(t, selected)
+        fit = gls(t, selected)
+        beta, cov = fit.beta, fit.cov
         start = 0
         for name in selected:
             k = t.X[name].shape[1]

@@ -172,8 +172,11 @@ _VAR_MAIN = {"disparity_noise": "sigma_px", "albedo_noise": "sigma_px_black", "s
              "reference_pose_noise": "corner_sigma_px"}
 
 
+_VAR_REF = {"sigma_px": 0.08, "sigma_px_black": 0.05, "window_px": 2.0, "corner_sigma_px": 0.1}
+
+
 def _module_column(name: str, param: str, kind: str, present: dict[str, dict[str, float]]) -> Columns:
-    """d(bias)/d(param) at the model's current value (central difference), or the variance at param=1."""
+    """d(bias)/d(param) at the model's current value (central difference), or variance / param^2."""
     def cols(s: Samples) -> FloatArray:
         from simulate.effects import EFFECTS, PixelContext
 
@@ -186,8 +189,11 @@ def _module_column(name: str, param: str, kind: str, present: dict[str, dict[str
             lo = EFFECTS[name]({**base, param: p0 - h}).bias_m(ctx)
             out = (np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)) / (2 * h)
         else:
-            one = EFFECTS[name]({**base, param: 1.0}).variance_m2(ctx)
-            out = np.asarray(one, dtype=np.float64)
+            # variance per unit of param^2, taken at a realistic size (the 8 s^4 term of the
+            # disparity-jitter variance would dominate at param = 1)
+            p_ref = float(base.get(param, 0.0)) or _VAR_REF[param]
+            one = EFFECTS[name]({**base, param: p_ref}).variance_m2(ctx)
+            out = np.asarray(one, dtype=np.float64) / p_ref ** 2
         out = np.broadcast_to(out, (len(s),))
         return _col(np.where(np.isfinite(out), out, 0.0))
     return cols

@@ -74,10 +74,10 @@ def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: f
         z_ref = ps.z_ref_m[keep].astype(np.float64)
         ref_err = np.zeros_like(z_ref)
         if true_poses is not None and r.name in true_poses:
-            # simulated: errors against the rendered (true) board, the estimate's error kept aside
-            z_true = _plane_z(true_poses[r.name], info, ps.u[keep], ps.v[keep])
-            ref_err = z_ref - z_true
-            z_ref = z_true
+            # simulated: both sides are measured against their estimated board pose (so systematic
+            # errors of the pose estimate cancel); how far the estimate is from the rendered board
+            # is kept as the size of the reference error
+            ref_err = z_ref - _plane_z(true_poses[r.name], info, ps.u[keep], ps.v[keep])
         parts.append(Samples.build(
             names=names, fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy, baseline_m=baseline_m,
             standpoint=names.index(r.name), frame=ps.frame[keep], u=ps.u[keep], v=ps.v[keep],
