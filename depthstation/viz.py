@@ -56,6 +56,15 @@ def rerun_executable() -> str:
     return found
 
 
+def has_display() -> bool:
+    """Whether a native viewer window can open (on Linux it needs X11 or Wayland)."""
+    import os
+
+    if not sys.platform.startswith("linux"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
 def _wait_for_port(port: int, timeout_s: float = 15.0) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -116,7 +125,10 @@ def recording(app_id: str, target: RerunTarget, blueprint: Any = None,
     if target.rrd is not None:
         Path(target.rrd).parent.mkdir(parents=True, exist_ok=True)
         sinks.append(rr.FileSink(str(target.rrd)))
-    if target.spawn:
+    if target.spawn and not has_display():
+        _announce("no display found, so no viewer window can open: use --serve for a web viewer "
+                  "or --rrd FILE and open it later")
+    elif target.spawn:
         port = _free_port()
         rr.spawn(port=port, connect=False, executable_path=rerun_executable(), default_blueprint=blueprint)
         sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{port}/proxy"))
@@ -124,6 +136,9 @@ def recording(app_id: str, target: RerunTarget, blueprint: Any = None,
         proxy, proc, browser = start_web_server()
         sinks.append(rr.GrpcSink(proxy))
         _announce(f"rerun web viewer: {browser}  (server pid {proc.pid}; stop it with `kill -- -{proc.pid}`)")
+    if not sinks:
+        yield None
+        return
     rec.set_sinks(*sinks, default_blueprint=blueprint)
     if description:
         send_text(rec, DESCRIPTION_PATH, description)

@@ -37,6 +37,8 @@ def _checkerboard_step(ctx: DemoContext) -> tuple[Path, str]:
     rows = read_standpoints(out / STANDPOINTS_FILE)
     noise = [float(r["noise_m"]) for r in rows if r.get("noise_m") == r.get("noise_m")]
     text = f"{len(rows)} standpoints"
+    if "checkerboard_input" in ctx.facts:
+        text += " of a directly simulated session (the guided session did not finish)"
     if noise:
         text += f", noise {1e3 * min(noise):.2f} to {1e3 * max(noise):.2f} mm"
     return out, text

@@ -105,7 +105,10 @@ def open_rrd(rrd: Path, *, spawn: bool, serve: bool) -> None:
         _, proc, url = viz.start_web_server([rrd])
         stderr_console.print(f"web viewer: {url}\n"
                              f"(server pid {proc.pid}; stop it with `kill -- -{proc.pid}`)")
-    if spawn:
+    if spawn and not viz.has_display():
+        stderr_console.print(f"no display found, so no viewer window can open; the recording is {rrd}\n"
+                             f"serve it with `depthstation view {rrd} --serve` (web viewer on localhost)")
+    elif spawn:
         subprocess.Popen([viz.rerun_executable(), str(rrd)], start_new_session=True,
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         stderr_console.print(f"opened {rrd} in the rerun viewer")
