@@ -69,3 +69,41 @@ def test_view_converts_a_result_folder(tmp_path: Path) -> None:
     c2 = viz.read_rrd(folder_to_rrd(scan, tmp_path / "scan.rrd"))
     assert c2.tensors["/grid/std"][1] == (viz.DISTANCE_DIM, viz.INCLINATION_DIM)
     assert c2.has_blueprint
+
+
+def _listen_addresses(port: int) -> set[str]:
+    """Local addresses listening on `port`, from /proc/net/tcp{,6} (Linux)."""
+    found = set()
+    for name in ("/proc/net/tcp", "/proc/net/tcp6"):
+        path = Path(name)
+        if not path.is_file():
+            continue
+        for line in path.read_text().splitlines()[1:]:
+            local, state = line.split()[1], line.split()[3]
+            addr, port_hex = local.rsplit(":", 1)
+            if int(port_hex, 16) == port and state == "0A":       # 0A = LISTEN
+                found.add(addr)
+    return found
+
+
+def test_web_viewer_binds_to_localhost_only() -> None:
+    import os
+    import signal
+    import sys
+    from urllib.parse import urlparse
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("reads /proc/net/tcp")
+    proxy, proc, browser = viz.start_web_server()
+    try:
+        port = urlparse(proxy.replace("rerun+http", "http")).port
+        web_port = urlparse(browser).port
+        assert port is not None and web_port is not None
+        for p in (port, web_port):
+            addrs = _listen_addresses(p)
+            assert addrs, f"nothing listens on {p}"
+            assert addrs <= {"0100007F", "00000000000000000000000001000000"}, addrs   # 127.0.0.1 / ::1
+        assert browser.startswith("http://127.0.0.1:")
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(timeout=10)
