@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.errors import EvaluationError, InputError
-from depthstation.geometry import rotation_angle_deg
+from depthstation.geometry import rodrigues, rotation_angle_deg
 from evaluate.scan._o3d import open3d
 from evaluate.scan.sequence import FrameSource
 from evaluate.scan.trajectory import Trajectory, compose_similarity, decompose_similarity
@@ -175,15 +175,17 @@ def icp_with_scale(points: F64, target: Any, init: F64, *,
                "translation_change_m": float(np.linalg.norm(t1 - t0))}
 
 
-def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float = 0.02,
-                   iterations: int = 50, tol: float = 1e-7) -> tuple[F64, dict[str, Any]]:
-    """ICP with scale against the exact surface: closest points on the mesh, then Umeyama.
+def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float = 0.05,
+                   iterations: int = 50, tol: float = 1e-8) -> tuple[F64, dict[str, Any]]:
+    """Point-to-plane ICP with scale against the exact surface (Gauss-Newton on a similarity).
 
     Why: point-to-point ICP against sampled reference points converges to where the samples
-    happen to lie (cm spacing); the mesh's closest points remove that sampling bias.
+    happen to lie (cm spacing). Against the mesh, residuals are the distances along the hit
+    triangle's normal; the Jacobian is taken at the closest surface point, not at the noisy
+    measured point, so depth noise does not shrink the scale (errors-in-variables attenuation,
+    which Umeyama on noisy points shows as ~0.1 % at D455 noise levels).
     """
     o3d = open3d()
-
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     pts = np.asarray(points, dtype=np.float64)
@@ -192,14 +194,25 @@ def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float =
     it = 0
     for it in range(iterations):  # noqa: B007 - reported below
         p = pts @ m[:3, :3].T + m[:3, 3]
-        cp = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))["points"].numpy()
-        ok = np.linalg.norm(cp - p, axis=1) < max_distance_m
+        ans = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
+        q = ans["points"].numpy().astype(np.float64)
+        n = ans["primitive_normals"].numpy().astype(np.float64)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        d = ((p - q) * n).sum(1)
+        ok = np.linalg.norm(p - q, axis=1) < max_distance_m
         used = int(ok.sum())
         if used < 10:
             raise EvaluationError("mesh refinement: fewer than 10 points near the reference surface")
-        step = umeyama(p[ok], cp[ok].astype(np.float64))
+        qc = q[ok] - q[ok].mean(0)  # centred: better conditioned scale/translation
+        a = np.column_stack([np.cross(qc, n[ok]), n[ok], (n[ok] * qc).sum(1)])
+        x, *_ = np.linalg.lstsq(a, -d[ok], rcond=None)
+        omega, tau, eps = x[:3], x[3:6], float(x[6])
+        step = np.eye(4)
+        step[:3, :3] = (1.0 + eps) * rodrigues(omega)
+        c = q[ok].mean(0)
+        step[:3, 3] = c - step[:3, :3] @ c + tau
         m = step @ m
-        if np.abs(step - np.eye(4)).max() < tol:
+        if max(np.abs(omega).max(), abs(eps), np.abs(tau).max()) < tol:
             break
     return m, {"mesh_refine_iterations": it + 1, "mesh_refine_points": used}
 
