@@ -119,7 +119,8 @@ def test_scan_command_writes_a_result_folder(tmp_path: Path) -> None:
                                    str(tmp_path / "poses.txt"), "--reference", str(tmp_path / "room.ply"),
                                    "--out", str(out), "--similarity", str(tmp_path / "identity.txt"),
                                    "--no-icp", "--distance-bin-m", "0.05", "--inclination-bin-deg", "1",
-                                   "--min-count-sequence", "20", "--rrd", str(out / "scan.rrd")])
+                                   "--min-count-sequence", "20", "--rrd", str(out / "scan.rrd"),
+                                   "--per-frame-grids"])
     assert res.exit_code == 0, res.output
     with np.load(out / "grid.npz") as z:
         assert z["count"].shape == (120, 90) and z["mean_m"].shape == z["var_m2"].shape
@@ -134,6 +135,16 @@ def test_scan_command_writes_a_result_folder(tmp_path: Path) -> None:
     for f in ("fig8_frame.png", "fig9_frame_grid.png", "fig10_sequence_grid.png", "result.json", "scan.rrd"):
         assert (out / f).is_file(), f
     assert json.loads((out / "result.json").read_text())["kind"] == "scan"
+    frame_grids = sorted((out / "frame_grids").glob("frame_*.npz"))
+    assert len(frame_grids) == 7
+    from evaluate.grid import Grid
+
+    merged = Grid.load(frame_grids[0])
+    for f in frame_grids[1:]:
+        merged.merge(Grid.load(f))
+    whole = Grid.load(out / "grid.npz")
+    np.testing.assert_array_equal(merged.count, whole.count)
+    np.testing.assert_allclose(merged.mean, whole.mean, atol=1e-12)
 
 
 def test_scan_rejects_conflicting_registration_inputs(tmp_path: Path) -> None:

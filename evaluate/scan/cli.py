@@ -24,6 +24,8 @@ def scan(
                                             help="CSV x,y,z,x_ref,y_ref,z_ref (Umeyama with scale)."),
     icp: bool = typer.Option(True, "--icp/--no-icp", help="Refine by ICP with scale on depth pixels "
                                                           "in the 0.5-2.0 m band."),
+    icp_min_m: float = typer.Option(0.5, "--icp-min-m", help="Depth band for the ICP cloud: lower (m)."),
+    icp_max_m: float = typer.Option(2.0, "--icp-max-m", help="Depth band for the ICP cloud: upper (m)."),
     frames: int | None = typer.Option(None, "--frames", min=1, help="Evaluate at most N frames."),
     every: int = typer.Option(1, "--every", min=1, help="Use every N-th frame."),
     per_frame_grids: bool = typer.Option(False, "--per-frame-grids",
@@ -56,7 +58,8 @@ def scan(
     from depthstation.viz import RerunTarget
     from evaluate.scan.run import ScanOptions, run_scan
 
-    opts = ScanOptions(similarity=similarity, pass_points=pass_points, icp=icp, frames=frames, every=every,
+    opts = ScanOptions(similarity=similarity, pass_points=pass_points, icp=icp,
+                       icp_band_m=(icp_min_m, icp_max_m), frames=frames, every=every,
                        per_frame_grids=per_frame_grids, workers=workers, tolerance_s=tolerance_s,
                        distance_bin_m=distance_bin_m, inclination_bin_deg=inclination_bin_deg,
                        distance_max_m=distance_max_m, min_count_frame=min_count_frame,
