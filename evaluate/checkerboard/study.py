@@ -218,14 +218,21 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
     f: dict[str, float] = {}
     f["distance_m"] = float(centre[2])
     f["inclination_pose_deg"] = float(inclination_deg(centre, normal))
-    depth_normal = _depth_normal(ok, centre)
-    if depth_normal is None:
-        f["inclination_deg"] = f["inclination_pose_deg"]
-        f["pose_depth_normal_angle_deg"] = float("nan")
-    else:
-        f["inclination_deg"] = float(inclination_deg(centre, depth_normal))
-        f["pose_depth_normal_angle_deg"] = float(np.degrees(np.arccos(
-            np.clip(abs(float(depth_normal @ normal)), 0.0, 1.0))))
+    if moved:  # one plane per frame, each against its own pose (a moving camera sees many planes)
+        per_frame = [(_depth_normal([r], r.origin), r) for r in ok]
+        incl = [inclination_deg(r.origin, n) for n, r in per_frame if n is not None]
+        gap = [_angle_deg(n, r.pose_depth[:3, 2]) for n, r in per_frame  # type: ignore[index]
+               if n is not None]
+        f["inclination_deg"] = float(np.mean(incl)) if incl else f["inclination_pose_deg"]
+        f["pose_depth_normal_angle_deg"] = float(np.mean(gap)) if gap else float("nan")
+    else:  # one plane through the pixels of all frames: the most precise tilt
+        depth_normal = _depth_normal(ok, centre)
+        if depth_normal is None:
+            f["inclination_deg"] = f["inclination_pose_deg"]
+            f["pose_depth_normal_angle_deg"] = float("nan")
+        else:
+            f["inclination_deg"] = float(inclination_deg(centre, depth_normal))
+            f["pose_depth_normal_angle_deg"] = _angle_deg(depth_normal, normal)
     f["reference_distance_std_m"] = _mean_std([r.reference_distance_m for r in ok])[1]
     f["reprojection_px"] = _mean_std([r.reprojection_px for r in ok])[0]
     f["fill_rate"], f["fill_rate_std"] = _mean_std([r.fill_rate for r in posed])
@@ -251,6 +258,11 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
     if kept is not None:
         out.samples = _samples(kept, info, pose, use_frame)
     return out
+
+
+def _angle_deg(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
+    """Angle between two unit normals (deg), sign of either ignored."""
+    return float(np.degrees(np.arccos(np.clip(abs(float(a @ b)), 0.0, 1.0))))
 
 
 def _depth_normal(ok: list[FrameResult], centre: NDArray[np.float64]) -> NDArray[np.float64] | None:
