@@ -34,3 +34,8 @@ def checkerboard(
 
 # ------------------------------------------------------------------------- scan (issue: scan study)
 # The reference-scan study adds its `scan` command here.
+
+# ------------------------------------------------------------------------- batch (scale-out)
+from evaluate.batch_cli import register as _register_batch  # noqa: E402
+
+_register_batch(app)
