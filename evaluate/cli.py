@@ -33,7 +33,9 @@ def checkerboard(
 
 
 # ------------------------------------------------------------------------- scan (issue: scan study)
-# The reference-scan study adds its `scan` command here.
+from evaluate.scan.cli import scan as _scan  # noqa: E402
+
+app.command("scan")(_scan)
 
 # ------------------------------------------------------------------------- batch (scale-out)
 from evaluate.batch_cli import register as _register_batch  # noqa: E402
