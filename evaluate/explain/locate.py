@@ -135,7 +135,12 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
     # the real reference plane carries one pose error per standpoint that no frame statistic sees;
     # its size comes from the simulation, where the estimated and the true plane are both known
     ref = _stand_stats(*_frame_table(sim.ref_err_m, groups.sim, sim)) if kind == "bias" else {}
-    ref_floor = float(np.mean(sim.ref_err_m ** 2)) if kind == "bias" and len(sim) else 0.0
+    # pose errors grow like z^2 (reference_pose_noise): scale one pooled constant to each group
+    c_ref = float(np.mean(sim.ref_err_m ** 2 / sim.z_ref_m ** 4)) if kind == "bias" and len(sim) else 0.0
+    z4 = np.bincount(np.maximum(groups.sim, 0), weights=np.where(groups.sim >= 0, sim.z_ref_m ** 4, 0.0),
+                     minlength=len(groups.labels))
+    n4 = np.bincount(np.maximum(groups.sim, 0), weights=(groups.sim >= 0).astype(float),
+                     minlength=len(groups.labels))
     out: list[GroupTest] = []
     for g, label in enumerate(groups.labels):
         pairs = [(k, rs[k], ss[k]) for k in rs if k[0] == g and k in ss]
@@ -152,6 +157,7 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
         df_s = np.array([s[2] - 1 for _, _, s in pairs], dtype=np.float64)
         ref_var = [ref[k][0] ** 2 for k in ref if k[0] == g]
         # one draw per standpoint is a poor variance estimate: floor it by the pixel-level mean
+        ref_floor = c_ref * float(z4[g] / max(n4[g], 1.0))
         v_ref = max(float(np.mean(ref_var)) if ref_var else 0.0, ref_floor)
         a_ref = w ** 2 * v_ref
         var = float(a_r.sum() + a_s.sum() + a_ref.sum())
