@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from depthstation.camera import Intrinsics
@@ -129,11 +130,17 @@ def _shade(albedo: NDArray[Any], tint: NDArray[Any], cos_inc: NDArray[Any]) -> F
 
 
 def render_color_linear(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any], rc: Any = None,
-                        supersample: int = 3) -> F32:
-    """HxWx3 linear radiance of a view; the board print is antialiased by S x S subsamples per pixel.
+                        psf_sigma_px: float = 0.0) -> F32:
+    """HxWx3 linear radiance of a view; the board print carries its exact pixel-area coverage.
 
-    Pixels whose centre or neighbour sees the board face are resampled analytically on the board
-    plane (z = 0 of the board frame); the rest keep their centre sample.
+    Every pixel integrates the image over its footprint (a box filter, as a sensor pixel does):
+    the plate face and each dark region of the print (black squares, ChArUco marker cells) are
+    projected as polygons (a plane maps to the image by a homography, so straight edges stay
+    straight) and their exact area inside each pixel square is rasterised (`polygon_coverage`).
+    Sub-pixel samples would instead put every edge on a 1/S px grid, a static corner bias that
+    tilts the board's PnP pose by up to a degree. Off the plate the pixel keeps its centre ray;
+    along the plate outline the uncovered part takes the colour of a neighbour off the plate.
+    `psf_sigma_px` > 0 adds a Gaussian optical blur (lens + demosaicing PSF) in linear light.
     """
     g = render_geometry(scene, intr, cam_to_world, rc, edges=False)
     tints = np.array([s.tint for s in scene.surfaces] + [(0.0, 0.0, 0.0)], dtype=np.float32)
@@ -141,48 +148,115 @@ def render_color_linear(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[An
     alb = np.nan_to_num(g.albedo, nan=0.0)
     img = _shade(alb, tints[g.surface], cos)
     board_ids = [i for i, s in enumerate(scene.surfaces) if s.board_face]
-    if not board_ids or scene.board is None or supersample <= 1:
-        return img
-    import cv2
+    if board_ids and scene.board is not None:
+        img = _board_print(scene, intr, g, board_ids, img)
+    if psf_sigma_px > 0:
+        import cv2
 
-    on_board = np.isin(g.surface, board_ids)
-    near = cv2.dilate(on_board.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-    vv, uu = np.nonzero(near)
-    if vv.size == 0:
-        return img
+        k = 2 * int(np.ceil(3.5 * psf_sigma_px)) + 1
+        img = cv2.GaussianBlur(img, (k, k), psf_sigma_px, borderType=cv2.BORDER_REPLICATE)
+    return np.asarray(img, dtype=np.float32)
+
+
+def _board_print(scene: Scene, intr: Intrinsics, g: GeometryMaps, board_ids: list[int], img: F32) -> F32:
+    """Replace the board face's pixels by their area-exact mix of plate white and print black."""
+    from simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO
+
+    board = scene.board
+    assert board is not None
     pose = g.cam_to_world
-    origin = pose[:3, 3]
-    if abs(origin[2]) < 1e-9:
+    world_to_cam = np.linalg.inv(pose)
+    w, h = board.size_m
+    m = board.plate_margin_m
+    plate = np.array([[-m, -m, w + m, h + m]])
+    dark = dark_rectangles(scene)
+    cov_plate = polygon_coverage(_rect_quads(plate, world_to_cam), intr)
+    if not cov_plate.any():
         return img
-    b = scene.board
-    w, h = b.size_m
-    m = b.plate_margin_m
-    # the board face's shading depends on the ray only: take it at the pixel centre
-    dc = np.stack([(uu - intr.ppx) / intr.fx, (vv - intr.ppy) / intr.fy, np.ones(uu.size)], axis=1)
-    dw0 = dc @ pose[:3, :3].T
-    k = EXPOSURE * (AMBIENT + DIFFUSE * np.abs(dw0[:, 2]) / np.sqrt(np.sum(dw0 * dw0, axis=1)))
-    sum_a = np.zeros(vv.size)
-    n_off = np.zeros(vv.size)
-    offs = (np.arange(supersample) + 0.5) / supersample - 0.5
+    cov_dark = polygon_coverage(_rect_quads(dark, world_to_cam), intr) if len(dark) else 0.0 * cov_plate
+    cov_dark = np.minimum(cov_dark, cov_plate)
+    # shading of the face depends on the ray only (room light + light at the camera), at the centre
+    x = (np.arange(intr.width) - intr.ppx) / intr.fx
+    y = (np.arange(intr.height) - intr.ppy) / intr.fy
     r = pose[:3, :3]
-    for dy in offs:
-        for dx in offs:
-            xs = (uu + dx - intr.ppx) / intr.fx
-            ys = (vv + dy - intr.ppy) / intr.fy
-            dwx = r[0, 0] * xs + r[0, 1] * ys + r[0, 2]
-            dwy = r[1, 0] * xs + r[1, 1] * ys + r[1, 2]
-            dwz = r[2, 0] * xs + r[2, 1] * ys + r[2, 2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t = -origin[2] / dwz
-            px = origin[0] + dwx * t
-            py = origin[1] + dwy * t
-            on = (t > 0) & (px >= -m) & (px <= w + m) & (py >= -m) & (py <= h + m)
-            sum_a += np.where(on, scene.board_albedo(px, py), 0.0)
-            n_off += ~on
-    centre = img[vv, uu].astype(np.float64)
-    acc = (sum_a * k)[:, None] + n_off[:, None] * centre
-    img[vv, uu] = (acc / supersample**2).astype(np.float32)
-    return img
+    dz = y[:, None] * r[2, 1] + (x[None, :] * r[2, 0] + r[2, 2])
+    cos_face = np.abs(dz) / np.sqrt(x[None, :] ** 2 + y[:, None] ** 2 + 1.0)
+    k = EXPOSURE * (AMBIENT + DIFFUSE * cos_face)
+    albedo = WHITE_ALBEDO * (cov_plate - cov_dark) + BLACK_ALBEDO * cov_dark
+    tint = np.asarray(scene.surfaces[board_ids[0]].tint, dtype=np.float64)
+    face = (albedo * k)[..., None] * tint
+    # what lies beyond the plate's outline: the centre colour of a neighbour that misses the face
+    on_face = np.isin(g.surface, board_ids)
+    bg = img.copy()
+    todo = on_face & (cov_plate < 1.0)
+    for dv, du in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (-1, -1), (1, -1), (-1, 1)):
+        if not todo.any():
+            break
+        src_off = ~np.roll(on_face, (dv, du), axis=(0, 1))
+        take = todo & src_off
+        bg[take] = np.roll(img, (dv, du), axis=(0, 1))[take]
+        todo &= ~take
+    out = face + (1.0 - cov_plate)[..., None] * bg
+    return out.astype(np.float32)
+
+
+def dark_rectangles(scene: Scene) -> NDArray[np.float64]:
+    """Kx4 (x0, y0, x1, y1) board-frame rectangles that make up the print's dark regions.
+
+    Plain board: its black squares. ChArUco: the texture's dark texels merged into rectangles
+    (runs per row, stacked while the next row repeats them), the same print the depth albedo uses.
+    """
+    board = scene.board
+    assert board is not None
+    s = board.square_length_m
+    if scene.texture is None:
+        cols, rows = np.meshgrid(np.arange(board.squares_x), np.arange(board.squares_y))
+        c, r = cols.ravel(), rows.ravel()
+        black = board.is_black((c + 0.5) * s, (r + 0.5) * s)
+        c, r = c[black], r[black]
+        return np.stack([c * s, r * s, (c + 1) * s, (r + 1) * s], axis=1).astype(np.float64)
+    from simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO
+
+    mask = scene.texture < 0.5 * (BLACK_ALBEDO + WHITE_ALBEDO)
+    ty, tx = mask.shape
+    w, h = board.size_m
+    rects: list[tuple[int, int, int, int]] = []
+    open_: dict[tuple[int, int], int] = {}  # run (c0, c1) -> first row
+    for row in range(ty + 1):
+        runs: set[tuple[int, int]] = set()
+        if row < ty:
+            line = np.concatenate([[False], mask[row], [False]])
+            d = np.flatnonzero(np.diff(line.astype(np.int8)))
+            runs = {(int(a), int(b)) for a, b in zip(d[::2], d[1::2], strict=True)}
+        for run in [k for k in open_ if k not in runs]:
+            rects.append((run[0], open_.pop(run), run[1], row))
+        for run in runs:
+            open_.setdefault(run, row)
+    a = np.asarray(rects, dtype=np.float64).reshape(-1, 4)
+    return a * np.array([w / tx, h / ty, w / tx, h / ty])
+
+
+def _rect_quads(rects: NDArray[np.float64], world_to_cam: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Kx4x3 camera-frame corners of board-plane (z = 0) rectangles, in one winding order."""
+    x0, y0, x1, y1 = rects.T
+    xs = np.stack([x0, x1, x1, x0], axis=1)
+    ys = np.stack([y0, y0, y1, y1], axis=1)
+    pts = np.stack([xs, ys, np.zeros_like(xs)], axis=2)
+    return np.ascontiguousarray(pts @ world_to_cam[:3, :3].T + world_to_cam[:3, 3])
+
+
+def polygon_coverage(quads_cam: NDArray[np.float64], intr: Intrinsics,
+                     near_m: float = 1e-3) -> NDArray[np.float64]:
+    """HxW exact area fraction of each pixel square [u +- 0.5] x [v +- 0.5] covered by the quads.
+
+    Quads are planar (camera frame), disjoint and of one winding; each is clipped to z >= near,
+    projected (pinhole, no distortion), clipped to the image and rasterised by signed-area
+    accumulation (the box-filter rasteriser of font renderers): exact up to float rounding.
+    """
+    acc = _rasterize_quads(np.ascontiguousarray(quads_cam, dtype=np.float64), float(intr.fx), float(intr.fy),
+                          float(intr.ppx), float(intr.ppy), int(intr.width), int(intr.height), float(near_m))
+    cov = np.abs(np.cumsum(acc[:, :intr.width], axis=1))
+    return np.minimum(cov, 1.0)
 
 
 def encode_srgb(linear: F32) -> NDArray[np.uint8]:
@@ -215,3 +289,133 @@ class NoiseBank:
         out += f[r:r + self.shape[0], c:c + self.shape[1]]
         np.clip(out, 0, 255, out=out)
         return out.astype(np.uint8)
+
+
+# ---- exact box-filter rasteriser (numba) -------------------------------------------------------
+
+@njit(cache=True, nogil=True)
+def _line(acc: NDArray[np.float64], h: int, x0: float, y0: float, x1: float,
+          y1: float) -> None:  # pragma: no cover
+    """Add a directed edge's signed area to the accumulation buffer (cells [x, x+1) x [y, y+1)).
+
+    After a prefix sum along each row, the buffer holds the signed area of the polygon inside
+    every cell (font-rs' accumulation rasteriser). Coordinates lie in [0, W] x [0, H].
+    """
+    if y0 == y1:
+        return
+    d_sign = 1.0
+    if y0 > y1:
+        d_sign = -1.0
+        x0, y0, x1, y1 = x1, y1, x0, y0
+    dxdy = (x1 - x0) / (y1 - y0)
+    x = x0
+    ys = int(np.floor(y0))
+    ye = min(h, int(np.ceil(y1)))
+    for y in range(ys, ye):
+        dy = min(y + 1.0, y1) - max(float(y), y0)
+        xnext = x + dxdy * dy
+        d = dy * d_sign
+        xa, xb = (x, xnext) if x < xnext else (xnext, x)
+        xaf0 = np.floor(xa)
+        xai = int(xaf0)
+        xbc = np.ceil(xb)
+        xbi = int(xbc)
+        if xbi <= xai + 1:
+            xmf = 0.5 * (x + xnext) - xaf0
+            acc[y, xai] += d - d * xmf
+            acc[y, xai + 1] += d * xmf
+        else:
+            s = 1.0 / (xb - xa)
+            xaf = xa - xaf0
+            a0 = 0.5 * s * (1.0 - xaf) * (1.0 - xaf)
+            xbf = xb - xbc + 1.0
+            am = 0.5 * s * xbf * xbf
+            acc[y, xai] += d * a0
+            if xbi == xai + 2:
+                acc[y, xai + 1] += d * (1.0 - a0 - am)
+            else:
+                a1 = s * (1.5 - xaf)
+                acc[y, xai + 1] += d * (a1 - a0)
+                for xi in range(xai + 2, xbi - 1):
+                    acc[y, xi] += d * s
+                a2 = a1 + (xbi - xai - 3) * s
+                acc[y, xbi - 1] += d * (1.0 - a2 - am)
+            acc[y, xbi] += d * am
+        x = xnext
+
+
+@njit(cache=True, nogil=True)
+def _clip(px: NDArray[np.float64], py: NDArray[np.float64], n: int, axis: int, bound: float,
+          keep_above: bool) -> int:  # pragma: no cover
+    """Sutherland-Hodgman: clip the polygon (px, py)[:n] in place to x or y >= / <= bound."""
+    ox = np.empty(n * 2 + 2)
+    oy = np.empty(n * 2 + 2)
+    m = 0
+    for i in range(n):
+        j = (i + 1) % n
+        ai = px[i] if axis == 0 else py[i]
+        aj = px[j] if axis == 0 else py[j]
+        ini = ai >= bound if keep_above else ai <= bound
+        inj = aj >= bound if keep_above else aj <= bound
+        if ini:
+            ox[m] = px[i]
+            oy[m] = py[i]
+            m += 1
+        if ini != inj:
+            t = (bound - ai) / (aj - ai)
+            ox[m] = px[i] + t * (px[j] - px[i])
+            oy[m] = py[i] + t * (py[j] - py[i])
+            if axis == 0:
+                ox[m] = bound
+            else:
+                oy[m] = bound
+            m += 1
+    px[:m] = ox[:m]
+    py[:m] = oy[:m]
+    return m
+
+
+@njit(cache=True, nogil=True)
+def _rasterize_quads(quads: NDArray[np.float64], fx: float, fy: float, ppx: float, ppy: float,
+                     w: int, h: int, near: float) -> NDArray[np.float64]:  # pragma: no cover
+    """Accumulation buffer (H x W+2) of camera-frame quads: near-clip, project, clip, rasterise."""
+    acc = np.zeros((h, w + 2))
+    cx = np.empty(16)
+    cy = np.empty(16)
+    cz = np.empty(16)
+    px = np.empty(32)
+    py = np.empty(32)
+    for q in range(quads.shape[0]):
+        # clip to z >= near in 3-D (a homography is only a polygon map in front of the camera)
+        n = 0
+        for i in range(4):
+            j = (i + 1) % 4
+            zi, zj = quads[q, i, 2], quads[q, j, 2]
+            if zi >= near:
+                cx[n], cy[n], cz[n] = quads[q, i, 0], quads[q, i, 1], zi
+                n += 1
+            if (zi >= near) != (zj >= near):
+                t = (near - zi) / (zj - zi)
+                cx[n] = quads[q, i, 0] + t * (quads[q, j, 0] - quads[q, i, 0])
+                cy[n] = quads[q, i, 1] + t * (quads[q, j, 1] - quads[q, i, 1])
+                cz[n] = near
+                n += 1
+        if n < 3:
+            continue
+        # pixel u covers [u - 0.5, u + 0.5): shift by 0.5 so cells start at integers
+        for i in range(n):
+            px[i] = fx * cx[i] / cz[i] + ppx + 0.5
+            py[i] = fy * cy[i] / cz[i] + ppy + 0.5
+        n = _clip(px, py, n, 0, 0.0, True)
+        if n >= 3:
+            n = _clip(px, py, n, 0, float(w), False)
+        if n >= 3:
+            n = _clip(px, py, n, 1, 0.0, True)
+        if n >= 3:
+            n = _clip(px, py, n, 1, float(h), False)
+        if n < 3:
+            continue
+        for i in range(n):
+            j = (i + 1) % n
+            _line(acc, h, px[i], py[i], px[j], py[j])
+    return acc

@@ -16,6 +16,7 @@ from simulate.scene import Scene
 
 COLOR_NOISE_DN = 2.0  # read + shot noise of the colour imager, 8-bit counts (RMS)
 IR_NOISE_DN = 3.0
+PSF_SIGMA_PX = 0.0  # optical blur of the colour camera (Gaussian sigma, px); 0 = ideal lens
 
 
 def depth_to_z16(z_m: NDArray[Any], depth_units_m: float) -> NDArray[np.uint16]:
@@ -35,7 +36,7 @@ class ViewRenderer:
 
     def __init__(self, scene: Scene, model: SensorModel, info: StreamInfo, *, seed: int = 0,
                  color: bool = True, infrared: bool = False, rc: Any = None,
-                 color_noise_dn: float = COLOR_NOISE_DN, supersample: int = 3) -> None:
+                 color_noise_dn: float = COLOR_NOISE_DN, psf_sigma_px: float = PSF_SIGMA_PX) -> None:
         self.scene = scene
         self.model = model
         self.info = info
@@ -43,7 +44,7 @@ class ViewRenderer:
         self.want_color = color and info.color_intrinsics is not None
         self.want_ir = infrared
         self.rc = rc if rc is not None else scene.raycasting_scene()
-        self.supersample = supersample
+        self.psf_sigma_px = psf_sigma_px
         self.geometry: GeometryMaps | None = None
         self.color_base: NDArray[np.uint8] | None = None
         self.ir_base: NDArray[np.float32] | None = None
@@ -68,7 +69,7 @@ class ViewRenderer:
             assert self.info.color_intrinsics is not None
             color_pose = pose @ np.linalg.inv(self.info.depth_to_color.matrix)
             lin = render_color_linear(self.scene, self.info.color_intrinsics, color_pose, self.rc,
-                                      self.supersample)
+                                      psf_sigma_px=self.psf_sigma_px)
             self.color_base = encode_srgb(lin)
         if self.want_ir:
             g = self.geometry
