@@ -143,7 +143,11 @@ def print_report(ctx: DemoContext, outcomes: dict[str, StepOutcome], steps: list
     for step in steps:
         o = outcomes[step.name]
         res = str(o.result) if o.result else (o.summary if o.status != "done" else "")
-        how = f"depthstation view {o.result}" if o.result else ""
+        how = ""
+        if o.result is not None:
+            how = (f"depthstation view {o.result}" if (o.result / "result.json").is_file()
+                   else f"depthstation capture info {o.result}" if (o.result / "session.json").is_file()
+                   else str(o.result))
         style = {"done": "green", "failed": "red"}.get(o.status, "yellow")
         table.add_row(step.title, f"[{style}]{o.status}[/]", f"{o.seconds:.1f} s" if o.seconds else "",
                       res, how)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
+from typing import Any
 
 from depthstation.station.demo import DEMO_MODEL, DEMO_PROTOCOL, DemoContext, Step
 
@@ -80,31 +82,80 @@ COMPARE = Step("compare", "compare with a simulated D435 (shorter baseline)",
 
 WARMUP_INTERVAL_S = 15.0     # simulated seconds between temperature samples
 WARMUP_ACCELERATE = 300.0    # the simulated clock runs this much faster: 10 min of warm-up in 2 s
-MAX_GUIDANCE_S = 60.0        # give up a standpoint the simulated operator cannot reach
+MAX_GUIDANCE_S = 60.0        # simulated seconds before a standpoint the operator cannot reach is given up
+CAPTURE_BUDGET_S = 150.0     # wall-clock seconds the demo gives the guided capture
+
+
+class CaptureBudgetSpent(Exception):
+    """Raised from the capture's state callback when the demo's time for it is used up."""
+
+
+def _guided_capture(st: Any, budget_s: float) -> tuple[list[str], str]:
+    """The guided loop (acquire's GuidedCapture with its simulated operator) under a wall-clock budget,
+    with a progress bar over the standpoints; returns (complete standpoints, why it stopped)."""
+    from acquire.capture import GuidedCapture, LiveState
+    from depthstation.errors import CaptureError
+    from depthstation.progress import progress
+
+    plan = st.protocol.plan.standpoints()
+    on_guidance = st.attach_operator()
+    t0 = time.perf_counter()
+    stop = "all standpoints done"
+    with progress() as bar:
+        task = bar.add_task("guided capture", total=len(plan), status="")
+
+        def on_state(state: LiveState) -> None:
+            g = state.guidance
+            where = "" if g is None or g.distance_m is None else \
+                f"at {g.distance_m:.2f} m / {g.inclination_deg or 0.0:.1f} deg"
+            bar.update(task, completed=len(state.done) + len(state.skipped),
+                       status=f"{state.standpoint.name} -> {state.standpoint.distance_m:.1f} m / "
+                              f"{state.standpoint.inclination_deg:.0f} deg: {state.phase} {where}")
+            if time.perf_counter() - t0 > budget_s:
+                raise CaptureBudgetSpent
+
+        cap = GuidedCapture(st.camera, st.protocol, st.session, on_guidance=on_guidance, on_state=on_state,
+                            max_guidance_s=MAX_GUIDANCE_S)
+        try:
+            cap.run()
+        except CaptureBudgetSpent:
+            stop = f"the demo's {budget_s:.0f} s for the capture were used up"
+        except CaptureError as exc:
+            stop = str(exc)
+        finally:
+            if cap.events or cap.skipped:
+                st.session.set("capture", {"skipped": dict(cap.skipped), "events": list(cap.events)})
+    done = [e["name"] for e in st.session.standpoints if e.get("status") == "complete"]
+    return done, stop
 
 
 def _session_step(ctx: DemoContext) -> tuple[Path, str]:
     """Warm-up on an accelerated clock, calibration, then the guided capture with a simulated operator
-    (the same functions `depthstation acquire session --camera sim` runs)."""
-    from acquire.cli import Station, do_calibrate, do_capture, do_warmup
+    (the functions `depthstation acquire session --camera sim` runs)."""
+    from acquire.cli import Station, do_calibrate, do_warmup
 
     folder = ctx.out / "session"
     st = Station("sim:" + DEMO_MODEL, DEMO_PROTOCOL, folder, False, 1, False)
-    target = ctx.target(folder.parent, "session")
-    warm = do_warmup(st, WARMUP_INTERVAL_S, WARMUP_ACCELERATE, target if not ctx.rrd else
-                     ctx.target(folder.parent, "session-warmup"))
+    warm = do_warmup(st, WARMUP_INTERVAL_S, WARMUP_ACCELERATE, ctx.target(ctx.out, "session-warmup"))
+    if hasattr(st.camera, "set_clock"):
+        # the warm-up hands the simulated camera its accelerated clock; the capture must run on
+        # frame time again, else the operator's seconds fly by 300 times too fast
+        st.camera.set_clock(None)
     cal = do_calibrate(st, True, write=False)
-    do_capture(st, target if not ctx.rrd else ctx.target(folder.parent, "session-capture"), MAX_GUIDANCE_S)
-    done = [e["name"] for e in st.session.standpoints if e.get("status") == "complete"]
+    done, stop = _guided_capture(st, CAPTURE_BUDGET_S)
+    total = len(st.protocol.plan.standpoints())
     ctx.facts["session"] = {"warmup": warm, "calibration_skipped": cal.get("skipped", False),
-                            "complete": done}
-    return folder, (f"{len(done)} standpoints recorded; warm-up: {warm.get('reason', '?')}; "
-                    f"calibration: {'skipped' if cal.get('skipped') else 'done'}")
+                            "complete": done, "of": total, "stopped": stop}
+    if not done:
+        msg = f"no standpoint recorded ({stop})"
+        raise RuntimeError(msg)
+    return folder, (f"{len(done)} of {total} standpoints recorded ({stop}); warm-up: "
+                    f"{warm.get('reason', '?')}; calibration: {'skipped' if cal.get('skipped') else 'done'}")
 
 
 SESSION = Step("session", "guided session with the simulated D455 (warm-up, calibration, capture)",
                ("acquire.cli:Station", "acquire.cli:do_warmup", "acquire.cli:do_calibrate",
-                "acquire.cli:do_capture", "simulate.camera:SimulatedCamera"), _session_step)
+                "acquire.capture:GuidedCapture", "simulate.camera:SimulatedCamera"), _session_step)
 # ------------------------------------------------------------------------------ reference-scan study
 
 SCAN_SAMPLES_PER_S = 1.5     # one full walk round the table, sampled this often (about 60 frames)
