@@ -154,7 +154,8 @@ def render_color_linear(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[An
         import cv2
 
         k = 2 * int(np.ceil(3.5 * psf_sigma_px)) + 1
-        img = cv2.GaussianBlur(img, (k, k), psf_sigma_px, borderType=cv2.BORDER_REPLICATE)
+        img = np.asarray(cv2.GaussianBlur(img, (k, k), psf_sigma_px, borderType=cv2.BORDER_REPLICATE),
+                         dtype=np.float32)
     return np.asarray(img, dtype=np.float32)
 
 
@@ -165,7 +166,7 @@ def _board_print(scene: Scene, intr: Intrinsics, g: GeometryMaps, board_ids: lis
     board = scene.board
     assert board is not None
     pose = g.cam_to_world
-    world_to_cam = np.linalg.inv(pose)
+    world_to_cam = np.asarray(np.linalg.inv(pose), dtype=np.float64)
     w, h = board.size_m
     m = board.plate_margin_m
     plate = np.array([[-m, -m, w + m, h + m]])

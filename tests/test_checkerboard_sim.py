@@ -28,9 +28,30 @@ def test_simulated_standpoints_match_truth(tmp_path: Path) -> None:
         t = truth[rec.name]
         assert r.frames_used == 3, r.rejected
         assert abs(r.figures["distance_m"] - t["distance_m"]) < 0.005 * t["distance_m"]
-        # 0 deg included: the plane's tilt comes from the depth pixels, not the 12 px squares' pose
-        assert abs(r.figures["inclination_deg"] - t["inclination_deg"]) < 0.5
+        # the reported inclination is the pose's (DESIGN §2); the depth plane's is a diagnostic
+        tol = 0.5 if t["distance_m"] < 2.0 else 1.5  # 12 px squares at 2.6 m: see test below
+        assert abs(r.figures["inclination_deg"] - t["inclination_deg"]) < tol, rec.name
+        assert abs(r.figures["inclination_depth_deg"] - t["inclination_deg"]) < 0.5, rec.name
+        assert r.figures["pose_depth_normal_angle_deg"] < tol + 0.5
         assert 0.0005 < r.figures["noise_m"] < 0.05
+
+
+@pytest.mark.xfail(strict=True, reason="open: cornerSubPix pixel-locking (~0.05 px by sub-pixel phase) "
+                   "tilts the PnP pose of 12 px squares by ~0.9 deg at 2.6 m / 0 deg, 640x360")
+def test_pose_inclination_head_on_far_demo_standpoint(tmp_path: Path) -> None:
+    """Issue 4's target: pose inclination within 0.5 deg at 0 deg with the demo's 10 frames."""
+    pytest.importorskip("open3d")
+    from depthstation.capture.reader import open_inputs
+    from depthstation.protocol import load_protocol
+    from evaluate.checkerboard.study import evaluate_recording
+    from simulate.checkerboard import simulate_checkerboard
+
+    proto = load_protocol("demo-d455")
+    far = max((s for s in proto.plan.standpoints() if s.inclination_deg == 0), key=lambda s: s.distance_m)
+    out = simulate_checkerboard(proto, "d455", tmp_path / "sim", standpoints=[far.name])
+    truth = json.loads((out / "truth.json").read_text())["standpoints"][0]
+    r = evaluate_recording(open_inputs([out])[0], proto.board, frames=10)
+    assert abs(r.figures["inclination_deg"] - truth["inclination_deg"]) < 0.5
 
 
 def test_db3_gives_the_same_table_as_mcap(tmp_path: Path) -> None:

@@ -14,7 +14,7 @@ from depthstation.results import software_versions, write_json, write_result_inf
 from evaluate.checkerboard.study import StandpointResult
 
 COLUMNS = ("standpoint", "frames", "frames_read", "distance_m", "inclination_deg",
-           "inclination_pose_deg", "pose_depth_normal_angle_deg",
+           "inclination_depth_deg", "pose_depth_normal_angle_deg",
            "reference_distance_std_m", "fill_rate", "fill_rate_std", "noise_m", "noise_std_m",
            "accuracy_m", "accuracy_std_m", "accuracy_rms_m", "accuracy_rms_std_m",
            "noise_black_m", "noise_black_std_m", "noise_white_m", "noise_white_std_m",

@@ -217,21 +217,28 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
         r.accuracy_white_m = plane_distance_stats(r.moments["white"], n_ref, off)[0]
     f: dict[str, float] = {}
     f["distance_m"] = float(centre[2])
-    f["inclination_pose_deg"] = float(inclination_deg(centre, normal))
+    # DESIGN §2: the standpoint's inclination is the ray to the board centre against the board
+    # normal, both from the averaged board POSE (independent of the depth it is used to judge)
+    f["inclination_deg"] = float(inclination_deg(centre, normal))
+    # diagnostic: the tilt of the depth itself (a plane fitted in disparity space) and its angle to
+    # the pose's normal; a depth wedge (e.g. a left/right focal mismatch) shows here, not above
     if moved:  # one plane per frame, each against its own pose (a moving camera sees many planes)
+        f["inclination_deg"] = float(np.mean([inclination_deg(r.pose_depth[:3, :3] @ board.center  # type: ignore[index]
+                                                              + r.pose_depth[:3, 3], r.pose_depth[:3, 2])  # type: ignore[index]
+                                              for r in ok]))
         per_frame = [(_depth_normal([r], r.origin), r) for r in ok]
         incl = [inclination_deg(r.origin, n) for n, r in per_frame if n is not None]
         gap = [_angle_deg(n, r.pose_depth[:3, 2]) for n, r in per_frame  # type: ignore[index]
                if n is not None]
-        f["inclination_deg"] = float(np.mean(incl)) if incl else f["inclination_pose_deg"]
+        f["inclination_depth_deg"] = float(np.mean(incl)) if incl else float("nan")
         f["pose_depth_normal_angle_deg"] = float(np.mean(gap)) if gap else float("nan")
-    else:  # one plane through the pixels of all frames: the most precise tilt
+    else:  # one plane through the pixels of all frames: the most precise tilt of the depth
         depth_normal = _depth_normal(ok, centre)
         if depth_normal is None:
-            f["inclination_deg"] = f["inclination_pose_deg"]
+            f["inclination_depth_deg"] = float("nan")
             f["pose_depth_normal_angle_deg"] = float("nan")
         else:
-            f["inclination_deg"] = float(inclination_deg(centre, depth_normal))
+            f["inclination_depth_deg"] = float(inclination_deg(centre, depth_normal))
             f["pose_depth_normal_angle_deg"] = _angle_deg(depth_normal, normal)
     f["reference_distance_std_m"] = _mean_std([r.reference_distance_m for r in ok])[1]
     f["reprojection_px"] = _mean_std([r.reprojection_px for r in ok])[0]
@@ -268,14 +275,13 @@ def _angle_deg(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
 def _depth_normal(ok: list[FrameResult], centre: NDArray[np.float64]) -> NDArray[np.float64] | None:
     """Normal of one plane fitted to the board's depth pixels of all frames, in disparity space.
 
-    Why not the pose's normal: the tilt of a PnP pose is weakly determined when the board is
-    small in the image (at 2.6 m and 640x360 a static 0.05 px corner error tilts it by ~1 deg,
-    the same in every frame), while thousands of depth pixels fix the plane's tilt to a few
-    hundredths of a degree. Why not the SVD normal: stereo noise lies along the rays, not across
+    A diagnostic of the depth, never the reference (the reference must not move with the depth
+    errors it judges). Thousands of depth pixels fix the plane's tilt to a few hundredths of a
+    degree, so a wedge in the depth shows against the pose's normal. Why not the SVD normal:
+    stereo noise lies along the rays, not across
     the plane, so a total-least-squares fit tilts towards the rays on an inclined board (0.8 deg
     at 5 m / 60 deg for the D455). On a plane n.p = 1, 1/z = n.(rx, ry, 1) exactly, with the
-    noise in 1/z alone (disparity), so ordinary least squares there is unbiased. The pose still
-    gives the board centre (the ray) and the accuracy reference plane.
+    noise in 1/z alone (disparity), so ordinary least squares there is unbiased.
     """
     total = np.zeros((4, 4))
     for r in ok:
