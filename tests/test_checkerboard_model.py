@@ -73,7 +73,7 @@ def test_noise_accuracy_and_geometry_match_the_model() -> None:
         d_inc, d_dep = f["inclination_deg"] - true_incl, f["inclination_depth_deg"] - true_incl
         print(f"{dist} m {incl} deg: distance {f['distance_m'] / true_dist - 1:+.3%}, inclination "
               f"{d_inc:+.3f} deg (depth plane {d_dep:+.3f}), noise {f['noise_m'] / noise - 1:+.2%}, "
-              f"accuracy {1000 * (f['accuracy_m'] - accuracy):+.2f} mm (reference {1000 * ref_error:+.2f} mm)")
+              f"accuracy {1000 * (f['accuracy_m'] - accuracy):+.2f} mm (ref. {1000 * ref_error:+.2f} mm)")
         assert abs(f["accuracy_m"] - accuracy - ref_error) < 0.001, (dist, incl)
         if dist <= 3.0:  # 24+ px squares: the pose is good to well under a millimetre
             assert abs(f["accuracy_m"] - accuracy) < 0.001, (dist, incl, f["accuracy_m"])
