@@ -107,6 +107,7 @@ class GuidedCapture:
                 self._start()
                 self.events.append({"event": "reconnected", "standpoint": state.standpoint.name,
                                     "time_ns": time.time_ns()})
+                self._save_log()
                 return
             except CameraError as exc:
                 if time.monotonic() > t_end:

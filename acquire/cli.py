@@ -152,6 +152,8 @@ def do_warmup(st: Station, interval_s: float, accelerate: float, target: Any) ->
                                 sleep=sleep, on_sample=on_sample)
     finally:
         st.camera.stop()
+        if accelerate > 1.0 and hasattr(st.camera, "set_clock"):
+            st.camera.set_clock(None)  # back to frame time for what follows
     summary = result.summary()
     summary["interval_s"] = interval_s
     summary["accelerated"] = accelerate > 1.0

@@ -48,14 +48,16 @@ class WarmupDecision:
 
 def temperature_slope(t_s: np.ndarray[Any, Any], temp_c: np.ndarray[Any, Any],
                       window_s: float) -> float | None:
-    """Least-squares slope (degrees C per minute) over the last `window_s`; None if the window is
-    not yet covered (less than 90% of it, or fewer than 3 samples)."""
+    """Least-squares slope (degrees C per minute) over the last `window_s`; None until samples
+    span the whole window, or while it holds fewer than 3 samples."""
     t = np.asarray(t_s, dtype=np.float64)
     y = np.asarray(temp_c, dtype=np.float64)
     if t.size < 3:
         return None
+    if t[-1] - t[0] < window_s:
+        return None  # the window is not covered yet
     sel = t >= t[-1] - window_s
-    if t[-1] - t[sel][0] < 0.9 * window_s or int(sel.sum()) < 3:
+    if int(sel.sum()) < 3:
         return None
     slope_per_s = float(np.polyfit(t[sel], y[sel], 1)[0])
     return slope_per_s * 60.0
@@ -65,7 +67,7 @@ def warmup_decision(samples: list[WarmupSample], rule: Warmup) -> WarmupDecision
     """Whether warm-up is over, and why (the sentence the operator reads)."""
     if not samples:
         return WarmupDecision(False, "no sample yet", 0.0, None, False)
-    elapsed = samples[-1].t_s - samples[0].t_s
+    elapsed = samples[-1].t_s  # sample times count from the start of the warm-up
     pts = [(s.t_s, s.temperature_c) for s in samples if s.temperature_c is not None]
     has_temp = len(pts) > 0
     slope = None

@@ -61,7 +61,8 @@ def test_sigkill_then_resume_rerecords_only_the_broken_standpoint(recording: Pat
     assert r.returncode == 0, r.stderr
     data = json.loads((sess / "session.json").read_text())
     status = [(e["name"], e["status"]) for e in data["standpoints"]]
-    assert status == [("standpoint_01", "complete"), ("standpoint_02", "partial"), ("standpoint_02", "complete")]
+    assert status == [("standpoint_01", "complete"), ("standpoint_02", "partial"),
+                      ("standpoint_02", "complete")]
     assert first.stat().st_mtime_ns == mtime  # untouched
     assert open_recording(sess / "standpoint_02.mcap").frame_count == 80
     # the broken attempt is kept aside, never deleted
