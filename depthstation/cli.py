@@ -41,7 +41,7 @@ _register()
 def main() -> None:
     """Entry point: one-line errors on stderr, exit 2 for bad input, 1 for other failures."""
     try:
-        app(standalone_mode=False)
+        rc = app(standalone_mode=False)
     except DepthstationError as exc:
         typer.echo(f"depthstation: error: {exc}", err=True)
         sys.exit(exc.exit_code)
@@ -61,6 +61,11 @@ def main() -> None:
             sys.exit(1)
         typer.echo(f"depthstation: internal error: {type(exc).__name__}: {exc}", err=True)
         sys.exit(1)
+    if isinstance(rc, int) and rc:
+        # click returns the code of an Abort (130 on Ctrl-C) or ctx.exit(n) instead of raising
+        if rc == 130:
+            typer.echo("depthstation: interrupted", err=True)
+        sys.exit(rc)
 
 
 if __name__ == "__main__":

@@ -22,13 +22,17 @@ def checkerboard(
     rrd: Path | None = typer.Option(None, "--rrd", help="Write a rerun recording."),
     spawn: bool = typer.Option(False, "--spawn", help="Stream to a rerun viewer."),
     serve: bool = typer.Option(False, "--serve", help="Serve a local rerun web viewer."),
+    workers: int = typer.Option(1, "--workers", min=1,
+                                help="Local worker processes (standpoints in parallel)."),
+    cluster: str | None = typer.Option(None, "--cluster",
+                                       help="Address of a Dask distributed scheduler (tcp://host:8786)."),
 ) -> None:
     """The checkerboard study (paper Section 3.1): noise and accuracy per standpoint."""
     from depthstation.viz import RerunTarget
     from evaluate.checkerboard.run import run_study
 
     rows = run_study(inputs, board, out, frames=frames, reference=reference,
-                     target=RerunTarget(rrd, spawn, serve))
+                     target=RerunTarget(rrd, spawn, serve), workers=workers, cluster=cluster)
     typer.echo(f"{len(rows)} standpoints -> {out / 'standpoints.csv'}")
 
 

@@ -32,6 +32,9 @@ def scan(
                                          help="Also save one grid per frame (frame_grids/)."),
     workers: int = typer.Option(1, "--workers", min=1, help="Processes (one ray-casting thread each "
                                                             "when > 1)."),
+    cluster: str | None = typer.Option(None, "--cluster",
+                                       help="Address of a Dask distributed scheduler (tcp://host:8786)."),
+    chunk_frames: int = typer.Option(64, "--chunk-frames", min=1, help="Frames per task."),
     tolerance_s: float = typer.Option(0.01, "--pose-tolerance-s", help="Max |t_frame - t_pose| (s)."),
     intrinsics: Path | None = typer.Option(None, "--intrinsics",
                                            help="Intrinsics file for a TUM folder (camera.json or "
@@ -60,7 +63,8 @@ def scan(
 
     opts = ScanOptions(similarity=similarity, pass_points=pass_points, icp=icp,
                        icp_band_m=(icp_min_m, icp_max_m), frames=frames, every=every,
-                       per_frame_grids=per_frame_grids, workers=workers, tolerance_s=tolerance_s,
+                       per_frame_grids=per_frame_grids, workers=workers, cluster=cluster,
+                       chunk_frames=chunk_frames, tolerance_s=tolerance_s,
                        distance_bin_m=distance_bin_m, inclination_bin_deg=inclination_bin_deg,
                        distance_max_m=distance_max_m, min_count_frame=min_count_frame,
                        min_count_sequence=min_count_sequence, figure_frame=figure_frame,

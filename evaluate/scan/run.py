@@ -33,6 +33,7 @@ class ScanOptions:
     every: int = 1
     per_frame_grids: bool = False
     workers: int = 1
+    cluster: str | None = None
     chunk_frames: int = 64
     tolerance_s: float = 0.01
     distance_bin_m: float = 0.005
@@ -105,7 +106,7 @@ def run_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     posed = traj.transformed(reg.matrix)
     t_reg = time.perf_counter()
 
-    nthreads = 1 if opt.workers > 1 else 0
+    nthreads = 1 if opt.workers > 1 or opt.cluster is not None else 0
     config = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
                          every=opt.every, max_frames=opt.frames, tolerance_s=opt.tolerance_s,
                          nthreads=nthreads,
@@ -142,9 +143,22 @@ def run_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                 rec.set_time("frame", sequence=last)
                 _log_grid(rec, total.grid, opt.min_count_sequence if k + 1 == n else opt.min_count_frame)
 
-        result = run_study(sequence if opt.workers > 1 and not _is_object(source) else source,
-                           mesh_path, posed, config, workers=opt.workers, chunk_frames=opt.chunk_frames,
-                           on_frame=on_frame if opt.workers == 1 else None, on_chunk=on_chunk)
+        if opt.cluster is not None:
+            # chunks of frames as tasks on a Dask scheduler: each worker reads its own frames
+            from evaluate.batch import run_scan as run_on_cluster
+
+            def on_task(done: int, total: int) -> None:
+                bar.update(task, completed=round((n_frames or total) * done / max(total, 1)),
+                           status=f"chunk {done}/{total}")
+
+            result = run_on_cluster(sequence, mesh_path, posed, config, chunk_frames=opt.chunk_frames,
+                                    workers=opt.workers, cluster=opt.cluster,
+                                    intrinsics=opt.intrinsics, progress=on_task)
+        else:
+            result = run_study(sequence if opt.workers > 1 and not _is_object(source) else source,
+                               mesh_path, posed, config, workers=opt.workers,
+                               chunk_frames=opt.chunk_frames,
+                               on_frame=on_frame if opt.workers == 1 else None, on_chunk=on_chunk)
     t_study = time.perf_counter()
     if not result.used:
         raise EvaluationError(f"no frame could be evaluated ({len(result.no_pose)} frames had no pose "
