@@ -37,19 +37,38 @@ def board_black(board: Board, cam_to_board: np.ndarray, fx: float, fy: float, pp
     return board.is_black(p[..., 0], p[..., 1])
 
 
+def wide_protocol(width: int = 640, height: int = 360) -> Any:
+    """The demo protocol spread over 1-5 m (the span of the issue's studies), 0 and 30 deg.
+
+    z^2 (disparity offset) and z (depth scale) differ by a factor 5 in shape over this span, and
+    the board is still found at 5 m at 640x360.
+    """
+    from dataclasses import replace
+
+    from depthstation.protocol import load_protocol
+
+    p = load_protocol("demo-d455")
+    plan = replace(p.plan, start_distance_m=1.0, step_m=1.0, max_distance_m=5.0, inclinations_deg=(0.0, 30.0))
+    return replace(p, plan=plan, streams=replace(p.streams, width=width, height=height))
+
+
 def conceal(sim_dir: Path, out_dir: Path, hidden: Hidden | None, *, warmup_tau_s: float | None = None,
-            warmup_rise_c: float = 0.0) -> Path:
+            warmup_rise_c: float = 0.0, frame_period_s: float | None = None,
+            standpoint_period_s: float | None = None) -> Path:
     """Copy a simulated session into `out_dir` as plain MCAP files with the hidden effect added.
 
     With `warmup_tau_s`, the device temperature rises as T = 40 - rise exp(-t / tau) over the
-    session (an unfinished warm-up) and every frame carries it in its metadata.
+    session (an unfinished warm-up) and every frame carries it in its metadata, as the simulator
+    and the capture do. `frame_period_s` / `standpoint_period_s` re-time the frames (a standpoint
+    held for a while, the operator walking between standpoints), so the warm-up shows both
+    across and within standpoints.
     """
     truth = json.loads((sim_dir / "truth.json").read_text())
     board = Board.from_dict(truth["board"])
     out_dir.mkdir(parents=True, exist_ok=True)
     recs = open_inputs([sim_dir])
     t_start = None
-    for rec in recs:
+    for k, rec in enumerate(recs):
         sp = next(s for s in truth["standpoints"] if s["name"] == rec.name)
         intr = rec.info.depth_intrinsics
         units = rec.info.depth_units_m
@@ -58,9 +77,11 @@ def conceal(sim_dir: Path, out_dir: Path, hidden: Hidden | None, *, warmup_tau_s
                             intr.ppy, (intr.height, intr.width))
         v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
         frames: list[FrameSet] = []
-        for fs in rec.frames():
+        for i, fs in enumerate(rec.frames()):
             if t_start is None:
                 t_start = fs.timestamp_ns
+            if frame_period_s is not None and standpoint_period_s is not None:
+                fs.timestamp_ns = int(t_start + (k * standpoint_period_s + i * frame_period_s) * 1e9)
             t_s = (fs.timestamp_ns - t_start) / 1e9
             temp = WARM_C if warmup_tau_s is None else WARM_C - warmup_rise_c * np.exp(-t_s / warmup_tau_s)
             assert fs.depth is not None

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from explain_cases import conceal
+from explain_cases import conceal, wide_protocol
 
 ROOT = Path(__file__).resolve().parents[1]
 EXE = ROOT / ".venv" / "bin" / "depthstation"
@@ -25,12 +25,70 @@ def plain_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return simulate_checkerboard("demo-d455", "d455", out, frames=6, seed=11)
 
 
-def _explain(real: Path, out: Path) -> dict:
+@pytest.fixture(scope="module")
+def wide_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """10 standpoints over 1-5 m at 0 and 30 deg (640x360): z and z^2 differ in shape by 5x."""
+    from simulate.checkerboard import simulate_checkerboard
+
+    out = tmp_path_factory.mktemp("wide") / "sim"
+    return simulate_checkerboard(wide_protocol(), "d455", out, frames=6, seed=11)
+
+
+def _explain(real: Path, out: Path, *extra: str) -> dict:
     r = subprocess.run([str(EXE), "explain", str(real), "--board", str(ROOT / "protocols" / "demo-d455.toml"),
-                        "--model", "d455", "--out", str(out), "--frames", "6", "--seed", "3"],
+                        "--model", "d455", "--out", str(out), "--frames", "6", "--seed", "3", *extra],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     return json.loads((out / "explain.json").read_text())
+
+
+def _fb(session: Path) -> float:
+    info = json.loads((session / "truth.json").read_text())["stream_info"]
+    return float(info["baseline_m"] * info["depth_intrinsics"]["fx"])
+
+
+def test_concealed_disparity_offset(wide_session: Path, tmp_path: Path) -> None:
+    """z measured 1.2 mm/m^2 * z^2 too far: below the per-pixel noise at every distance (0.04 px
+    against 0.08 px), told from a depth scale (z) by its shape over 1-5 m."""
+    c = 1.2e-3
+
+    def offset(z, u, v, black, t, temp, cam):  # type: ignore[no-untyped-def]
+        return c * z * z
+
+    data = _explain(conceal(wide_session, tmp_path / "real", offset), tmp_path / "out")
+    top = data["candidates"][0]
+    assert top["effect"] == "disparity_offset" and top["selected"] and top["role"] == "missing_physics"
+    assert data["selected"][0] == "disparity_offset"
+    assert top["params"]["offset_px"]["value"] == pytest.approx(-c * _fb(wide_session), rel=0.25)
+    assert top["heldout_rmse_after_m"] < top["heldout_rmse_before_m"]
+    scale = next(x for x in data["candidates"] if x["effect"] == "depth_scale")
+    assert not scale["selected"]
+    # a near tie with depth scale would be reported; over 1-5 m there is none
+    assert not [t for t in data["near_ties"] if t["effect"] == "depth_scale"]
+    assert not data["mismatch_after"]["significant"]
+
+
+def test_concealed_thermal_drift(wide_session: Path, tmp_path: Path) -> None:
+    """Unfinished warm-up: temperature 30 -> 38 degC over a 12-minute session (also within each
+    standpoint, held 50 s); the right imager yaws 3e-5 rad/degC from its 40 degC calibration."""
+    alpha = 3e-5
+
+    def yaw(z, u, v, black, t, temp, cam):  # type: ignore[no-untyped-def]
+        fb = cam["fx"] * cam["baseline_m"]
+        return fb / (fb / z + cam["fx"] * alpha * (temp - 40.0)) - z
+
+    real = conceal(wide_session, tmp_path / "real", yaw, warmup_tau_s=400.0, warmup_rise_c=10.0,
+                   frame_period_s=10.0, standpoint_period_s=75.0)
+    data = _explain(real, tmp_path / "out")
+    top = data["candidates"][0]
+    info = json.loads((wide_session / "truth.json").read_text())["stream_info"]
+    fx = info["depth_intrinsics"]["fx"]
+    assert top["effect"] == "thermal_drift" and top["selected"] and top["role"] == "missing_physics"
+    assert top["params"]["coeff_px_per_c"]["value"] == pytest.approx(fx * alpha, rel=0.25)
+    assert top["params"]["reference_c"]["value"] == pytest.approx(40.0, abs=2.0)
+    assert top["heldout_rmse_after_m"] < top["heldout_rmse_before_m"]
+    assert data["missing_physics"] == ["thermal_drift"]
+    assert not data["mismatch_after"]["significant"]
 
 
 def test_concealed_focal_mismatch(plain_session: Path, tmp_path: Path) -> None:
@@ -72,8 +130,8 @@ def test_concealed_dark_squares(plain_session: Path, tmp_path: Path) -> None:
     assert not [r for r in after["regions"] if r["family"] == "albedo" and r["kind"] == "bias"]
 
 
-def test_null_session_selects_nothing(plain_session: Path, tmp_path: Path) -> None:
-    real = conceal(plain_session, tmp_path / "real", None)
+def test_null_session_selects_nothing(wide_session: Path, tmp_path: Path) -> None:
+    real = conceal(wide_session, tmp_path / "real", None)
     data = _explain(real, tmp_path / "out")
     assert data["missing_physics"] == []
     assert not data["mismatch"]["significant"]

@@ -24,6 +24,7 @@ from evaluate.explain.locate import temporal_dev2
 from evaluate.explain.samples import FloatArray, IntArray, Samples
 
 BIC_THRESHOLD = -10.0      # "very strong" evidence (Kass & Raftery)
+NEAR_TIE = 6.0             # a runner-up within this BIC gap is only "positive" evidence apart: reported
 WALD_P = 1e-3
 MIN_TILE = 8
 
@@ -41,7 +42,10 @@ class Table:
     cluster: IntArray
     fold: IntArray
     standpoint: IntArray
-    Z: FloatArray | None = None     # per-standpoint random plane error basis z^2 (1, x/z, y/z)
+    Z: FloatArray | None = None     # random reference-plane error basis z^2 (1, x/z, y/z) per tile
+    group: IntArray | None = None   # rows sharing one reference-plane error (a standpoint)
+    T: FloatArray | None = None     # KNOWN prior covariance of the plane coefficients (from the sim)
+    block: IntArray | None = None   # frame block of each row (a nested plane error per block)
 
     def __len__(self) -> int:
         return int(self.y.size)
@@ -65,6 +69,7 @@ class CandidateFit:
     selected: bool = False
     step: int | None = None
     coef: list[float] = field(default_factory=list)
+    near_ties: list[dict[str, Any]] = field(default_factory=list)   # runners-up within NEAR_TIE
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -171,14 +176,59 @@ def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, 
                           for j in range(cols.shape[1])], axis=1)
         X[c.name] = tiles[ia]
     sp, bl = ur[ia, 0], ur[ia, 1]
-    xn, yn = (real.u - real.ppx) / real.fx, (real.v - real.ppy) / real.fx
-    z2 = real.z_ref_m ** 2
-    zcols = [z2, z2 * xn, z2 * yn]
-    Z = np.stack([np.bincount(inv_r[ok], weights=c[ok], minlength=len(ur)) / np.maximum(nr, 1)
-                  for c in zcols], axis=1)[ia]
+    Z = _plane_tiles(real, inv_r, len(ur))[ia]
+    group = sp.copy()
+    T = reference_prior(sim, ks, sim_sp)
     # clusters = standpoints: the real reference plane's error is shared by all tiles of a standpoint
     clusters = sp if len(np.unique(sp)) >= 3 else sp * 1000 + bl
-    return Table("bias", y, w, X, clusters, _folds(sp, bl), sp, Z)
+    return Table("bias", y, w, X, clusters, _folds(sp, bl), sp, Z, group, T, bl)
+
+
+def _plane_basis(s: Samples) -> FloatArray:
+    """z^2 (1, x, y) per sample, x, y normalised image coordinates: a plane's first-order z error."""
+    xn, yn = (s.u - s.ppx) / s.fx, (s.v - s.ppy) / s.fx
+    z2 = s.z_ref_m ** 2
+    return np.stack([z2, z2 * xn, z2 * yn], axis=1)
+
+
+def _plane_tiles(s: Samples, inv: IntArray, n: int) -> FloatArray:
+    ok = inv >= 0
+    cnt = np.maximum(np.bincount(inv[ok], minlength=n), 1)
+    cols = _plane_basis(s)
+    return np.stack([np.bincount(inv[ok], weights=cols[ok, j], minlength=n) / cnt for j in range(3)], axis=1)
+
+
+def reference_prior(sim: Samples, keys: NDArray[np.int64], sim_sp: IntArray) -> FloatArray:
+    """Prior covariance of the per-standpoint plane coefficients of real - sim.
+
+    The simulation knows both its estimated and its rendered board, so `ref_err_m` is the
+    reference-plane error itself. Its plane coefficients per standpoint are fitted on the same
+    tiles as the residual (all frame blocks: the pose errors of the frames of one standpoint are
+    largely shared, the static corner biases of the colour image); their mean outer product is the
+    size of one side's error, and the residual carries two (real and sim). This KNOWN variance caps
+    the one estimated from the residual, so that an effect constant within a standpoint (a z^2
+    offset, a temperature drift) is not absorbed by a free plane per standpoint.
+    """
+    m = sim_sp >= 0
+    if not m.any() or not np.any(sim.ref_err_m[m]):
+        return np.zeros((3, 3))
+    k = keys[m]
+    sub = sim.subset(m)
+    uq, n, mean, _, inv = _aggregate(k, sub.ref_err_m)
+    Zs = _plane_tiles(sub, inv, len(uq))
+    ok_t = n >= MIN_TILE
+    grp = uq[:, 0]
+    outer = []
+    for g in np.unique(grp[ok_t]):
+        rows = np.flatnonzero(ok_t & (grp == g))
+        if len(rows) < 6:
+            continue
+        coef = np.linalg.lstsq(Zs[rows] * np.sqrt(n[rows])[:, None], mean[rows] * np.sqrt(n[rows]),
+                               rcond=None)[0]
+        outer.append(np.outer(coef, coef))
+    if not outer:
+        return np.zeros((3, 3))
+    return np.asarray(2.0 * np.mean(outer, axis=0), dtype=np.float64)
 
 
 def variance_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *,
@@ -242,44 +292,61 @@ class Fit:
     loglik: float
 
 
-def gls(t: Table, names: Sequence[str], rows: NDArray[Any] | None = None, iterations: int = 4) -> Fit:
-    """Mixed model y = X b + Z g_s + e: every standpoint's reference plane is off by a random g_s.
+def gls(t: Table, names: Sequence[str], rows: NDArray[Any] | None = None, iterations: int = 2) -> Fit:
+    """Mixed model y = X b + Z g + e, g ~ N(0, diag(tau)) per standpoint.
 
-    The real reference pose (from the colour image) is wrong by a different small offset and tilt at
-    every standpoint; those errors are shared by all tiles of the standpoint, so they are modelled
-    as random plane coefficients whose variances are estimated from the between-standpoint scatter
-    (moments, iterated with GLS). Without Z (variance tables) this is plain WLS with a fitted scale.
+    Each side's reference plane (the board pose estimated from the colour image) is off by a small
+    offset and tilt, shared by all tiles of a standpoint: random plane coefficients. Their variances
+    are the between-standpoint scatter (moments, iterated with GLS) CAPPED by the size the
+    simulation measured (`reference_prior`): a free estimate alone would let a coherent effect that
+    is constant within a standpoint (a z^2 offset, a temperature drift) hide in the planes. The
+    noise scale s2 comes from the residual within standpoints. Without a known reference error this
+    is plain WLS with a fitted scale.
     """
     idx_all = np.arange(len(t)) if rows is None else np.asarray(rows)
     X = _design(t, names)[idx_all]
     y, w = t.y[idx_all], t.w[idx_all]
     n, k = X.shape
-    sps = t.standpoint[idx_all]
     beta = wls(X, y, w)
-    use_z = t.Z is not None and len(np.unique(sps)) >= 3
-    if not use_z:
+    if t.Z is None or t.T is None or t.group is None or not np.any(t.T):
         r = y - X @ beta
         s2 = float((w * r ** 2).sum()) / max(n - k, 1)
         xw = X * w[:, None]
         cov = np.linalg.pinv(X.T @ xw) * s2 if k else np.zeros((0, 0))
         ll = -0.5 * float(np.sum(np.log(2 * np.pi * s2 / w)) + (w * r ** 2).sum() / s2)
         return Fit(beta, cov, ll)
-    assert t.Z is not None
-    Z = t.Z[idx_all]
-    groups = [np.flatnonzero(sps == s) for s in np.unique(sps)]
-    tau = np.zeros(Z.shape[1])
+    Z0 = t.Z[idx_all]
+    grp = t.group[idx_all]
+    blk = t.block[idx_all] if t.block is not None else np.zeros(len(idx_all), dtype=np.int64)
+    nb = int(blk.max()) + 1
+    p = Z0.shape[1]
+    # nested planes: one per standpoint (shared by its frames: static pose bias) plus one per frame
+    # block (frame-to-frame jitter of the pose), Z = [Z0, Z0 * 1{block = b} ...]
+    Z = np.concatenate([Z0] + [Z0 * (blk == b)[:, None] for b in range(nb)], axis=1)
+    groups = [np.flatnonzero(grp == s) for s in np.unique(grp)]
+    known = np.clip(np.diag(t.T), 0.0, None)
+    tau = np.zeros((Z.shape[1], Z.shape[1]))
     s2 = 1.0
     A = np.zeros((k, k))
     for _ in range(iterations):
         r = y - X @ beta
-        gam, rss, dof = [], 0.0, 0
+        rss, dof, gam, dev = 0.0, 0, [], []
         for g in groups:
+            if len(g) <= Z.shape[1]:
+                continue
             gg = wls(Z[g], r[g], w[g])
-            gam.append(gg)
+            blocks = [b for b in range(nb) if np.any(blk[g] == b)]
+            per_block = np.array([gg[:p] + gg[p * (b + 1):p * (b + 2)] for b in blocks])
+            gam.append(per_block.mean(axis=0))
+            dev += list(per_block - per_block.mean(axis=0))
             rss += float((w[g] * (r[g] - Z[g] @ gg) ** 2).sum())
-            dof += max(len(g) - Z.shape[1], 0)
-        s2 = rss / max(dof, 1)
-        tau = np.var(np.array(gam), axis=0, ddof=1) / s2
+            dof += len(g) - Z.shape[1]
+        s2 = rss / dof if dof > 0 else 1.0
+        # between-standpoint scatter of the planes, but never more than the simulation measured:
+        # what exceeds the known pose error is left to the fixed effects
+        scatter = np.var(np.array(gam), axis=0, ddof=1) if len(gam) >= 3 else known
+        jitter = np.mean(np.array(dev) ** 2, axis=0) * nb / max(nb - 1, 1) if dev else np.zeros(p)
+        tau = np.diag(np.r_[np.minimum(scatter, known), np.tile(jitter, nb)]) / s2
         A = np.zeros((k, k))
         b = np.zeros(k)
         for g in groups:
@@ -292,7 +359,7 @@ def gls(t: Table, names: Sequence[str], rows: NDArray[Any] | None = None, iterat
     for g in groups:
         zw = Z[g] * w[g][:, None]
         logdet = float(np.sum(np.log(s2 / w[g]))) + float(np.linalg.slogdet(
-            np.eye(Z.shape[1]) + tau[:, None] * (Z[g].T @ zw))[1])
+            np.eye(Z.shape[1]) + (Z[g].T @ zw) @ tau)[1])
         quad = float((r[g] * _vinv(Z[g], w[g], tau, r[g][:, None]).ravel()).sum()) / s2
         ll += -0.5 * (len(g) * np.log(2 * np.pi) + logdet + quad)
     cov = np.asarray(np.linalg.pinv(A) * s2, dtype=np.float64) if k else np.zeros((0, 0))
@@ -300,11 +367,12 @@ def gls(t: Table, names: Sequence[str], rows: NDArray[Any] | None = None, iterat
 
 
 def _vinv(Z: FloatArray, w: FloatArray, tau: FloatArray, a: FloatArray) -> FloatArray:
-    """(W^-1 + Z T Z')^-1 a by Woodbury, T = diag(tau)."""
+    """(W^-1 + Z tau Z')^-1 a by Woodbury in the form that allows a singular tau:
+    W a - W Z tau (I + Z' W Z tau)^-1 Z' W a."""
     wz = Z * w[:, None]
-    m = np.diag(1.0 / np.maximum(tau, 1e-30)) + Z.T @ wz
+    m = np.eye(Z.shape[1]) + (Z.T @ wz) @ tau
     wa = a * w[:, None]
-    return np.asarray(wa - wz @ np.linalg.solve(m, wz.T @ a))
+    return np.asarray(wa - wz @ (tau @ np.linalg.solve(m, wz.T @ a)))
 
 
 def bic(t: Table, names: Sequence[str]) -> float:
@@ -381,6 +449,9 @@ def forward_select(t: Table, candidates: Sequence[Candidate], present: dict[str,
         if best_d < BIC_THRESHOLD and improves and rec.wald_p < WALD_P:
             step += 1
             rec.selected, rec.step = True, step
+            # the data barely prefer the winner: say so rather than pick silently
+            rec.near_ties = [{"effect": n, "delta_bic": float(d), "bic_gap": float(d - best_d)}
+                             for d, n in trials[1:] if d - best_d < NEAR_TIE]
             selected.append(best)
             continue
         break

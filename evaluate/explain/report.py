@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from evaluate.explain.attribute import NEAR_TIE
 from evaluate.explain.locate import LocateResult
 from evaluate.explain.pipeline import Explanation
 
@@ -29,6 +30,7 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
         "selected": [c.effect for c in ex.attribution.selected],
         "missing_physics": [c.effect for c in ex.attribution.selected if c.role == "missing_physics"],
         "calibrated": calibrated,
+        "near_ties": [{"selected": c.effect, **t} for c in ex.attribution.selected for t in c.near_ties],
         "standpoints": list(ex.real.samples.names),
         "samples": {"real": len(ex.real.samples), "sim": len(ex.sim.samples)},
         "fit_rows": {"bias": ex.attribution.bias_rows, "variance": ex.attribution.variance_rows},
@@ -135,6 +137,10 @@ def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
         "; ".join(f"{c['effect']}: " + ", ".join(f"{k} {v['old']} -> {v['new']:.4g} {v['unit']}"
                                                  for k, v in c["params"].items()) for c in cal)
         if cal else "none") + ".")
+    for t in data.get("near_ties", []):
+        lines.append(f"- Near tie: {t['selected']} was preferred over {t['effect']} by only "
+                     f"{t['bic_gap']:.1f} in BIC (< {NEAR_TIE:.0f}); the data hardly tell them apart "
+                     "(more distances or inclinations would).")
     after = data.get("mismatch_after")
     if after is not None:
         state = (f"still significant in {len(after['regions'])} regions" if after["significant"]
