@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from depthstation.station.demo import DEMO_MODEL, DEMO_PROTOCOL, DemoContext, Step
+from depthstation.viz import RerunTarget
 
 # ------------------------------------------------------------------------------ checkerboard study
 
@@ -84,24 +85,30 @@ WARMUP_INTERVAL_S = 15.0     # simulated seconds between temperature samples
 WARMUP_ACCELERATE = 300.0    # the simulated clock runs this much faster: 10 min of warm-up in 2 s
 MAX_GUIDANCE_S = 60.0        # simulated seconds before a standpoint the operator cannot reach is given up
 CAPTURE_BUDGET_S = 150.0     # wall-clock seconds the demo gives the guided capture
+RERUN_EVERY = 5              # with --rrd, log every 5th frame of the guided capture
 
 
 class CaptureBudgetSpent(Exception):
     """Raised from the capture's state callback when the demo's time for it is used up."""
 
 
-def _guided_capture(st: Any, budget_s: float) -> tuple[list[str], str]:
+def _guided_capture(st: Any, budget_s: float, target: RerunTarget) -> tuple[list[str], str]:
     """The guided loop (acquire's GuidedCapture with its simulated operator) under a wall-clock budget,
     with a progress bar over the standpoints; returns (complete standpoints, why it stopped)."""
     from acquire.capture import GuidedCapture, LiveState
+    from acquire.views import BOARD_HELP, RerunView, blueprint
     from depthstation.errors import CaptureError
     from depthstation.progress import progress
+    from depthstation.viz import recording
 
     plan = st.protocol.plan.standpoints()
     on_guidance = st.attach_operator()
     t0 = time.perf_counter()
     stop = "all standpoints done"
-    with progress() as bar:
+    views: list[Any] = []
+    calls = [0]
+    with recording("depthstation-acquire", target, blueprint(), description=BOARD_HELP) as rec, \
+            progress() as bar:
         task = bar.add_task("guided capture", total=len(plan), status="")
 
         def on_state(state: LiveState) -> None:
@@ -111,6 +118,11 @@ def _guided_capture(st: Any, budget_s: float) -> tuple[list[str], str]:
             bar.update(task, completed=len(state.done) + len(state.skipped),
                        status=f"{state.standpoint.name} -> {state.standpoint.distance_m:.1f} m / "
                               f"{state.standpoint.inclination_deg:.0f} deg: {state.phase} {where}")
+            calls[0] += 1
+            if rec is not None and cap.info is not None and calls[0] % RERUN_EVERY == 0:
+                if not views:        # every RERUN_EVERY-th frame: the live view without a 250 MB file
+                    views.append(RerunView(rec, cap.info.depth_units_m))
+                views[0](state)
             if time.perf_counter() - t0 > budget_s:
                 raise CaptureBudgetSpent
 
@@ -142,7 +154,7 @@ def _session_step(ctx: DemoContext) -> tuple[Path, str]:
         # frame time again, else the operator's seconds fly by 300 times too fast
         st.camera.set_clock(None)
     cal = do_calibrate(st, True, write=False)
-    done, stop = _guided_capture(st, CAPTURE_BUDGET_S)
+    done, stop = _guided_capture(st, CAPTURE_BUDGET_S, ctx.target(ctx.out, "session-capture"))
     total = len(st.protocol.plan.standpoints())
     ctx.facts["session"] = {"warmup": warm, "calibration_skipped": cal.get("skipped", False),
                             "complete": done, "of": total, "stopped": stop}
@@ -208,7 +220,6 @@ def _explain_step(ctx: DemoContext) -> tuple[Path, str]:
     """A capture made with a D455 model that carries a concealed disparity offset; explain is given
     only the capture and the plain D455 model, and must find, name and fit what is missing."""
     from depthstation.protocol import load_protocol
-    from depthstation.viz import RerunTarget
     from evaluate.explain.pipeline import evaluate_real, explain_sides, simulate_like
     from evaluate.explain.report import write_outputs
     from simulate.checkerboard import simulate_checkerboard
