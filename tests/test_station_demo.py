@@ -81,6 +81,7 @@ def test_demo_checkerboard_and_compare_steps_for_real(tmp_path: Path) -> None:
     from depthstation.protocol import PROTOCOL_DIR
     from depthstation.station.compare_write import run_compare
     from depthstation.station.demo_steps import CHECKERBOARD, COMPARE
+    from depthstation.station.view import view_path
     from depthstation.viz import read_rrd
     from evaluate.checkerboard.run import run_study
 
@@ -92,6 +93,10 @@ def test_demo_checkerboard_and_compare_steps_for_real(tmp_path: Path) -> None:
     contents = read_rrd(out / "compare-d455-d435" / "compare.rrd")
     assert contents.series["/standpoints/noise_m/checkerboard-d435"].size == 6
     assert "Comparison" in contents.texts["/description"]
+    stage = read_rrd(out / "checkerboard" / "checkerboard.rrd")          # the stage's own recording
+    assert any(k.startswith("/progress") for k in stage.series) and "/description" in stage.texts
+    viewed = read_rrd(view_path(out / "checkerboard", spawn=False))
+    assert viewed.series["/standpoints/noise_m"].size == 6 and viewed.has_blueprint
     again = tmp_path / "again"
     run_study([out / "session-simulated"], PROTOCOL_DIR / "demo-d455.toml", again)
     same = run_compare([out / "checkerboard", again], tmp_path / "same", quiet=True)
