@@ -29,17 +29,19 @@ def test_simulated_standpoints_match_truth(tmp_path: Path) -> None:
         assert r.frames_used == 3, r.rejected
         assert abs(r.figures["distance_m"] - t["distance_m"]) < 0.005 * t["distance_m"]
         # the reported inclination is the pose's (DESIGN §2); the depth plane's is a diagnostic
-        tol = 0.5 if t["distance_m"] < 2.0 else 1.5  # 12 px squares at 2.6 m: see test below
+        tol = 0.5  # issue 4 (12 px squares at 2.6 m: the X-junction corner fit makes it)
         assert abs(r.figures["inclination_deg"] - t["inclination_deg"]) < tol, rec.name
         assert abs(r.figures["inclination_depth_deg"] - t["inclination_deg"]) < 0.5, rec.name
         assert r.figures["pose_depth_normal_angle_deg"] < tol + 0.5
         assert 0.0005 < r.figures["noise_m"] < 0.05
 
 
-@pytest.mark.xfail(strict=True, reason="open: cornerSubPix pixel-locking (~0.05 px by sub-pixel phase) "
-                   "tilts the PnP pose of 12 px squares by ~0.9 deg at 2.6 m / 0 deg, 640x360")
 def test_pose_inclination_head_on_far_demo_standpoint(tmp_path: Path) -> None:
-    """Issue 4's target: pose inclination within 0.5 deg at 0 deg with the demo's 10 frames."""
+    """Issue 4's target: pose inclination within 0.5 deg at 0 deg with the demo's 10 frames.
+
+    12 px squares at 2.6 m / 640x360: cornerSubPix's phase bias (~0.05 px) read 0.9 deg here; the
+    X-junction fit (corners.py, ~0.01 px) brings it to a few hundredths.
+    """
     pytest.importorskip("open3d")
     from depthstation.capture.reader import open_inputs
     from depthstation.protocol import load_protocol
@@ -82,6 +84,8 @@ def test_db3_gives_the_same_table_as_mcap(tmp_path: Path) -> None:
         assert a["frames"] == 3
         for c in COLUMNS:
             if isinstance(a[c], str) and a[c] and a[c][0] in "-0123456789":
-                assert float(b[c]) == pytest.approx(float(a[c]), rel=1e-4, abs=1e-7), (a["standpoint"], c)
+                # angles near 0 deg: float32 intrinsics move them by ~1e-5 deg, absolute
+                tol_abs = 1e-4 if c.endswith("_deg") else 1e-7
+                assert float(b[c]) == pytest.approx(float(a[c]), rel=1e-4, abs=tol_abs), (a["standpoint"], c)
             else:
                 assert a[c] == b[c], (a["standpoint"], c, a[c], b[c])

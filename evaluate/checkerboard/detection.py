@@ -1,4 +1,5 @@
-"""Board corners in a colour image: plain chessboard (fast check + cornerSubPix) or ChArUco (cv2 5 API)."""
+"""Board corners in a colour image: plain chessboard (fast check + cornerSubPix + X-junction model
+fit, `corners.py`) or ChArUco (cv2 5 API)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.board import Board
+from evaluate.checkerboard.corners import refine_xjunctions
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
 
@@ -42,9 +44,13 @@ def charuco_legacy(board: Board) -> bool:
 class BoardDetector:
     """Detects one board type repeatedly; the OpenCV objects are built once."""
 
-    def __init__(self, board: Board, subpix: bool = True) -> None:
+    def __init__(self, board: Board, subpix: bool = True, model_fit: bool = True) -> None:
         self.board = board
         self.subpix = subpix
+        # plain boards: cornerSubPix's phase-dependent bias (~0.05 px, static for a still camera)
+        # removed by an X-junction model fit (~0.01 px); ChArUco corners keep OpenCV's refinement
+        # (a marker can reach into the fit window)
+        self.model_fit = model_fit and subpix and board.type == "checkerboard"
         self._corners = board.corner_points()
         self._slow_misses = 0
         self._last: NDArray[np.float32] | None = None  # plain board: corners of the last detection
@@ -86,13 +92,21 @@ class BoardDetector:
             tracked = self._track(gray, self._last)
             if tracked is not None:
                 self._last = tracked
-                return Detection(tracked.astype(np.float64), self._corners,
+                return Detection(self._model_fit(gray, tracked), self._corners,
                                  np.arange(len(tracked), dtype=np.int64))
         self._last = None
         det = self._search_chessboard(gray)
         if det is not None and self.subpix:
             self._last = det.image_points.astype(np.float32)
+            det = Detection(self._model_fit(gray, self._last), det.object_points, det.ids)
         return det
+
+    def _model_fit(self, gray: NDArray[np.uint8], pts: NDArray[np.float32]) -> NDArray[np.float64]:
+        """cornerSubPix's corners refined by the X-junction fit (each failed fit keeps its input)."""
+        out = pts.astype(np.float64)
+        if self.model_fit:
+            out, _ = refine_xjunctions(gray, out, self._corners)
+        return out
 
     def _track(self, gray: NDArray[np.uint8], last: NDArray[np.float32],
                max_shift_px: float = 2.0, min_contrast: float = 20.0) -> NDArray[np.float32] | None:

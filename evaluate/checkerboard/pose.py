@@ -44,11 +44,13 @@ def _solve(obj: NDArray[np.float64], img: NDArray[np.float64], k: NDArray[np.flo
 
 
 def estimate_pose(det: Detection, intr: Intrinsics, refine: bool = True,
-                  fallback_px: float = 1.0) -> BoardPose | None:
+                  fallback_px: float = 0.0) -> BoardPose | None:
     """EPnP pose of the board in the colour camera; None when it fails or lies behind the camera.
 
-    EPnP on a plane can land in a wrong minimum at steep views (reprojection error of pixels);
-    then IPPE, the planar solver, is tried too and the better fit kept.
+    EPnP on a plane can land in a wrong minimum at steep views; IPPE, the planar solver, is tried
+    too and the better fit kept whenever EPnP reprojects above `fallback_px` (default: always;
+    0.1 ms). A wrong minimum need not look bad: at 5 m / 60 deg (6 px squares) EPnP + LM settled
+    at 0.9 px RMS and 1.2 deg of tilt while the right pose reprojects at 0.01 px.
     """
     obj = det.object_points.astype(np.float64)
     img = det.image_points.astype(np.float64)
