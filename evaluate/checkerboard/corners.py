@@ -156,7 +156,7 @@ def _model(par: F64, gx: F64, gy: F64) -> tuple[F64, F64]:
     e2 = erf(d2 * k)
     g1 = 2.0 / _SQRT_PI * np.exp(-((d1 * k) ** 2)) * k
     g2 = 2.0 / _SQRT_PI * np.exp(-((d2 * k) ** 2)) * k
-    jac = np.empty(gx.shape + (7,))
+    jac = np.empty((*gx.shape, 7))
     jac[..., 0] = -h * (g1 * n1x * e2 + e1 * g2 * n2x)
     jac[..., 1] = -h * (g1 * n1y * e2 + e1 * g2 * n2y)
     jac[..., 2] = h * g1 * (-np.cos(a1) * dx - np.sin(a1) * dy) * e2
