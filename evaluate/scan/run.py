@@ -71,6 +71,20 @@ def _log_grid(rec: Any, grid: Grid, min_count: int) -> None:
     rec.log("grid/std_mm", rr.Image(colorize(s.T[flip], "magma", 0, smax)))
 
 
+def _log_grid_tensors(rec: Any, grid: Grid, min_count: int) -> None:
+    """The final grid as tensors with named dimensions and units (what a reader of the .rrd needs)."""
+    from depthstation.viz import send_heatmap
+
+    count, mean, std = grid.masked(min_count)
+    edges = (grid.distance_edges_m, grid.inclination_edges_deg)
+    send_heatmap(rec, "tensors/count", np.asarray(grid.count, dtype=np.float64), *edges,
+                 quantity="samples per cell", unit="1")
+    send_heatmap(rec, "tensors/mean_error_m", np.ma.filled(mean.astype(float), np.nan), *edges,
+                 quantity=f"mean depth error (cells with >= {min_count} samples)", unit="m")
+    send_heatmap(rec, "tensors/std_error_m", np.ma.filled(std.astype(float), np.nan), *edges,
+                 quantity=f"std of depth error (cells with >= {min_count} samples)", unit="m")
+
+
 def run_scan(sequence: Path, poses: Path, reference: Path, out: Path,
              options: ScanOptions | None = None) -> dict[str, Any]:
     """The reference-scan study (paper Section 3.2) into the result folder `out`; returns the summary."""
@@ -159,6 +173,8 @@ def run_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                                mesh_path, posed, config, workers=opt.workers,
                                chunk_frames=opt.chunk_frames,
                                on_frame=on_frame if opt.workers == 1 else None, on_chunk=on_chunk)
+        if rec is not None:
+            _log_grid_tensors(rec, result.grid, opt.min_count_sequence)
     t_study = time.perf_counter()
     if not result.used:
         raise EvaluationError(f"no frame could be evaluated ({len(result.no_pose)} frames had no pose "

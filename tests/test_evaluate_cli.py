@@ -1,4 +1,4 @@
-"""`--workers` on the evaluate commands gives the same tables as one process."""
+"""The evaluate commands as a user runs them: --workers, --cluster, and what their recordings hold."""
 
 from __future__ import annotations
 
@@ -63,3 +63,30 @@ def test_scan_on_a_dask_cluster_equals_one_process(tmp_path: Path) -> None:
         np.testing.assert_array_equal(a["count"], b["count"])
         np.testing.assert_allclose(a["mean_m"], b["mean_m"], rtol=0, atol=1e-12, equal_nan=True)
         np.testing.assert_allclose(a["var_m2"], b["var_m2"], rtol=1e-9, atol=1e-15, equal_nan=True)
+
+
+def test_scan_rrd_carries_the_grid_as_named_tensors(tmp_path: Path) -> None:
+    """The scan recording holds the final grid as tensors with dimension names, and progress series."""
+    import numpy as np
+    import open3d as o3d
+
+    from depthstation.viz import DISTANCE_DIM, INCLINATION_DIM, RerunTarget, read_rrd
+    from evaluate.scan.run import ScanOptions, run_scan
+    from evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
+    from evaluate.scan.trajectory import write_tum
+
+    seq = make_sequence(frames=4, width=80, height=60, seed=4)
+    write_tum_folder(seq, tmp_path / "seq")
+    write_tum(tmp_path / "poses.txt", np.asarray(seq.timestamps_ns) * 1e-9, seq.poses)
+    o3d.io.write_triangle_mesh(str(tmp_path / "room.ply"), Room().mesh(segments=128))
+    np.savetxt(tmp_path / "identity.txt", np.eye(4))
+    rrd = tmp_path / "scan.rrd"
+    run_scan(tmp_path / "seq", tmp_path / "poses.txt", tmp_path / "room.ply", tmp_path / "out",
+             ScanOptions(similarity=tmp_path / "identity.txt", icp=False, distance_bin_m=0.05,
+                         inclination_bin_deg=1.0, target=RerunTarget(rrd=rrd)))
+    contents = read_rrd(rrd)
+    for name in ("tensors/count", "tensors/mean_error_m", "tensors/std_error_m"):
+        shape, dims = contents.tensors.get("/" + name) or contents.tensors[name]
+        assert shape == (120, 90)
+        assert dims == (DISTANCE_DIM, INCLINATION_DIM)
+    assert any("pixels/evaluated" in k for k in contents.series)
