@@ -75,7 +75,7 @@ def _log_grid_tensors(rec: Any, grid: Grid, min_count: int) -> None:
     """The final grid as tensors with named dimensions and units (what a reader of the .rrd needs)."""
     from depthstation.viz import send_heatmap
 
-    count, mean, std = grid.masked(min_count)
+    _, mean, std = grid.masked(min_count)
     edges = (grid.distance_edges_m, grid.inclination_edges_deg)
     send_heatmap(rec, "tensors/count", np.asarray(grid.count, dtype=np.float64), *edges,
                  quantity="samples per cell", unit="1")
