@@ -5,10 +5,13 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from evaluate.explain.samples import Samples
 
 sys.path.insert(0, str(Path(__file__).parent))
 from explain_cases import conceal, wide_protocol
@@ -100,7 +103,7 @@ def test_concealed_focal_mismatch(plain_session: Path, tmp_path: Path) -> None:
         return fb / (fb / z + k * (u - cam["ppx"])) - z
 
     real = conceal(plain_session, tmp_path / "real", wedge)
-    data = _explain(real, tmp_path / "out")
+    data = _explain(real, tmp_path / "out", "--rrd", str(tmp_path / "explain.rrd"))
     top = data["candidates"][0]
     assert top["effect"] == "lr_focal_mismatch" and top["selected"]
     assert data["selected"][0] == "lr_focal_mismatch"
@@ -112,6 +115,12 @@ def test_concealed_focal_mismatch(plain_session: Path, tmp_path: Path) -> None:
     # the re-simulation with the new model leaves no significant column-wise bias
     after = data["mismatch_after"]
     assert not [r for r in after["regions"] if r["family"] == "column" and r["kind"] == "bias"]
+    from depthstation.viz import read_rrd
+
+    rrd = read_rrd(tmp_path / "explain.rrd")
+    for label in ("before", "after"):   # the residual grid as heatmaps, distance x inclination
+        shape, dims = rrd.tensors[f"/residual/bias/{label}"]
+        assert len(shape) == 2 and len(dims) == 2
 
 
 def test_concealed_dark_squares(plain_session: Path, tmp_path: Path) -> None:
@@ -154,3 +163,29 @@ def test_real_d435_runs_end_to_end(charuco_dir: Path, tmp_path: Path) -> None:
     assert isinstance(data["mismatch"]["significant"], bool)
     assert data["candidates"] and np.isfinite(data["candidates"][0]["delta_bic"])
     assert "# Explain" in (out / "report.md").read_text()
+
+
+def test_workers_give_the_same_real_side(plain_session: Path) -> None:
+    """--workers 2 (standpoints evaluated in two processes) gives exactly the figures of one process."""
+    from depthstation.board import load_board
+    from evaluate.explain.attribute import attribute
+    from evaluate.explain.basis import module_candidates
+    from evaluate.explain.pipeline import evaluate_real
+
+    paths = sorted(plain_session.glob("*.mcap"))[:2]
+    board = load_board(ROOT / "protocols" / "demo-d455.toml")
+    one = evaluate_real(paths, board, frames=3, baseline_m=0.095, workers=1)
+    two = evaluate_real(paths, board, frames=3, baseline_m=0.095, workers=2)
+    assert one.samples.names == two.samples.names
+    for k in one.samples.ARRAYS:
+        np.testing.assert_array_equal(getattr(one.samples, k), getattr(two.samples, k))
+    for name, pose in one.poses.items():
+        np.testing.assert_array_equal(pose, two.poses[name])
+    cands = module_candidates({})
+
+    def fit(s: Samples) -> list[tuple[str, float, float]]:
+        other = replace(s, err_m=s.err_m - 1e-3 * s.z_ref_m ** 2)   # any second side, the same for both
+        res = attribute(s, other, cands)
+        return [(c.effect, c.delta_bic, c.heldout_rmse_after_m) for c in res.candidates]
+
+    assert fit(one.samples) == fit(two.samples)

@@ -24,6 +24,8 @@ def explain(
     spawn: bool = typer.Option(False, "--spawn", help="Open a rerun viewer."),
     serve: bool = typer.Option(False, "--serve", help="Serve a local rerun web viewer."),
     no_resimulate: bool = typer.Option(False, "--no-resimulate", help="Skip the check with the new model."),
+    workers: int = typer.Option(1, "--workers", help="Local worker processes for the real-side evaluation."),
+    cluster: str | None = typer.Option(None, "--cluster", help="Dask scheduler address (tcp://host:8786)."),
 ) -> None:
     """Locate where simulation and real data differ, name the missing physics, refit, show the gain."""
     from depthstation.board import load_board
@@ -41,6 +43,8 @@ def explain(
             raise InputError(p, "not found")
     if out.exists() and any(out.iterdir()):
         raise InputError(out, "is not empty; explain never overwrites results")
+    if workers < 1:
+        raise InputError(None, "--workers must be at least 1")
     if frames < 2:
         raise InputError(None, "--frames must be at least 2 (noise needs several frames)")
     brd = load_board(board)
@@ -49,11 +53,13 @@ def explain(
     def tick(msg: str) -> None:
         stderr_console.print(f"[bold]explain[/]: {msg}")
 
-    real_side = evaluate_real(real, brd, frames=frames, baseline_m=mdl.camera.baseline_m, tick=tick)
+    real_side = evaluate_real(real, brd, frames=frames, baseline_m=mdl.camera.baseline_m, tick=tick,
+                              workers=workers, cluster=cluster)
     sim_side = simulate_like(real_side, brd, mdl, seed=seed, tick=tick)
     ex = explain_sides(real_side, sim_side, mdl, brd, seed=seed, resimulate=not no_resimulate, tick=tick)
     data = write_outputs(ex, out, [str(p) for p in real],
-                         {"board": str(board), "model": model, "frames": frames, "seed": seed})
+                         {"board": str(board), "model": model, "frames": frames, "seed": seed,
+                          "workers": workers, "cluster": cluster})
     target = RerunTarget(rrd, spawn, serve)
     if target.enabled:
         from evaluate.explain.rerun_log import log_explanation

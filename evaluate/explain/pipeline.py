@@ -113,21 +113,27 @@ def _stride(info: StreamInfo) -> int:
 
 
 def evaluate_real(paths: Sequence[Path], board: Board, *, frames: int, baseline_m: float,
-                  tick: Progress | None = None) -> Side:
-    """The checkerboard study of the real inputs, with per-pixel samples."""
+                  tick: Progress | None = None, workers: int = 1, cluster: str | None = None) -> Side:
+    """The checkerboard study of the real inputs, with per-pixel samples.
+
+    Standpoints go out as tasks (`evaluate.batch.run_checkerboard`): each is read and evaluated by
+    the worker that gets it, local processes (`workers`) or a Dask scheduler (`cluster`).
+    """
     from depthstation.capture.reader import open_inputs
-    from evaluate.checkerboard.study import evaluate_recording
+    from evaluate.batch import run_checkerboard
 
     recs = open_inputs(list(paths))
     if not recs:
         raise EvaluationError("no recordings in the inputs")
-    results = []
-    for rec in recs:
-        if tick:
-            tick(f"evaluate {rec.name}")
-        results.append(evaluate_recording(rec, board, frames=frames, collect_samples=True,
-                                          sample_stride=_stride(rec.info), reference=REFERENCE))
     info = recs[0].info
+
+    def progress(done: int, total: int) -> None:
+        if tick:
+            tick(f"evaluated {done}/{total} standpoints")
+
+    results = run_checkerboard(list(paths), board, frames=frames, workers=workers, cluster=cluster,
+                               progress=progress, collect_samples=True, sample_stride=_stride(info),
+                               reference=REFERENCE)
     return _side(results, info, info.baseline_m or baseline_m)
 
 

@@ -1,26 +1,55 @@
-"""The explain result in rerun: the summary text and real-minus-sim mean error along each axis."""
+"""The explain result in rerun: the summary text, the real-minus-sim residual grid before and after
+the refit as distance x inclination heatmaps, and the residual along each hidden axis."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from depthstation.viz import RerunTarget, recording
+import numpy as np
+
+from depthstation.viz import RerunTarget, recording, send_heatmap, send_text
+from evaluate.explain.locate import LocateResult
 from evaluate.explain.pipeline import Explanation
+
+
+def residual_grid(loc: LocateResult, kind: str = "bias") -> tuple[Any, Any, Any] | None:
+    """(distance edges m, inclination edges deg, real - sim per cell, NaN where untested)."""
+    tests = loc.family("grid", kind)
+    if not tests:
+        return None
+    d = sorted({t.coords["distance_min_m"] for t in tests} | {t.coords["distance_max_m"] for t in tests})
+    i = sorted({t.coords["inclination_min_deg"] for t in tests}
+               | {t.coords["inclination_max_deg"] for t in tests})
+    de, ie = np.array(d), np.array(i)
+    m = np.full((len(de) - 1, len(ie) - 1), np.nan)
+    for t in tests:
+        a = int(np.searchsorted(de, t.coords["distance_min_m"]))
+        b = int(np.searchsorted(ie, t.coords["inclination_min_deg"]))
+        m[a, b] = t.diff
+    return de, ie, m
 
 
 def log_explanation(ex: Explanation, target: RerunTarget) -> None:
     import rerun as rr
 
     sel = ", ".join(c.effect for c in ex.attribution.selected) or "nothing"
-    desc = (f"# depthstation explain\nSelected: {sel}.\nSeries: mean z error real - sim (mm) per group, "
-            "before and after the refit.")
+    desc = (f"# depthstation explain\nSelected: {sel}.\n`residual/bias/<before|after>`: mean z error "
+            "real - sim (mm) per distance x inclination cell; `residual/noise/...`: temporal variance "
+            "real - sim (mm^2); series: the same along columns, standpoints, albedo and time.")
     with recording("depthstation_explain", target, description=desc) as rec:
         if rec is None:
             return
+        send_text(rec, "summary", desc)
         sides: list[tuple[str, Any]] = [("before", ex.before)]
         if ex.after is not None:
             sides.append(("after", ex.after))
         for label, loc in sides:
+            for kind, scale, unit in (("bias", 1e3, "mm"), ("noise", 1e6, "mm^2")):
+                grid = residual_grid(loc, kind)
+                if grid is not None:
+                    de, ie, m = grid
+                    send_heatmap(rec, f"residual/{kind}/{label}", m * scale, de, ie,
+                                 quantity=f"real - sim ({kind}), {label} the refit", unit=unit)
             for fam in ("column", "standpoint", "albedo", "time"):
                 for k, t in enumerate(loc.family(fam)):
                     rec.set_time("group", sequence=k)
