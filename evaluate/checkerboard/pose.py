@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from depthstation.board import Board
 from depthstation.camera import Intrinsics
+from depthstation.geometry import rodrigues
 from evaluate.checkerboard.detection import Detection, to_gray
 
 _OPENCV_MODELS = ("brown_conrady", "inverse_brown_conrady", "modified_brown_conrady", "opencv")
@@ -102,3 +103,53 @@ def square_contrast(color: NDArray[np.uint8], pose: NDArray[np.float64], intr: I
 def flip_board(det: Detection, board: Board) -> Detection:
     """The same plain-chessboard detection with its corner order reversed (board turned by 180 deg)."""
     return Detection(det.image_points[::-1].copy(), det.object_points, det.ids, det.markers)
+
+
+def normal_std_deg(pose: NDArray[np.float64], object_points: NDArray[np.float64], intr: Intrinsics,
+                   sigma_px: float, frames: int = 1) -> float:
+    """Standard deviation (deg) of the board normal's direction from corner noise (Cramer-Rao).
+
+    Gauss-Newton covariance of the 6-dof pose, sigma^2 (J^T J)^-1 / frames, with J the Jacobian of
+    the corners' projections; the normal's 2x2 tangent covariance follows from the rotation part.
+    Returned: the larger axis (the worse of the two tilts). For a still camera `frames` frames of
+    independent corner noise average like one pose from all corners; a static corner bias (the same
+    every frame) does not average and is not in this figure. At 0 deg the reported inclination is
+    the folded |tilt| and reads ~1.25 x this on average (Rayleigh).
+    """
+    obj = np.asarray(object_points, dtype=np.float64)
+    k = intr.K
+    dist = dist_coeffs(intr)
+    cam = obj @ pose[:3, :3].T  # rotated board points (the rotation vector near pi is unstable)
+    t0 = pose[:3, 3]
+
+    def project(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        pts = cam @ rodrigues(p[:3]).T + t0 + p[3:]
+        uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), k, dist)
+        return np.asarray(uv, dtype=np.float64).reshape(-1)
+
+    eps = 1e-6
+    base = project(np.zeros(6))
+    jac = np.empty((base.size, 6))
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = eps
+        jac[:, i] = (project(d) - base) / eps
+    try:
+        cov = sigma_px**2 / max(frames, 1) * np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    # a small rotation w (camera frame, left-multiplied) moves the normal n by w x n
+    n = pose[:3, 2]
+    cross = np.array([[0.0, n[2], -n[1]], [-n[2], 0.0, n[0]], [n[1], -n[0], 0.0]])  # d(w x n)/dw
+    cov_n = cross @ cov[:3, :3] @ cross.T  # rank 2, in the plane orthogonal to n
+    return float(np.degrees(np.sqrt(max(float(np.linalg.eigvalsh(cov_n)[-1]), 0.0))))
+
+
+def corner_noise_px(pose: BoardPose | NDArray[np.float64], det: Detection, intr: Intrinsics) -> float:
+    """Per-coordinate corner noise (px) from the reprojection residuals (2N - 6 degrees of freedom)."""
+    m = pose.matrix if isinstance(pose, BoardPose) else pose
+    rvec = cv2.Rodrigues(m[:3, :3])[0]
+    uv, _ = cv2.projectPoints(det.object_points, rvec, m[:3, 3], intr.K, dist_coeffs(intr))
+    res = np.asarray(uv, dtype=np.float64).reshape(-1, 2) - det.image_points
+    dof = max(res.size - 6, 1)
+    return float(np.sqrt(np.sum(res**2) / dof))
