@@ -3,6 +3,9 @@
 Run: .venv/bin/python benchmarks/bench_checkerboard.py [--frames 150] [--distance 2.0] [--inclination 30]
 Frames are rendered first (not timed); the timed part is evaluate_frames (detection, pose, mask,
 moments, aggregation) in one process.
+`--corners`: instead, the corner error of each refinement (cornerSubPix, findChessboardCornersSB
+with CALIB_CB_ACCURACY, the X-junction fit of corners.py) on the simulator's exact-coverage colour
+(noise-free, i.e. the static error a still standpoint keeps), against the projected true corners.
 """
 
 from __future__ import annotations
@@ -28,7 +31,11 @@ def main() -> None:
     ap.add_argument("--distance", type=float, default=2.0)
     ap.add_argument("--inclination", type=float, default=30.0)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--corners", action="store_true")
     a = ap.parse_args()
+    if a.corners:
+        corner_errors()
+        return
     intr = Intrinsics(1280, 720, 640.0, 640.0, 639.5, 359.5)
     info = StreamInfo(intr, intr, depth_units_m=0.001, depth_aligned_to_color=True)
     board = Board()
@@ -55,6 +62,60 @@ def main() -> None:
           f"{r.figures['pixels_per_frame']:.0f} board pixels per frame, {r.frames_used} used")
     print(f"median {med:.2f} s = {a.frames / med:.1f} frames/s (best {a.frames / best:.1f}); "
           f"target 30 frames/s -> ratio {a.frames / med / 30:.2f}")
+
+
+def corner_errors() -> None:
+    """RMS and max static corner error (px) per method over 1-5 m x 0-60 deg at 1280x720."""
+    import cv2
+
+    from evaluate.checkerboard.corners import refine_xjunctions
+    from evaluate.checkerboard.pose import dist_coeffs
+    from simulate.model import load_model
+    from simulate.poses import standpoint_pose
+    from simulate.render import encode_srgb, render_color_linear
+    from simulate.scene import board_scene
+
+    board = Board()
+    model = load_model("d455")
+    scene = board_scene(board)
+    rc = scene.raycasting_scene()
+    info = model.camera.stream_info(1280, 720, 30.0)
+    ci = info.color_intrinsics
+    assert ci is not None
+    obj = board.corner_points()
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
+    print("standpoint      square | cornerSubPix rms/max | SB+ACCURACY rms/max | X-junction rms/max  (px)")
+    for dist, incl in [(1.0, 0), (2.6, 0), (4.0, 0), (5.0, 0), (1.0, 60), (3.0, 60), (5.0, 30), (5.0, 60)]:
+        cam_to_board = standpoint_pose(board, dist, incl, "left")
+        cpose = cam_to_board @ np.linalg.inv(info.depth_to_color.matrix)
+        gray = encode_srgb(render_color_linear(scene, ci, cpose, rc))[..., 1]
+        b2c = np.linalg.inv(cpose)
+        truth, _ = cv2.projectPoints(obj @ b2c[:3, :3].T + b2c[:3, 3], np.zeros(3), np.zeros(3), ci.K,
+                                     dist_coeffs(ci))
+        truth = truth.reshape(-1, 2)
+        found, c0 = cv2.findChessboardCorners(gray, board.inner_corners)
+        if not found:
+            print(f"{dist} m {incl} deg: not found")
+            continue
+        c0 = c0.reshape(-1, 2)
+        if np.linalg.norm(c0[0] - truth[0]) > 5:
+            c0 = c0[::-1].copy()
+        half = int(np.clip(np.min(np.linalg.norm(np.diff(c0, axis=0), axis=1)) / 4, 2, 11))
+        sub = cv2.cornerSubPix(gray, c0.reshape(-1, 1, 2).copy(), (half, half), (-1, -1), crit).reshape(-1, 2)
+        ok, sb = cv2.findChessboardCornersSB(gray, board.inner_corners, flags=cv2.CALIB_CB_ACCURACY)
+        sbp = sb.reshape(-1, 2) if ok else None
+        if sbp is not None and np.linalg.norm(sbp[0] - truth[0]) > 5:
+            sbp = sbp[::-1]
+        xj, _ = refine_xjunctions(gray, sub.astype(np.float64), obj)
+
+        def fmt(p: np.ndarray | None, truth: np.ndarray = truth) -> str:
+            if p is None:
+                return "     not found     "
+            e = p - truth
+            return f"{np.sqrt(np.mean(np.sum(e**2, axis=1))):.3f} / {np.abs(e).max():.3f}"
+
+        side = float(np.linalg.norm(truth[1] - truth[0]))
+        print(f"{dist:.1f} m {incl:2d} deg {side:6.1f} px |  {fmt(sub)}   |  {fmt(sbp)}    | {fmt(xj)}")
 
 
 if __name__ == "__main__":
