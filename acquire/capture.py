@@ -33,6 +33,13 @@ class CaptureInterrupted(CaptureError):
 
 
 END_OF_RANGE_FRAMES = 10  # consecutive frames with a collapsed fill rate before we call it
+MAX_POSE_STRIDE = 5  # during recording the board pose is measured on every 5th frame at most
+
+
+def pose_stride(frames: int) -> int:
+    """Measure the pose on every frame of a short standpoint, on every 5th of a long one (at least
+    10 poses go into the average)."""
+    return max(1, min(MAX_POSE_STRIDE, frames // 10))
 
 
 @dataclass
@@ -267,6 +274,7 @@ class GuidedCapture:
         }
         state.phase = "recording"
         state.recorded = 0
+        stride = pose_stride(n)
         poses: list[np.ndarray] = []
         with self.session.standpoint_writer(sp.name, self.info, meta) as writer:
             while state.recorded < n:
@@ -279,8 +287,9 @@ class GuidedCapture:
                     if temps:
                         writer.write_temperature(fs.timestamp_ns, temps)
                     self._last_temp_ns = fs.timestamp_ns
-                # the pose on every 3rd frame is plenty for the average and keeps 30 fps at 1280x720
-                pose = self._measure(fs)[0] if state.recorded % 3 == 1 else None
+                # the pose on every `stride`-th frame is plenty for the average (30 of 150) and keeps
+                # 30 fps at 1280x720: detection costs about a frame period there
+                pose = self._measure(fs)[0] if (state.recorded - 1) % stride == 0 else None
                 if pose is not None:
                     m = np.eye(4)
                     m[:3, :3], m[:3, 3] = pose.R, pose.t

@@ -74,7 +74,9 @@ class OperatorSettings:
     footing_deg: float = 0.7
     tremor_m: float = 0.0015  # hand tremor per frame (std per axis)
     tremor_deg: float = 0.08
-    update_hz: float = 30.0  # how often the held pose changes (a renderer re-renders on each change)
+    update_hz: float = 30.0  # how often the held pose changes while walking (each change is a re-render)
+    still_update_hz: float = 0.0  # the same while standing still; 0 = the tremor is drawn once per stop,
+    # so a camera held still shows one view (the simulated camera then only draws per-frame noise)
 
 
 @dataclass
@@ -90,22 +92,29 @@ class SimulatedOperator:
     _next_look_s: float = field(default=0.0, init=False)
     moves: int = field(default=0, init=False)
     _held: tuple[float, FloatArray] | None = field(default=None, init=False)
+    _held_still: bool = field(default=False, init=False)
 
     def __post_init__(self) -> None:
         self._rng = np.random.default_rng(self.seed)
 
     def pose(self, t_s: float) -> FloatArray:
         """Camera-to-board pose at time t (the walk in progress, plus tremor), held for
-        1 / `update_hz` seconds so a ray-casting renderer is not asked for a new view every frame."""
-        if self._held is not None and t_s < self._held[0] + 1.0 / self.settings.update_hz - 1e-9:
-            return self._held[1].copy()
+        1 / `update_hz` seconds while walking, and for 1 / `still_update_hz` (by default the
+        whole stop) while standing, so a ray-casting renderer is not asked for a new view every
+        frame. Time is the caller's (frame time), never the wall clock: a seed repeats a run."""
         st = self._current(t_s)
-        pose = st.camera_to_board(self.board)
         s = self.settings
+        still = self._move is None
+        if self._held is not None:
+            hz = s.still_update_hz if (still and self._held_still) else s.update_hz
+            if hz <= 0 or t_s < self._held[0] + 1.0 / hz - 1e-9:
+                return self._held[1].copy()
+        pose = st.camera_to_board(self.board)
         if s.tremor_m > 0 or s.tremor_deg > 0:
             pose[:3, 3] += self._rng.normal(0.0, s.tremor_m, 3)
             pose[:3, :3] = pose[:3, :3] @ rodrigues(np.radians(self._rng.normal(0.0, s.tremor_deg, 3)))
         self._held = (t_s, pose.copy())
+        self._held_still = still
         return pose
 
     def board_to_camera(self, t_s: float) -> FloatArray:
@@ -160,5 +169,6 @@ class SimulatedOperator:
         turn = float(np.abs(goal[3:] - cur[3:]).max())
         duration = max(0.3, walk / s.walk_speed_m_s, turn / s.turn_speed_deg_s)
         self._move = (t_s, t_s + duration, cur, goal)
+        self._held_still = False
         self._next_look_s = t_s + duration + s.reaction_s
         self.moves += 1
