@@ -241,9 +241,11 @@ class GuidedCapture:
             is_still = still.update(fs.timestamp_ns,
                                     None if pose is None else pose.center_in_camera(self.protocol.board))
             g = self._guidance(sp, pose, fill, is_still)
-            # end of range: the board is seen, the operator is past half the step, and depth is gone
+            # end of range: the board is seen within half a step of the target, and depth is gone
+            # (farther than that, as when a new trajectory starts from the last one's end, the
+            # operator is told to step closer and the fill rate there says nothing of the target)
             if pose is not None and fill is not None:
-                if pose.distance_m >= sp.distance_m - 0.5 * self.protocol.plan.step_m:
+                if abs(pose.distance_m - sp.distance_m) <= 0.5 * self.protocol.plan.step_m:
                     fills.append(fill)
                 else:
                     fills.clear()
@@ -303,6 +305,9 @@ class GuidedCapture:
             measured = self._measured(poses, n)
             meta["measured"] = measured
             writer.set_metadata("standpoint", meta)
+            truth = getattr(self.camera, "truth", None)
+            if callable(truth):  # a simulated camera knows where it was: the evaluation's reference
+                writer.set_metadata("truth", truth())
             self.dropped += int(getattr(writer, "dropped", 0))
         state.done.append(sp.name)
         state.phase = "done"

@@ -287,6 +287,31 @@ class SimulatedCamera:
             self._ctx_temp = (q, self._t_dev)
         return self._ctx_temp
 
+    def truth(self, margin_m: float = 0.01) -> dict[str, Any]:
+        """What the simulator knows of the latest frame (never shown to the station's guidance):
+        the depth camera's true board pose, its distance and inclination, and the depth noise the
+        model implies on the board's squares (RMS orthogonal to the board, quantisation included)."""
+        from acquire.boardpose import pose_metrics
+
+        r = self._renderer
+        if r is None or r.geometry is None or r._pose is None:
+            raise CameraError("simulated camera: no frame rendered yet")
+        cam_to_board = r._pose
+        b2c = np.asarray(np.linalg.inv(cam_to_board), dtype=np.float64)
+        d, inc, az = pose_metrics(self.board, b2c[:3, :3], b2c[:3, 3])
+        g = r.geometry
+        w, h = self.board.size_m
+        p = g.points_world
+        on_grid = ((p[..., 0] > margin_m) & (p[..., 0] < w - margin_m) & (p[..., 1] > margin_m)
+                   & (p[..., 1] < h - margin_m) & (np.abs(p[..., 2]) < 1e-4))
+        ctx = r.context(*(self._ctx_temp[::-1] if self._ctx_temp else (0.0, 40.0)))
+        var = np.broadcast_to(r.model.variance_m2(ctx), g.z_m.shape)
+        cos = np.cos(np.radians(g.inclination_deg))
+        noise = float(np.sqrt(np.mean((var * cos * cos)[on_grid]))) if on_grid.any() else float("nan")
+        return {"source": "simulated camera", "board_to_depth": b2c.tolist(),
+                "distance_m": d, "inclination_deg": inc, "azimuth_deg": az,
+                "noise_m": noise, "board_pixels": int(on_grid.sum()), "seed": self.seed}
+
     def device_info(self) -> dict[str, str]:
         return {k: str(v) for k, v in self.base_model.camera.device_info().items()}
 
