@@ -125,9 +125,14 @@ def test_concealed_focal_mismatch(plain_session: Path, tmp_path: Path) -> None:
 
 
 def test_concealed_dark_squares(plain_session: Path, tmp_path: Path) -> None:
-    """Black squares measured 2 mm/m^2 * z^2 farther: half of it hides in every all-pixel mean."""
+    """Range error 2 mm/m^2 * z^2 * (1 - reflectance): dark print returns less IR. The reflectance is
+    the simulator's truth albedo of the print (0.05 black, 0.85 white, not a 0/1 mask), so white
+    squares carry a sixth of the black ones' error; the all-pixel means hide most of it."""
+    from simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO
+
     def dark(z, u, v, black, t, temp, cam):  # type: ignore[no-untyped-def]
-        return np.where(black, 2e-3 * z * z, 0.0)
+        rho = np.where(black, BLACK_ALBEDO, WHITE_ALBEDO)
+        return 2e-3 * z * z * (1.0 - rho)
 
     data = _explain(conceal(plain_session, tmp_path / "real", dark), tmp_path / "out")
     top = data["candidates"][0]

@@ -13,13 +13,21 @@ def register(app: typer.Typer) -> None:
 
 
 def explain(
-    real: list[Path] = typer.Argument(..., help="Real captures: sessions, MCAP/.bag/.db3, PNG sets."),
-    board: Path = typer.Option(..., "--board", help="board.json or a protocol TOML with [board]."),
+    real: list[Path] = typer.Argument(..., help="Real captures: sessions, MCAP/.bag/.db3, PNG sets "
+                                      "(with --scan: the one sequence)."),
+    board: Path | None = typer.Option(None, "--board", help="board.json or a protocol TOML with [board]."),
     model: str = typer.Option("d455", "--model", help="Preset (d455, d435, d415) or a model TOML."),
     out: Path = typer.Option(..., "--out", help="Result folder (must be new or empty)."),
     frames: int = typer.Option(30, "--frames", help="Frames per standpoint to use."),
     seed: int = typer.Option(0, "--seed", help="Seed of the simulation."),
-    scan: bool = typer.Option(False, "--scan", help="Reference-scan sequences (not supported yet)."),
+    scan: bool = typer.Option(False, "--scan",
+                              help="REAL is a reference-scan sequence (needs --poses, --reference)."),
+    poses: Path | None = typer.Option(None, "--poses", help="--scan: TUM trajectory of the sequence."),
+    reference: Path | None = typer.Option(None, "--reference", help="--scan: reference mesh or cloud."),
+    similarity: Path | None = typer.Option(None, "--similarity", help="--scan: 4x4 trajectory-to-reference."),
+    icp: bool = typer.Option(True, "--icp/--no-icp", help="--scan: refine the registration by ICP."),
+    block_frames: int = typer.Option(8, "--block-frames",
+                                     help="--scan: frames per block (unit of independence)."),
     rrd: Path | None = typer.Option(None, "--rrd", help="Also write a rerun recording here."),
     spawn: bool = typer.Option(False, "--spawn", help="Open a rerun viewer."),
     serve: bool = typer.Option(False, "--serve", help="Serve a local rerun web viewer."),
@@ -36,13 +44,17 @@ def explain(
     from evaluate.explain.report import write_outputs
     from simulate.model import load_model
 
-    if scan:
-        raise InputError(None, "--scan: explain for reference-scan sequences is not implemented yet")
     for p in real:
         if not p.exists():
             raise InputError(p, "not found")
     if out.exists() and any(out.iterdir()):
         raise InputError(out, "is not empty; explain never overwrites results")
+    if scan:
+        _explain_scan(real, poses, reference, model, out, frames, seed, similarity, icp, block_frames,
+                      not no_resimulate)
+        return
+    if board is None:
+        raise InputError(None, "--board is needed for checkerboard sessions")
     if workers < 1:
         raise InputError(None, "--workers must be at least 1")
     if frames < 2:
@@ -66,5 +78,39 @@ def explain(
 
         log_explanation(ex, target)
     verdict = ("significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch")
+    typer.echo(f"{verdict}; selected: {', '.join(data['selected']) or 'nothing'}; "
+               f"missing physics: {', '.join(data['missing_physics']) or 'none'}; results in {out}")
+
+
+def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, model: str, out: Path,
+                  frames: int, seed: int, similarity: Path | None, icp: bool, block_frames: int,
+                  resimulate: bool) -> None:
+    """`explain --scan`: a reference-scan sequence against its simulation along the same trajectory."""
+    from depthstation.errors import InputError
+    from depthstation.progress import stderr_console
+    from evaluate.explain.scan import explain_scan, write_scan_outputs
+    from simulate.model import load_model
+
+    if len(real) != 1:
+        raise InputError(None, "--scan takes exactly one sequence")
+    if poses is None or reference is None:
+        raise InputError(None, "--scan needs --poses (TUM trajectory) and --reference (mesh or cloud)")
+    for p in (poses, reference):
+        if not p.exists():
+            raise InputError(p, "not found")
+    if block_frames < 1:
+        raise InputError(None, "--block-frames must be at least 1")
+    mdl = load_model(model)
+
+    def tick(msg: str) -> None:
+        stderr_console.print(f"[bold]explain --scan[/]: {msg}")
+
+    ex = explain_scan(real[0], poses, reference, mdl, out, frames=frames, block_frames=block_frames,
+                      seed=seed, icp=icp, similarity=similarity, resimulate=resimulate, tick=tick)
+    data = write_scan_outputs(ex, out, [str(real[0]), str(poses), str(reference)],
+                              {"model": model, "frames": frames, "seed": seed, "icp": icp,
+                               "block_frames": block_frames,
+                               "similarity": str(similarity) if similarity else None})
+    verdict = "significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch"
     typer.echo(f"{verdict}; selected: {', '.join(data['selected']) or 'nothing'}; "
                f"missing physics: {', '.join(data['missing_physics']) or 'none'}; results in {out}")

@@ -56,8 +56,13 @@ def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: f
     """Contract-3 `PixelSamples` of several standpoints into one `Samples` (z-depth errors).
 
     Pixels that are neither black nor white (square edges, ChArUco markers) are left out, so the
-    albedo axis stays two clean classes.
+    albedo axis stays two clean classes. Each class carries the reflectance the simulator gives that
+    print (`simulate.scene` BLACK_ALBEDO / WHITE_ALBEDO), not 0/1: the effects' signatures must be
+    evaluated on the same `PixelContext.albedo` the simulator feeds them, or an albedo effect fitted
+    on a 0/1 axis reaches the white squares (albedo 0.85, not 1) when the new model is simulated.
     """
+    from simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO
+
     names = [r.name for r in results if r.samples is not None and len(r.samples)]
     if not names:
         raise EvaluationError("no standpoint gave board pixels to compare")
@@ -82,7 +87,8 @@ def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: f
             names=names, fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy, baseline_m=baseline_m,
             standpoint=names.index(r.name), frame=ps.frame[keep], u=ps.u[keep], v=ps.v[keep],
             z_ref_m=z_ref, err_m=ps.z_meas_m[keep].astype(np.float64) - z_ref,
-            inclination_deg=ps.inclination_deg[keep], albedo=ps.is_white[keep].astype(np.float64),
+            inclination_deg=ps.inclination_deg[keep],
+            albedo=np.where(ps.is_white[keep], WHITE_ALBEDO, BLACK_ALBEDO),
             time_s=(ps.timestamp_ns[keep] - t0_ns) / 1e9, temperature_c=ps.temperature_c[keep],
             ref_err_m=ref_err))
     return thin(concat(parts), MAX_SAMPLES_PER_FRAME)

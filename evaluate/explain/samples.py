@@ -21,7 +21,8 @@ IntArray = NDArray[np.int64]
 class Samples:
     """One row per (frame, pixel) on the board; `err_m` = measured - reference z-depth (+ = too far).
 
-    `standpoint` indexes `names`. `albedo` is 0 on black squares and 1 on white ones. Time is
+    `standpoint` indexes `names`. `albedo` is the reflectance of the square (the print's
+    albedo as the simulator renders it: low on black squares, high on white ones; >= 0.5 = white). Time is
     seconds since the start of the session (so drift across standpoints shows); temperature is NaN
     where the source has none; `edge_px` is the distance to the nearest depth edge (inf if none).
     """
