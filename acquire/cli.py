@@ -113,13 +113,17 @@ def do_warmup(st: Station, interval_s: float, accelerate: float, target: Any) ->
     clock: Callable[[], float] = time.monotonic
     sleep: Callable[[float], None] = time.sleep
     if accelerate > 1.0:
-        # an accelerated clock: time runs `accelerate` times faster; a simulated camera follows it
-        t0 = time.monotonic()
+        # An accelerated, simulated clock: device time advances by exactly what the loop sleeps,
+        # and the loop sleeps that much / `accelerate` of wall time. The wall time spent fetching
+        # a frame does not count, so the warm-up curve is sampled every interval whatever the load
+        # of the machine (a wall-clock multiple would turn 0.3 s of rendering into 2 min).
+        virtual = [0.0]
 
         def fast_clock() -> float:
-            return (time.monotonic() - t0) * accelerate
+            return virtual[0]
 
         def fast_sleep(s: float) -> None:
+            virtual[0] += s
             time.sleep(s / accelerate)
         clock, sleep = fast_clock, fast_sleep
         if hasattr(st.camera, "set_clock"):
