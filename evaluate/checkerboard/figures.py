@@ -58,10 +58,15 @@ def _usable(results: list[StandpointResult]) -> list[StandpointResult]:
 
 
 def fig4_reference_std(path: Path, results: list[StandpointResult]) -> Path:
-    """Spread of the per-frame reference distances per standpoint (pose-estimation noise)."""
+    """Spread of the per-frame reference distances, and the reference pose's own tilt uncertainty.
+
+    Left: std of the per-frame reference distances (the paper's Fig. 4). Right: the inclination's
+    uncertainty from random corner noise: per frame (predicted Cramer-Rao x sqrt(frames) against
+    the measured std over frames) and of the averaged pose. Static corner bias is not in it.
+    """
     plt = _plt()
     rs = _usable(results)
-    fig, ax = plt.subplots(figsize=(8, 5))
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(14, 5))
     d = np.array([r.figures["distance_m"] for r in rs])
     inc = np.array([r.figures["inclination_deg"] for r in rs])
     std = np.array([r.figures.get("reference_distance_std_m", np.nan) for r in rs]) * 1000
@@ -71,8 +76,28 @@ def fig4_reference_std(path: Path, results: list[StandpointResult]) -> Path:
     fig.colorbar(sc, ax=ax, label="inclination (deg)")
     ax.set_xlabel("distance (m)")
     ax.set_ylabel("std of reference distance over frames (mm)")
-    ax.set_title("Fig. 4: reference-distance spread per standpoint")
+    ax.set_title("reference-distance spread per standpoint")
     ax.grid(alpha=0.3)
+    n = np.array([max(r.frames_used, 1) for r in rs], dtype=np.float64)
+    mean_pose = np.array([r.figures.get("inclination_std_deg", np.nan) for r in rs])
+    one_frame = mean_pose * np.sqrt(n)
+    measured = np.array([r.figures.get("inclination_frame_std_deg", np.nan) for r in rs])
+    kw = {"c": inc, "cmap": "viridis", "vmin": 0, "vmax": 90, "edgecolors": "k"}
+    sc2 = ax2.scatter(d, one_frame, marker="o", s=50, label="1 frame, predicted (corner noise)", **kw)
+    ax2.scatter(d, measured, marker="x", s=50, label="1 frame, measured (std over frames)",
+                **{k: v for k, v in kw.items() if k != "edgecolors"})
+    ax2.scatter(d, mean_pose, marker="s", s=30, label="averaged pose, predicted", **kw)
+    for r, x, y in zip(rs, d, one_frame, strict=True):
+        ax2.annotate(r.name, (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    fig.colorbar(sc2, ax=ax2, label="inclination (deg)")
+    if np.any(np.isfinite(one_frame) & (one_frame > 0)) or np.any(np.isfinite(measured) & (measured > 0)):
+        ax2.set_yscale("log")
+    ax2.set_xlabel("distance (m)")
+    ax2.set_ylabel("std of the pose inclination (deg)")
+    ax2.set_title("reference pose tilt from random corner noise (no static bias)")
+    ax2.legend(fontsize=7)
+    ax2.grid(alpha=0.3, which="both")
+    fig.suptitle("Fig. 4: uncertainty of the reference pose per standpoint")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)

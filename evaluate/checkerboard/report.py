@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -11,7 +12,8 @@ import numpy as np
 
 from depthstation.board import Board
 from depthstation.results import software_versions, write_json, write_result_info
-from evaluate.checkerboard.study import StandpointResult
+from evaluate.checkerboard.frame import FrameResult
+from evaluate.checkerboard.study import StandpointResult, frame_corner_noise_px, frame_inclination_deg
 
 COLUMNS = ("standpoint", "frames", "frames_read", "distance_m", "inclination_deg",
            "inclination_depth_deg", "pose_depth_normal_angle_deg",
@@ -21,12 +23,16 @@ COLUMNS = ("standpoint", "frames", "frames_read", "distance_m", "inclination_deg
            "accuracy_black_m", "accuracy_black_std_m", "accuracy_white_m", "accuracy_white_std_m",
            "noise_black_white_p", "noise_black_white_paired_p", "accuracy_black_white_p",
            "accuracy_black_white_paired_p", "accuracy_frame_pose_m", "reprojection_px",
-           "corner_shift_px", "pixels_per_frame", "reference_plane")
+           "corner_shift_px", "pixels_per_frame", "corner_noise_px", "inclination_std_deg",
+           "inclination_frame_std_deg", "reference_plane")
 FRAME_COLUMNS = ("standpoint", "index", "timestamp_ns", "status", "corners", "reprojection_px",
                  "corner_shift_px", "reference_distance_m", "board_pixels", "valid_pixels",
                  "fill_rate", "noise_m", "noise_black_m", "noise_white_m", "accuracy_m",
                  "accuracy_rms_m", "accuracy_black_m", "accuracy_white_m", "accuracy_own_m",
-                 "temperature_c")
+                 "temperature_c", "corner_noise_px", "inclination_deg")
+# frames.csv columns derived from a FrameResult rather than stored on it
+_FRAME_DERIVED: dict[str, Callable[[FrameResult, Board], float]] = {
+    "corner_noise_px": lambda f, board: frame_corner_noise_px(f), "inclination_deg": frame_inclination_deg}
 
 
 def _cell(v: Any) -> Any:
@@ -40,7 +46,16 @@ def standpoint_row(r: StandpointResult) -> dict[str, Any]:
     return {c: _cell(row.get(c, float("nan"))) for c in COLUMNS}
 
 
-def write_tables(out: Path, results: list[StandpointResult]) -> None:
+def frame_row(r: StandpointResult, f: FrameResult, board: Board) -> dict[str, Any]:
+    """One row of frames.csv (a frame's own corner noise and pose inclination included)."""
+    row = {"standpoint": r.name}
+    for c in FRAME_COLUMNS[1:]:
+        derive = _FRAME_DERIVED.get(c)
+        row[c] = _cell(derive(f, board) if derive is not None else getattr(f, c))
+    return row
+
+
+def write_tables(out: Path, results: list[StandpointResult], board: Board) -> None:
     """standpoints.csv (one row per standpoint) and frames.csv (one row per frame read)."""
     with (out / "standpoints.csv").open("w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS)
@@ -52,7 +67,7 @@ def write_tables(out: Path, results: list[StandpointResult]) -> None:
         w.writeheader()
         for r in results:
             for f in r.frames:
-                w.writerow({"standpoint": r.name, **{c: _cell(getattr(f, c)) for c in FRAME_COLUMNS[1:]}})
+                w.writerow(frame_row(r, f, board))
 
 
 def summary(results: list[StandpointResult], board: Board, inputs: list[str],
@@ -79,6 +94,12 @@ def summary(results: list[StandpointResult], board: Board, inputs: list[str],
                        "inclination = ray to centre vs board normal; noise = RMS orthogonal "
                        "residual to the frame's SVD plane; accuracy = mean signed orthogonal "
                        "distance to the reference plane, positive = behind it (too far).",
+        "pose_uncertainty": "inclination_std_deg = Cramer-Rao std of the averaged pose's normal "
+                            "(worse tilt axis) from the mean per-frame corner noise (corner_noise_px, "
+                            "from reprojection residuals) over the frames used; "
+                            "inclination_frame_std_deg = std of the per-frame pose inclinations. "
+                            "Random corner noise only: a static corner bias (the same every frame) "
+                            "is not in either and does not average out.",
     }
 
 
@@ -86,7 +107,7 @@ def write_study(out: Path, results: list[StandpointResult], board: Board, inputs
                 parameters: dict[str, Any], device: dict[str, Any], figures: bool = True) -> list[Path]:
     """Write the whole result folder; returns the figure files."""
     out.mkdir(parents=True, exist_ok=True)
-    write_tables(out, results)
+    write_tables(out, results, board)
     write_json(out / "summary.json", summary(results, board, inputs, parameters, device))
     pngs: list[Path] = []
     if figures:

@@ -12,13 +12,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.board import Board
-from depthstation.camera import StreamInfo
+from depthstation.camera import Intrinsics, StreamInfo
 from depthstation.errors import EvaluationError
 from depthstation.frames import FrameSet
 from depthstation.geometry import average_poses, inclination_deg
 from evaluate.checkerboard.frame import FrameEvaluator, FramePixels, FrameResult
 from evaluate.checkerboard.mask import BLACK, WHITE
 from evaluate.checkerboard.metrics import plane_distance_stats
+from evaluate.checkerboard.pose import normal_std_deg
 
 FrameCallback = Callable[[FrameSet, FrameResult], None]
 
@@ -107,6 +108,49 @@ def _mean_std(values: list[float]) -> tuple[float, float]:
     if a.size == 0:
         return float("nan"), float("nan")
     return float(a.mean()), float(a.std(ddof=1)) if a.size > 1 else float("nan")
+
+
+def frame_corner_noise_px(r: FrameResult) -> float:
+    """Per-coordinate corner noise (px) of one frame from its reprojection residuals.
+
+    The same figure as `pose.corner_noise_px` (residual sum of squares over 2N - 6 degrees of
+    freedom), recovered exactly from the frame's RMS over its N corners, so no residual has to be
+    kept. It holds random noise plus the part of a static corner error the pose cannot absorb.
+    """
+    if not np.isfinite(r.reprojection_px) or r.corners < 1:
+        return float("nan")
+    return float(r.reprojection_px * np.sqrt(r.corners / max(2 * r.corners - 6, 1)))
+
+
+def frame_inclination_deg(r: FrameResult, board: Board) -> float:
+    """Inclination (deg) from this frame's own pose alone: depth-camera ray to the centre vs normal."""
+    if r.pose_depth is None:
+        return float("nan")
+    return float(inclination_deg(r.pose_depth[:3, :3] @ board.center + r.pose_depth[:3, 3],
+                                 r.pose_depth[:3, 2]))
+
+
+def pose_uncertainty(ok: list[FrameResult], board: Board, intr: Intrinsics,
+                     camera_in_board: NDArray[np.float64]) -> dict[str, float]:
+    """The reference pose's own uncertainty from random corner noise (paper Fig. 4's concern).
+
+    inclination_std_deg: Cramer-Rao std of the averaged pose's normal direction (the worse tilt
+    axis) from the mean per-frame corner noise over the frames used; an upper bound of the
+    inclination's std (equal when the worse tilt lies in the plane of ray and normal).
+    inclination_frame_std_deg: the empirical std of the per-frame pose inclinations (single
+    frame; compare with inclination_std_deg x sqrt(frames)). Neither contains a static corner
+    bias, which is the same in every frame and does not average.
+    """
+    noise = _mean_std([frame_corner_noise_px(r) for r in ok])[0]
+    f = {"corner_noise_px": noise}
+    if np.isfinite(noise):
+        pose = np.asarray(np.linalg.inv(camera_in_board), dtype=np.float64)  # board -> colour
+        f["inclination_std_deg"] = normal_std_deg(pose, board.corner_points(),
+                                                  intr, noise, frames=len(ok))
+    else:
+        f["inclination_std_deg"] = float("nan")
+    f["inclination_frame_std_deg"] = _mean_std([frame_inclination_deg(r, board) for r in ok])[1]
+    return f
 
 
 def colour_tests(black: list[float], white: list[float]) -> tuple[float, float]:
@@ -242,6 +286,7 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
             f["pose_depth_normal_angle_deg"] = _angle_deg(depth_normal, normal)
     f["reference_distance_std_m"] = _mean_std([r.reference_distance_m for r in ok])[1]
     f["reprojection_px"] = _mean_std([r.reprojection_px for r in ok])[0]
+    f.update(pose_uncertainty(ok, board, _colour_intrinsics(info), out.camera_in_board))
     f["fill_rate"], f["fill_rate_std"] = _mean_std([r.fill_rate for r in posed])
     for key in ("noise", "accuracy", "accuracy_rms", "noise_black", "noise_white",
                 "accuracy_black", "accuracy_white"):
@@ -265,6 +310,11 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
     if kept is not None:
         out.samples = _samples(kept, info, pose, use_frame)
     return out
+
+
+def _colour_intrinsics(info: StreamInfo) -> Intrinsics:
+    """The intrinsics the poses were estimated with (as FrameEvaluator picks them)."""
+    return info.color_intrinsics or info.depth_intrinsics
 
 
 def _angle_deg(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
