@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,7 @@ from depthstation.frames import FrameSet
 # hidden(z, u, v, black, t_s, temperature, cam) -> z error (m); cam holds fx, ppx, ppy, baseline_m
 Hidden = Callable[..., Any]
 WARM_C = 40.0
+DITHER_SEED = 20240
 
 
 def board_black(board: Board, cam_to_board: np.ndarray, fx: float, fy: float, ppx: float, ppy: float,
@@ -43,8 +45,6 @@ def wide_protocol(width: int = 640, height: int = 360) -> Any:
     z^2 (disparity offset) and z (depth scale) differ by a factor 5 in shape over this span, and
     the board is still found at 5 m at 640x360.
     """
-    from dataclasses import replace
-
     from depthstation.protocol import load_protocol
 
     p = load_protocol("demo-d455")
@@ -87,10 +87,24 @@ def conceal(sim_dir: Path, out_dir: Path, hidden: Hidden | None, *, warmup_tau_s
             assert fs.depth is not None
             z = fs.depth.astype(np.float64) * units
             valid = fs.depth > 0
+            out_units = units
             if hidden is not None:
-                z = z + hidden(z, u, v, black, t_s, temp, cam)
-            depth = np.where(valid, np.clip(np.rint(z / units), 1, 65535), 0).astype(np.uint16)
+                # the simulated depth is already rounded to 1 mm; adding an error below half a unit
+                # to it and rounding again would erase it (at a flat 1 m standpoint 0.3 mm became 0
+                # on every pixel, 1.2 mm became 1 mm). The concealed camera reports 0.1 mm units
+                # (a D4xx setting), with uniform dither of that unit so its rounding is unbiased.
+                out_units = units / 10
+                rng = np.random.default_rng([DITHER_SEED, k, i])
+                with np.errstate(divide="ignore", invalid="ignore"):   # z = 0 where there is no depth
+                    z = z + hidden(z, u, v, black, t_s, temp, cam) + out_units * (rng.random(z.shape) - 0.5)
+            counts = np.rint(z / out_units)
+            depth = np.where(valid & (counts < 65535), np.clip(counts, 1, 65535), 0).astype(np.uint16)
             frames.append(FrameSet(fs.index, fs.timestamp_ns, depth, fs.color, fs.infrared,
                                    {**fs.metadata, "temperature_c": float(temp)}))
-        write_mcap(out_dir / f"{rec.name}.mcap", rec.info, frames, dict(rec.metadata))
+        meta = dict(rec.metadata)
+        info = rec.info
+        if hidden is not None:
+            info = replace(rec.info, depth_units_m=units / 10)
+            meta["device"] = {**(meta.get("device") or {}), "depth_units_m": units / 10}
+        write_mcap(out_dir / f"{rec.name}.mcap", info, frames, meta)
     return out_dir
