@@ -18,12 +18,20 @@ from typing import Any
 import numpy as np
 
 from acquire.boardpose import BoardPose, board_mask, board_pose, fill_rate
-from acquire.guidance import Guidance, StillnessTracker, end_of_range, guide
+from acquire.guidance import Guidance, StillnessTracker, centres_agree, end_of_range, guide
 from depthstation.camera import StreamInfo
 from depthstation.errors import CameraDisconnected, CameraError, CaptureError
 from depthstation.frames import FrameSet
 from depthstation.geometry import average_poses
 from depthstation.protocol import Protocol, Standpoint
+
+
+class CameraMoved(CaptureError):
+    """The board pose on the recorded frames left the stillness tolerances: the take is discarded."""
+
+
+MOVED_MESSAGE = "camera moved during recording: hold still; recording again"
+NOTICE_SECONDS = 3.0  # a fault notice stays in front of the guidance this long (frame time)
 
 
 class CaptureInterrupted(CaptureError):
@@ -93,6 +101,7 @@ class GuidedCapture:
         self.events: list[dict[str, Any]] = []
         self.skipped: dict[str, str] = {}
         self.dropped = 0
+        self.retakes = 0  # takes discarded because the camera moved while recording
         self._t0_ns: int | None = None
         self._last_temp_ns = 0
 
@@ -209,12 +218,26 @@ class GuidedCapture:
         self.session.set("capture", {"skipped": dict(self.skipped), "events": list(self.events)})
 
     def _standpoint(self, sp: Standpoint, state: LiveState) -> StandpointOutcome:
-        """Guide, then record; a disconnect during either restarts the standpoint after reconnect."""
+        """Guide, then record; a disconnect during either restarts the standpoint after reconnect,
+        a camera that moved while recording has its take set aside and recorded again."""
+        notice = ""
         while True:
             try:
-                if self._guide_until_ready(sp, state) == "end_of_range":
+                if self._guide_until_ready(sp, state, notice) == "end_of_range":
                     return StandpointOutcome(sp.name, "end_of_range")
                 return self._record(sp, state)
+            except CameraMoved as exc:
+                # the writer closed the take as 'partial'; keep it aside (never deleted) and redo it
+                self.retakes += 1
+                self.session.discard(sp.name, str(exc))
+                self.events.append({"event": "camera_moved", "standpoint": sp.name,
+                                    "frames_recorded": state.recorded, "error": str(exc),
+                                    "time_ns": time.time_ns()})
+                self._save_log()
+                state.recorded = 0
+                state.phase = "guiding"
+                state.message = notice = MOVED_MESSAGE
+                self._emit(state)
             except CameraDisconnected as exc:
                 self.events.append({"event": "disconnected", "standpoint": sp.name, "during": state.phase,
                                     "frames_recorded": state.recorded, "error": str(exc),
@@ -227,7 +250,9 @@ class GuidedCapture:
                 self._reconnect(state)
                 state.phase = "guiding"
 
-    def _guide_until_ready(self, sp: Standpoint, state: LiveState) -> str:
+    def _guide_until_ready(self, sp: Standpoint, state: LiveState, notice: str = "") -> str:
+        """Guide until in tolerance and still ('ready') or the end of the range; `notice` (why the
+        standpoint starts again) stays in front of the guidance for NOTICE_SECONDS."""
         tol = self.protocol.tolerances
         still = StillnessTracker.from_tolerances(tol)
         fills: list[float] = []
@@ -255,6 +280,8 @@ class GuidedCapture:
                 self._emit(state)
                 return "end_of_range"
             state.frame, state.pose, state.guidance, state.message = fs, pose, g, g.text
+            if notice and t - t_start < NOTICE_SECONDS:
+                state.message = f"{notice}; {g.text}"
             self._emit(state)
             if g.in_tolerance and is_still:
                 return "ready"
@@ -278,6 +305,7 @@ class GuidedCapture:
         state.recorded = 0
         stride = pose_stride(n)
         poses: list[np.ndarray] = []
+        centres: list[np.ndarray] = []
         with self.session.standpoint_writer(sp.name, self.info, meta) as writer:
             while state.recorded < n:
                 fs = self._frame()
@@ -296,6 +324,10 @@ class GuidedCapture:
                     m = np.eye(4)
                     m[:3, :3], m[:3, 3] = pose.R, pose.t
                     poses.append(m)
+                    centres.append(pose.center_in_camera(self.protocol.board))
+                    moved = self._moved(centres)
+                    if moved is not None:
+                        raise CameraMoved(f"{sp.name}: {moved} after {state.recorded} frames")
                 state.frame = fs
                 state.pose = pose or state.pose
                 state.message = f"recording {sp.name}: {state.recorded}/{n} frames, hold still"
@@ -313,6 +345,22 @@ class GuidedCapture:
         state.phase = "done"
         self._emit(state)
         return StandpointOutcome(sp.name, "complete", measured, n)
+
+    def _moved(self, centres: list[np.ndarray]) -> str | None:
+        """Why the take is not still (the newest sampled board centre left the stillness tolerances
+        against any earlier one of this take), or None. Judged as the stillness before recording
+        is, on the board centre in the camera frame: the take's spread stays within the tolerances."""
+        tol = self.protocol.tolerances
+        c = centres[-1]
+        for i, c_i in enumerate(centres[:-1]):
+            if not centres_agree(c_i, c, tol.still_translation_m, tol.still_rotation_deg):
+                shift = float(np.linalg.norm(c - c_i))
+                cos = float(np.dot(c, c_i) / (np.linalg.norm(c) * np.linalg.norm(c_i)))
+                turn = float(np.degrees(np.arccos(min(1.0, max(-1.0, cos)))))
+                return (f"camera moved {100 * shift:.1f} cm / {turn:.2f}° between sampled frames {i + 1} "
+                        f"and {len(centres)} (tolerance {100 * tol.still_translation_m:.1f} cm / "
+                        f"{tol.still_rotation_deg:g}°)")
+        return None
 
     def _measured(self, poses: list[np.ndarray], n: int) -> dict[str, Any]:
         """The averaged board pose of the recorded frames (as the paper averages 150 EPnP poses)."""

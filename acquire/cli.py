@@ -183,7 +183,7 @@ def do_capture(st: Station, target: Any, max_guidance_s: float | None) -> list[A
     """The guided loop with the panel and rerun; a recording's end stops it cleanly."""
     import sys
 
-    from acquire.capture import CaptureInterrupted, GuidedCapture, LiveState
+    from acquire.capture import MOVED_MESSAGE, CaptureInterrupted, GuidedCapture, LiveState
     from acquire.views import BOARD_HELP, RerunView, TerminalPanel, blueprint
     from depthstation.viz import recording
 
@@ -205,6 +205,8 @@ def do_capture(st: Station, target: Any, max_guidance_s: float | None) -> list[A
                 v(state)
             if panel is None and state.phase == "done":
                 _say(f"{state.standpoint.name}: recorded {state.recorded} frames")
+            if panel is None and state.message == MOVED_MESSAGE:
+                _say(f"{state.standpoint.name}: {MOVED_MESSAGE}")
 
         cap = GuidedCapture(st.camera, st.protocol, st.session, on_guidance=on_guidance, on_state=on_state,
                             max_guidance_s=max_guidance_s)

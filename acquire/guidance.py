@@ -114,6 +114,12 @@ class StillnessTracker:
     `translation_m` and its bearing within `rotation_deg` of the latest frame. The board's own
     tilt from EPnP is left out: it jitters by tenths of a degree at a few metres even for a camera
     on a tripod, while a hand-held camera's turns and shifts all move the centre.
+
+    The latest frame must also sit where the camera has been standing: within half the tolerances
+    of the window's median centre. Without this, the first frames of a move (a step starts
+    slowly: 7 mm in its first frame) still agree with a window of frames taken standing, and
+    recording started just as the operator stepped off (standpoint_01 of the demo, recorded
+    while walking from 0.95 to 1.02 m).
     """
 
     seconds: float
@@ -130,11 +136,8 @@ class StillnessTracker:
     def reset(self) -> None:
         self._samples.clear()
 
-    def _agrees(self, a: NDArray[np.float64], b: NDArray[np.float64]) -> bool:
-        if float(np.linalg.norm(a - b)) > self.translation_m:
-            return False
-        cos = float(np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)))
-        return math.degrees(math.acos(min(1.0, max(-1.0, cos)))) <= self.rotation_deg
+    def _agrees(self, a: NDArray[np.float64], b: NDArray[np.float64], share: float = 1.0) -> bool:
+        return centres_agree(a, b, share * self.translation_m, share * self.rotation_deg)
 
     def update(self, t_ns: int, center: NDArray[np.float64] | None) -> bool:
         """Add one frame's board centre (camera frame; None = board lost, which restarts the
@@ -158,7 +161,21 @@ class StillnessTracker:
         # no need to remember more than the window (one sample at or before its start)
         while len(self._samples) > 1 and t_ns - self._samples[1][0] >= self.seconds * 1e9:
             self._samples.popleft()
-        return (t_ns - self._samples[0][0]) / 1e9 >= self.seconds - 1e-6
+        if (t_ns - self._samples[0][0]) / 1e9 < self.seconds - 1e-6:
+            return False
+        # settled: the latest frame has not started to leave where the camera stood in the window
+        median = np.median(np.stack([c_i for _, c_i in self._samples]), axis=0)
+        return self._agrees(median, c, 0.5)
+
+
+def centres_agree(a: NDArray[np.float64], b: NDArray[np.float64], translation_m: float,
+                  rotation_deg: float) -> bool:
+    """Two board centres (camera frame) within `translation_m` of each other and seen within
+    `rotation_deg` of the same bearing: the stillness measure of the tracker and of a recording."""
+    if float(np.linalg.norm(a - b)) > translation_m:
+        return False
+    cos = float(np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)))
+    return math.degrees(math.acos(min(1.0, max(-1.0, cos)))) <= rotation_deg
 
 
 def end_of_range(fill_rates: list[float], threshold: float, frames: int = 5) -> bool:

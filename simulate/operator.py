@@ -137,6 +137,18 @@ class SimulatedOperator:
     def moving(self) -> bool:
         return self._move is not None
 
+    def lapse(self, t_s: float, *, range_m: float = 0.0, azimuth_deg: float = 0.0, yaw_deg: float = 0.0,
+              pitch_deg: float = 0.0, duration_s: float = 0.5) -> None:
+        """An unprompted move (attention lapses, a step to keep balance) by these offsets from the
+        current stance, whatever the screen says: what the station's check of a take must catch."""
+        self._current(t_s)
+        cur = self.stance.as_array()
+        goal = cur + np.array([range_m, azimuth_deg, 0.0, yaw_deg, pitch_deg])
+        self._move = (t_s, t_s + max(duration_s, 1e-3), cur, goal)
+        self._held_still = False
+        self._next_look_s = t_s + duration_s + self.settings.reaction_s
+        self.moves += 1
+
     def step(self, guidance: Any, t_s: float) -> None:
         """Read the screen (when not walking and the reaction time has passed) and start a move."""
         self._current(t_s)
