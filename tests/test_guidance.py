@@ -132,6 +132,27 @@ def test_stillness_needs_the_whole_window() -> None:
     assert not tr.update(int(87 * 1e9 / 30), c2)
 
 
+def test_stillness_rejects_the_first_frames_of_a_step() -> None:
+    """The demo's standpoint_01: standing 0.43 s at 0.945 m, then a step back whose first frame
+    moves the centre 6.7 mm (inside the 1 cm of the window): the camera is leaving, not still."""
+    tr = StillnessTracker(seconds=0.5, translation_m=0.01, rotation_deg=0.5)
+    c = np.array([0.0, 0.0, 0.945])
+    for i in range(14):
+        tr.update(int(i * 1e9 / 30), c)
+    step = c + np.array([0.0, 0.0, 0.0067])
+    assert not tr.update(int(14 * 1e9 / 30), step)
+    assert not tr.update(int(15 * 1e9 / 30), step)  # the same view again: still the window's odd one
+    # where it stops, it becomes still once it stood there for the window
+    stop = c + np.array([0.0, 0.0, 0.073])
+    still = [tr.update(int(i * 1e9 / 30), stop) for i in range(16, 40)]
+    assert not any(still[:14]) and all(still[15:])
+    # tremor of 1 mm per axis at a stop does not keep a camera from being still
+    rng = np.random.default_rng(3)
+    tr2 = StillnessTracker(seconds=0.5, translation_m=0.01, rotation_deg=0.5)
+    still = [tr2.update(int(i * 1e9 / 30), c + rng.normal(0, 0.001, 3)) for i in range(60)]
+    assert sum(still[20:]) >= 35
+
+
 def test_end_of_range_and_fill_rate() -> None:
     r, t = pose_at(1.0, 0.0)
     from acquire.boardpose import BoardPose
