@@ -4,9 +4,10 @@ The residual lives on tiles (standpoint x frame block x pixel tile x black/white
 mean errors real minus sim, and separately of temporal variances. Each candidate effect's signature
 is averaged over the same pixels, giving a linear model fitted by weighted least squares. Selection
 is forward, by BIC; a candidate enters only if it also lowers the held-out RMSE (leave one standpoint
-out, or frame blocks when there are fewer than three standpoints) and its cluster-robust Wald test
-(clusters = frame blocks) is strong, because tiles of one frame block share noise and BIC alone
-would trust them too much.
+out, or frame blocks when there are fewer than three standpoints) and its Wald test is strong. The
+Wald test uses the covariance of the mixed model (random plane errors per standpoint and per frame
+block), which is what accounts for tiles of one frame block sharing noise, since BIC alone would
+trust them too much; it is model-based, not a sandwich estimate.
 """
 
 from __future__ import annotations
@@ -418,7 +419,7 @@ def _usable(t: Table, name: str) -> bool:
 
 def forward_select(t: Table, candidates: Sequence[Candidate], present: dict[str, dict[str, float]],
                    samples: Samples | None = None) -> list[CandidateFit]:
-    """Forward selection by BIC, gated by held-out RMSE and the robust Wald test; every candidate scored."""
+    """Forward selection by BIC, gated by held-out RMSE and the mixed-model Wald test; all scored."""
     pool = [c for c in candidates if c.kind == t.kind and c.name in t.X and _usable(t, c.name)]
     by_name = {c.name: c for c in pool}
     selected: list[str] = []
