@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from acquire.boardpose import BoardPose, board_mask, board_pose, fill_rate
-from acquire.guidance import Guidance, StillnessTracker, centres_agree, end_of_range, guide
+from acquire.guidance import Guidance, StillnessTracker, end_of_range, guide, points_agree
 from depthstation.camera import StreamInfo
 from depthstation.errors import CameraDisconnected, CameraError, CaptureError
 from depthstation.frames import FrameSet
@@ -264,7 +264,7 @@ class GuidedCapture:
             t_start = t if t_start is None else t_start
             pose, fill = self._measure(fs)
             is_still = still.update(fs.timestamp_ns,
-                                    None if pose is None else pose.center_in_camera(self.protocol.board))
+                                    None if pose is None else pose.stillness_points(self.protocol.board))
             g = self._guidance(sp, pose, fill, is_still)
             # end of range: the board is seen within half a step of the target, and depth is gone
             # (farther than that, as when a new trajectory starts from the last one's end, the
@@ -324,7 +324,7 @@ class GuidedCapture:
                     m = np.eye(4)
                     m[:3, :3], m[:3, 3] = pose.R, pose.t
                     poses.append(m)
-                    centres.append(pose.center_in_camera(self.protocol.board))
+                    centres.append(pose.stillness_points(self.protocol.board))
                     moved = self._moved(centres)
                     if moved is not None:
                         raise CameraMoved(f"{sp.name}: {moved} after {state.recorded} frames")
@@ -347,15 +347,16 @@ class GuidedCapture:
         return StandpointOutcome(sp.name, "complete", measured, n)
 
     def _moved(self, centres: list[np.ndarray]) -> str | None:
-        """Why the take is not still (the newest sampled board centre left the stillness tolerances
-        against any earlier one of this take), or None. Judged as the stillness before recording
-        is, on the board centre in the camera frame: the take's spread stays within the tolerances."""
+        """Why the take is not still (the newest sampled view of the board left the stillness
+        tolerances against any earlier one of this take), or None. Judged as the stillness before
+        recording is (centre and outer corners in the camera frame): the take's spread stays within
+        the tolerances."""
         tol = self.protocol.tolerances
         c = centres[-1]
         for i, c_i in enumerate(centres[:-1]):
-            if not centres_agree(c_i, c, tol.still_translation_m, tol.still_rotation_deg):
-                shift = float(np.linalg.norm(c - c_i))
-                cos = float(np.dot(c, c_i) / (np.linalg.norm(c) * np.linalg.norm(c_i)))
+            if not points_agree(c_i, c, tol.still_translation_m, tol.still_rotation_deg):
+                shift = float(np.linalg.norm(c - c_i, axis=1).max())
+                cos = float(np.dot(c[0], c_i[0]) / (np.linalg.norm(c[0]) * np.linalg.norm(c_i[0])))
                 turn = float(np.degrees(np.arccos(min(1.0, max(-1.0, cos)))))
                 return (f"camera moved {100 * shift:.1f} cm / {turn:.2f}° between sampled frames {i + 1} "
                         f"and {len(centres)} (tolerance {100 * tol.still_translation_m:.1f} cm / "

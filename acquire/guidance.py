@@ -110,10 +110,12 @@ def guide(target: Standpoint, tol: Tolerances, *, distance_m: float | None, incl
 class StillnessTracker:
     """Pose stable over `still_seconds`, judged on frame timestamps (not wall time).
 
-    Judged on the board centre as the camera sees it: its position (camera frame) within
-    `translation_m` and its bearing within `rotation_deg` of the latest frame. The board's own
-    tilt from EPnP is left out: it jitters by tenths of a degree at a few metres even for a camera
-    on a tripod, while a hand-held camera's turns and shifts all move the centre.
+    Judged on the board as the camera sees it (`BoardPose.stillness_points`: the centre, then the
+    grid's outer corners, camera frame; or the centre alone): every point within `translation_m`
+    and the centre's bearing within `rotation_deg` of the latest frame. The board's own tilt from
+    EPnP is not compared as an angle: it jitters by tenths of a degree at a few metres even for a
+    camera on a tripod; at the corners that is millimetres, while a walk round the board (which
+    leaves the centre in place) moves them by centimetres.
 
     The latest frame must also sit where the camera has been standing: within half the tolerances
     of the window's median centre. Without this, the first frames of a move (a step starts
@@ -137,11 +139,11 @@ class StillnessTracker:
         self._samples.clear()
 
     def _agrees(self, a: NDArray[np.float64], b: NDArray[np.float64], share: float = 1.0) -> bool:
-        return centres_agree(a, b, share * self.translation_m, share * self.rotation_deg)
+        return points_agree(a, b, share * self.translation_m, share * self.rotation_deg)
 
     def update(self, t_ns: int, center: NDArray[np.float64] | None) -> bool:
-        """Add one frame's board centre (camera frame; None = board lost, which restarts the
-        window); True when the centre stayed put for the whole window."""
+        """Add one frame's board centre, or centre then corners (camera frame; None = board lost,
+        which restarts the window); True when the board stayed put for the whole window."""
         if center is None:
             self._missed += 1
             if self._missed > self.grace_frames:
@@ -168,13 +170,16 @@ class StillnessTracker:
         return self._agrees(median, c, 0.5)
 
 
-def centres_agree(a: NDArray[np.float64], b: NDArray[np.float64], translation_m: float,
-                  rotation_deg: float) -> bool:
-    """Two board centres (camera frame) within `translation_m` of each other and seen within
-    `rotation_deg` of the same bearing: the stillness measure of the tracker and of a recording."""
-    if float(np.linalg.norm(a - b)) > translation_m:
+def points_agree(a: NDArray[np.float64], b: NDArray[np.float64], translation_m: float,
+                 rotation_deg: float) -> bool:
+    """Two views of the board (centre, or centre then corners, camera frame; 3 or k x 3) agree:
+    every point within `translation_m` and the centre seen within `rotation_deg` of the same
+    bearing. The stillness measure of the tracker and of a recording."""
+    pa, pb = np.reshape(a, (-1, 3)), np.reshape(b, (-1, 3))
+    if float(np.linalg.norm(pa - pb, axis=1).max()) > translation_m:
         return False
-    cos = float(np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)))
+    ca, cb = pa[0], pb[0]
+    cos = float(np.dot(ca, cb) / (np.linalg.norm(ca) * np.linalg.norm(cb)))
     return math.degrees(math.acos(min(1.0, max(-1.0, cos)))) <= rotation_deg
 
 
