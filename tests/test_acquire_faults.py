@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -75,7 +76,8 @@ def test_sigint_finalises_the_open_file(recording: Path, tmp_path: Path) -> None
     proto = tmp_path / "one.toml"
     proto.write_text(TWO_HERE.replace("frames_per_standpoint = {frames}", "frames_per_standpoint = 120"))
     sess = tmp_path / "s"
-    proc = start(recording, proto, sess)
+    # played at its frame rate, the 120 frames take 4 s: the Ctrl-C lands mid-standpoint
+    proc = start(recording, proto, sess, "--real-time")
     partial = sess / "standpoint_01.mcap.partial"
     wait_for(partial, proc)
     time.sleep(0.5)
@@ -90,3 +92,38 @@ def test_sigint_finalises_the_open_file(recording: Path, tmp_path: Path) -> None
     assert summary.statistics.message_count > 0
     data = json.loads((sess / "session.json").read_text())
     assert data["standpoints"][0]["status"] == "partial" and data["standpoints"][0]["frames"] > 0
+
+
+def test_ctrl_c_while_a_standpoint_is_being_closed_still_finishes_it(tmp_path: Path) -> None:
+    """A Ctrl-C that lands while the writer drains and finishes the file is held back until the
+    MCAP is complete, then raised: the standpoint stays readable."""
+    import os
+    import threading
+
+    from depthstation.camera import Intrinsics, StreamInfo
+    from depthstation.capture.reader import open_recording
+    from depthstation.capture.session import Session
+    from depthstation.frames import FrameSet
+
+    info = StreamInfo(Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5), None)
+    session = Session.create(tmp_path / "s", protocol={"name": "t"}, device={})
+    writer = session.standpoint_writer("standpoint_01", info, {"name": "standpoint_01"})
+    depth = np.full((48, 64), 1000, dtype=np.uint16)
+    for i in range(20):
+        writer.write(FrameSet(i, 1_700_000_000_000_000_000 + i * 33_333_333, depth=depth))
+    real_join = writer._thread.join
+
+    def slow_join(timeout: float | None = None) -> None:
+        # the interrupt arrives in the middle of the close
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        real_join(timeout)
+
+    writer._thread.join = slow_join  # type: ignore[method-assign]
+    assert threading.current_thread() is threading.main_thread()
+    with pytest.raises(KeyboardInterrupt):
+        writer.close()
+    rec = open_recording(tmp_path / "s" / "standpoint_01.mcap")
+    assert rec.frame_count == 20
+    assert [e["status"] for e in json.loads((tmp_path / "s" / "session.json").read_text())["standpoints"]] \
+        == ["complete"]

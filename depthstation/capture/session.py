@@ -7,13 +7,16 @@ camera loop never waits on the disk. `session.json` is replaced atomically on ev
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
 import logging
 import os
 import queue
+import signal
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -220,6 +223,26 @@ class Session:
 _STOP = object()
 
 
+@contextlib.contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold SIGINT back while the block runs (main thread only) and raise it afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+
+    def hold(signum: int, frame: Any) -> None:
+        caught.append(signum)
+
+    previous = signal.signal(signal.SIGINT, hold)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
+
+
 class StandpointWriter:
     """Context manager: `write()` only enqueues (never blocks); a thread serialises to MCAP.
 
@@ -316,9 +339,17 @@ class StandpointWriter:
         self.set_metadata("standpoint", dict(self.entry["standpoint"], name=self.final.name.split(".")[0]))
 
     def close(self, ok: bool = True) -> None:
-        """Drain the queue, finish the MCAP, rename it into place, mark the standpoint complete."""
+        """Drain the queue, finish the MCAP, rename it into place, mark the standpoint complete.
+
+        Ctrl-C during the close is held back until the file is finished (a half-written summary
+        would make the whole standpoint unreadable), then raised.
+        """
         if self._closed:
             return
+        with _sigint_deferred():
+            self._close(ok)
+
+    def _close(self, ok: bool) -> None:
         self._closed = True
         self._queue.put(_STOP)
         self._thread.join()
