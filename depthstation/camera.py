@@ -149,6 +149,26 @@ class StreamInfo:
     baseline_m: float | None = None
     fps: float | None = None
     device: dict[str, Any] = field(default_factory=dict)
+    stereo_intrinsics: Intrinsics | None = None
+
+    @property
+    def stereo(self) -> Intrinsics:
+        """The depth imager's own intrinsics, where disparity lives.
+
+        When depth was aligned to another camera (rs.align), `depth_intrinsics` are that camera's
+        and a pixel of disparity is a pixel of the stereo imager, not of the aligned image:
+        `stereo_intrinsics` then holds the imager's own; otherwise they are the depth stream's.
+        """
+        return self.stereo_intrinsics if self.stereo_intrinsics is not None else self.depth_intrinsics
+
+    def to_stereo_pixels(self, u: NDArray[Any], v: NDArray[Any]) -> tuple[FloatArray, FloatArray]:
+        """Depth-pixel coordinates in the stereo imager's pixels (same ray, its focal length)."""
+        d, s = self.depth_intrinsics, self.stereo
+        u = np.asarray(u, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        if s is d:
+            return u, v
+        return s.ppx + (u - d.ppx) * (s.fx / d.fx), s.ppy + (v - d.ppy) * (s.fy / d.fy)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -162,12 +182,15 @@ class StreamInfo:
             "baseline_m": self.baseline_m,
             "fps": self.fps,
             "device": dict(self.device),
+            "stereo_intrinsics": (None if self.stereo_intrinsics is None
+                                  else self.stereo_intrinsics.to_dict()),
         }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> StreamInfo:
         ci = d.get("color_intrinsics")
         ii = d.get("infrared_intrinsics")
+        si = d.get("stereo_intrinsics")
         return cls(
             depth_intrinsics=Intrinsics.from_dict(d["depth_intrinsics"]),
             color_intrinsics=None if ci is None else Intrinsics.from_dict(ci),
@@ -178,4 +201,5 @@ class StreamInfo:
             baseline_m=None if d.get("baseline_m") is None else float(d["baseline_m"]),
             fps=None if d.get("fps") is None else float(d["fps"]),
             device=dict(d.get("device", {})),
+            stereo_intrinsics=None if si is None else Intrinsics.from_dict(si),
         )

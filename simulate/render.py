@@ -39,14 +39,25 @@ class GeometryMaps:
     intrinsics: Intrinsics
     cam_to_world: NDArray[np.float64]
 
-    def context(self, baseline_m: float, time_s: float = 0.0, temperature_c: float = 40.0) -> PixelContext:
-        """Effect context of this view (depth camera)."""
+    def context(self, baseline_m: float, time_s: float = 0.0, temperature_c: float = 40.0,
+                stereo: Intrinsics | None = None) -> PixelContext:
+        """Effect context of this view (depth camera).
+
+        `stereo`: the stereo imager's own intrinsics when the rendered depth is aligned to another
+        camera; pixel positions and the focal length then go to the effects in its pixels.
+        """
         h, w = self.z_m.shape
         v, u = np.mgrid[0:h, 0:w].astype(np.float32)
         i = self.intrinsics
+        edge = self.edge_distance_px
+        if stereo is not None:
+            u = (stereo.ppx + (u - i.ppx) * (stereo.fx / i.fx)).astype(np.float32)
+            v = (stereo.ppy + (v - i.ppy) * (stereo.fy / i.fy)).astype(np.float32)
+            edge = (edge * (stereo.fx / i.fx)).astype(np.float32)
+            i = stereo
         return PixelContext(z_m=self.z_m, inclination_deg=self.inclination_deg, u=u, v=v,
                             albedo=self.albedo, time_s=time_s, temperature_c=temperature_c,
-                            edge_distance_px=self.edge_distance_px, fx=i.fx, ppx=i.ppx, ppy=i.ppy,
+                            edge_distance_px=edge, fx=i.fx, ppx=i.ppx, ppy=i.ppy,
                             baseline_m=baseline_m)
 
 

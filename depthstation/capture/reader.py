@@ -371,6 +371,9 @@ def _open_png(folder: Path) -> PngRecording:
         baseline_m=None if baseline is None else float(baseline),
         fps=float(cam.get("fps", 30.0)),
         device=device,
+        # aligned depth: disparity physics lives in the stereo imager's own pixels
+        stereo_intrinsics=(Intrinsics.from_dict(cam["depth_unaligned"])
+                           if aligned and isinstance(cam.get("depth_unaligned"), dict) else None),
     )
     meta: dict[str, Any] = {"device": device, "source": {"kind": "png", "camera_json": str(cam_path)}}
     if (cam_path.parent / "board.json").is_file():

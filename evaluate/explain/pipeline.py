@@ -69,7 +69,7 @@ def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: f
     if t0_ns is None:
         t0_ns = min(int(r.samples.timestamp_ns.min()) for r in results if r.samples is not None
                     and len(r.samples))
-    intr = info.depth_intrinsics
+    stereo = info.stereo
     parts = []
     for r in results:
         ps = r.samples
@@ -83,9 +83,10 @@ def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: f
             # errors of the pose estimate cancel); how far the estimate is from the rendered board
             # is kept as the size of the reference error
             ref_err = z_ref - _plane_z(true_poses[r.name], info, ps.u[keep], ps.v[keep])
+        us, vs = info.to_stereo_pixels(ps.u[keep], ps.v[keep])  # disparity lives in the imager's pixels
         parts.append(Samples.build(
-            names=names, fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy, baseline_m=baseline_m,
-            standpoint=names.index(r.name), frame=ps.frame[keep], u=ps.u[keep], v=ps.v[keep],
+            names=names, fx=stereo.fx, ppx=stereo.ppx, ppy=stereo.ppy, baseline_m=baseline_m,
+            standpoint=names.index(r.name), frame=ps.frame[keep], u=us, v=vs,
             z_ref_m=z_ref, err_m=ps.z_meas_m[keep].astype(np.float64) - z_ref,
             inclination_deg=ps.inclination_deg[keep],
             albedo=np.where(ps.is_white[keep], WHITE_ALBEDO, BLACK_ALBEDO),

@@ -202,7 +202,7 @@ def locate_cells(bc: BlockCells, shape: tuple[int, int]) -> dict[str, Any]:
 
 def _pseudo_samples(bc: BlockCells, info: Any, albedo: float) -> Samples:
     """Block-cells as samples at the cell centres (principal point: the grid has no pixel position)."""
-    intr = info.depth_intrinsics
+    intr = info.stereo
     return Samples.build(names=["sequence"], fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy,
                          baseline_m=float(info.baseline_m or 0.095), standpoint=0, frame=bc.block,
                          u=intr.ppx, v=intr.ppy, z_ref_m=bc.z_m, err_m=bc.bias_m,
