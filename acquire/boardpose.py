@@ -117,9 +117,7 @@ def solve_pose(corners_px: FloatArray, board: Board, intr: Intrinsics) -> tuple[
     import cv2
 
     obj = board.corner_points()
-    dist = np.asarray(intr.coeffs, dtype=np.float64) if intr.model != "none" else np.zeros(5)
-    if intr.model not in ("none", "brown_conrady", "inverse_brown_conrady", "modified_brown_conrady"):
-        dist = np.zeros(5)
+    dist = intr.opencv_distortion()
     ok, rvec, tvec = cv2.solvePnP(obj, corners_px.astype(np.float64), intr.K, dist,
                                   flags=cv2.SOLVEPNP_EPNP)
     if not ok:

@@ -10,6 +10,8 @@ from numpy.typing import NDArray
 
 FloatArray = NDArray[np.float64]
 
+OPENCV_MODELS = ("brown_conrady", "inverse_brown_conrady", "modified_brown_conrady", "opencv")
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -28,6 +30,16 @@ class Intrinsics:
     def K(self) -> FloatArray:
         """3x3 camera matrix."""
         return np.array([[self.fx, 0.0, self.ppx], [0.0, self.fy, self.ppy], [0.0, 0.0, 1.0]])
+
+    def opencv_distortion(self) -> FloatArray:
+        """OpenCV's distortion vector for this record (zeros for 'none' or unknown models).
+
+        librealsense's Brown-Conrady variants (including `inverse_brown_conrady`, which
+        `rs2_project_point_to_pixel` applies forward) are OpenCV's k1 k2 p1 p2 k3.
+        """
+        if self.model.lower() in OPENCV_MODELS and any(c != 0.0 for c in self.coeffs):
+            return np.asarray(self.coeffs, dtype=np.float64)
+        return np.zeros(5)
 
     def scaled(self, width: int, height: int) -> Intrinsics:
         """Same optics at another resolution (how the D4xx derive 848x480 etc. from 1280x720)."""

@@ -118,3 +118,13 @@ def test_protocol_errors_name_the_key(tmp_path: Path, text: str, key: str) -> No
     p.write_text(text)
     with pytest.raises(ProtocolError, match=key.replace(".", r"\.")):
         load_protocol(p)
+
+
+def test_opencv_distortion_of_librealsense_models() -> None:
+    """Brown-Conrady variants map to OpenCV's k1 k2 p1 p2 k3; 'none' and unknown models to zeros."""
+    c = (-0.055, 0.065, 0.0004, 0.0007, -0.021)
+    for model in ("brown_conrady", "inverse_brown_conrady", "modified_brown_conrady", "opencv"):
+        intr = Intrinsics(1280, 720, 640, 640, 640, 360, model, c)
+        np.testing.assert_array_equal(intr.opencv_distortion(), c)
+    for model in ("none", "kannala_brandt4", "ftheta"):
+        assert not Intrinsics(1280, 720, 640, 640, 640, 360, model, c).opencv_distortion().any()

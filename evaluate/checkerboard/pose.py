@@ -14,8 +14,6 @@ from depthstation.camera import Intrinsics
 from depthstation.geometry import rodrigues
 from evaluate.checkerboard.detection import Detection, to_gray
 
-_OPENCV_MODELS = ("brown_conrady", "inverse_brown_conrady", "modified_brown_conrady", "opencv")
-
 
 @dataclass(frozen=True)
 class BoardPose:
@@ -27,9 +25,7 @@ class BoardPose:
 
 def dist_coeffs(intr: Intrinsics) -> NDArray[np.float64]:
     """OpenCV distortion vector for an intrinsics record (zeros for 'none' or unknown models)."""
-    if intr.model.lower() in _OPENCV_MODELS and any(c != 0.0 for c in intr.coeffs):
-        return np.asarray(intr.coeffs, dtype=np.float64)
-    return np.zeros(5)
+    return intr.opencv_distortion()
 
 
 def _solve(obj: NDArray[np.float64], img: NDArray[np.float64], k: NDArray[np.float64],
