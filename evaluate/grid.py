@@ -100,7 +100,8 @@ def _uniform_edges(lo: float, hi: float, step: float) -> NDArray[np.float64]:
 
 @dataclass
 class Grid:
-    """count/mean/M2 over (distance bin, inclination bin); bins are uniform and half-open.
+    """count/mean/M2 over (distance bin, inclination bin); bins are uniform and half-open, the last
+    one closed (6.0 m and 90 deg are kept).
 
     Arrays are shaped (distance, inclination). `mean_m` is the mean signed depth error
     (measured - reference, metres); `var_m2` = M2 / (count - 1) (NaN below 2 samples).
