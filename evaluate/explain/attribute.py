@@ -167,15 +167,7 @@ def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, 
         var_y = vr[ia] / nr[ia] + vs[ib] / ns[ib]
     floor = np.median(var_y) * 1e-3 + 1e-18
     w = 1.0 / np.maximum(var_y, floor)
-    X: dict[str, FloatArray] = {}
-    ok = inv_r >= 0
-    for c in candidates:
-        if c.kind != "bias":
-            continue
-        cols = c.columns(real)
-        tiles = np.stack([np.bincount(inv_r[ok], weights=cols[ok, j], minlength=len(ur)) / np.maximum(nr, 1)
-                          for j in range(cols.shape[1])], axis=1)
-        X[c.name] = tiles[ia]
+    X = _tile_columns(candidates, "bias", real, inv_r, nr, ia)
     sp, bl = ur[ia, 0], ur[ia, 1]
     Z = _plane_tiles(real, inv_r, len(ur))[ia]
     group = sp.copy()
@@ -190,6 +182,21 @@ def _plane_basis(s: Samples) -> FloatArray:
     xn, yn = (s.u - s.ppx) / s.fx, (s.v - s.ppy) / s.fx
     z2 = s.z_ref_m ** 2
     return np.stack([z2, z2 * xn, z2 * yn], axis=1)
+
+
+def _tile_columns(candidates: Sequence[Candidate], kind: str, real: Samples, inv_r: NDArray[Any],
+                  nr: NDArray[Any], ia: NDArray[Any]) -> dict[str, FloatArray]:
+    """Each candidate's signature columns averaged over the pixels of every matched tile."""
+    ok = inv_r >= 0
+    X: dict[str, FloatArray] = {}
+    for c in candidates:
+        if c.kind != kind:
+            continue
+        cols = c.columns(real)
+        tiles = np.stack([np.bincount(inv_r[ok], weights=cols[ok, j], minlength=len(nr)) / np.maximum(nr, 1)
+                          for j in range(cols.shape[1])], axis=1)
+        X[c.name] = tiles[ia]
+    return X
 
 
 def _plane_tiles(s: Samples, inv: IntArray, n: int) -> FloatArray:
@@ -251,15 +258,7 @@ def variance_table(real: Samples, sim: Samples, candidates: Sequence[Candidate],
     var_y = 2 * mr[ia] ** 2 / nr[ia] + 2 * ms[ib] ** 2 / ns[ib]
     floor = np.median(var_y) * 1e-3 + 1e-30 if len(var_y) else 1e-30
     w = 1.0 / np.maximum(var_y, floor)
-    X: dict[str, FloatArray] = {}
-    ok = inv_r >= 0
-    for c in candidates:
-        if c.kind != "variance":
-            continue
-        cols = c.columns(real)
-        tiles = np.stack([np.bincount(inv_r[ok], weights=cols[ok, j], minlength=len(ur)) / np.maximum(nr, 1)
-                          for j in range(cols.shape[1])], axis=1)
-        X[c.name] = tiles[ia]
+    X = _tile_columns(candidates, "variance", real, inv_r, nr, ia)
     sp = ur[ia, 0]
     blocks = np.zeros_like(sp)
     return Table("variance", y, w, X, sp, _folds(sp, sp if len(np.unique(sp)) >= 3 else blocks), sp)
