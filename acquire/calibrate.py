@@ -14,9 +14,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from acquire.camera import CalibratableCamera, CalibrationResult
-from depthstation.errors import InputError
-from depthstation.protocol import Calibration
+from depthstation.core.device import CalibratableCamera, CalibrationResult
+from depthstation.core.errors import InputError
+from depthstation.core.protocol import Calibration
 
 GOOD, IMPROVABLE, REQUIRED = "good", "can be improved", "requires calibration"
 

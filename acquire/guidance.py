@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.protocol import Standpoint, Tolerances
+from depthstation.core.protocol import Standpoint, Tolerances
 
 # Where the board centre should sit in the image: within this share of the half-width of centre.
 AIM_TOLERANCE = 0.25

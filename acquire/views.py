@@ -5,7 +5,12 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from acquire.capture import LiveState
+from rich.live import Live
+from rich.panel import Panel
+from rich.table import Table
+
+from depthstation.acquire.guided_capture import LiveState
+from depthstation.core.progress import stderr_console
 
 BOARD_HELP = ("Point the camera at the board and follow the instructions: distance is the board "
               "centre's depth, inclination the angle between the viewing ray and the board normal.")
@@ -13,8 +18,6 @@ BOARD_HELP = ("Point the camera at the board and follow the instructions: distan
 
 def panel(state: LiveState) -> Any:
     """A rich renderable: target, measured, the instruction in large type, progress."""
-    from rich.panel import Panel
-    from rich.table import Table
 
     sp = state.standpoint
     g = state.guidance
@@ -43,9 +46,7 @@ class TerminalPanel:
     """Refreshes the panel at most `hz` times a second on stderr (a rich Live display)."""
 
     def __init__(self, hz: float = 5.0) -> None:
-        from rich.live import Live
 
-        from depthstation.progress import stderr_console
 
         self.live = Live(console=stderr_console, auto_refresh=False, transient=False)
         self.period = 1.0 / hz

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from depthstation.protocol import Warmup
+from depthstation.core.protocol import Warmup
 
 
 @dataclass(frozen=True)

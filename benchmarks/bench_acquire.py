@@ -17,11 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.capture import GuidedCapture, LiveState
-from depthstation.capture.session import Session
-from depthstation.protocol import Plan, Protocol, Streams, Tolerances
-from simulate.camera import SimulatedCamera
-from simulate.poses import standpoint_pose
+from depthstation.acquire.guided_capture import GuidedCapture, LiveState
+from depthstation.core.capture.session import Session
+from depthstation.core.protocol import Plan, Protocol, Streams, Tolerances
+from depthstation.simulate.poses import standpoint_pose
+from depthstation.simulate.simulated_camera import SimulatedCamera
 
 
 def main() -> None:

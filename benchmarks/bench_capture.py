@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from depthstation.capture.reader import open_recording
-from depthstation.capture.samples import sample_info
-from depthstation.capture.session import Session
-from depthstation.frames import FrameSet
+from depthstation.core.capture.registry import open_recording
+from depthstation.core.capture.sample_recordings import sample_info
+from depthstation.core.capture.session import Session
+from depthstation.core.frames import FrameSet
 
 
 def scene_frames(n_distinct: int, width: int, height: int) -> list[tuple[np.ndarray, np.ndarray]]:

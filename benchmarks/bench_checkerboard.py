@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from depthstation.board import Board
-from depthstation.camera import Intrinsics, StreamInfo
-from evaluate.checkerboard.study import evaluate_frames
+from depthstation.core.board import Board
+from depthstation.core.camera_model import Intrinsics, StreamInfo
+from depthstation.evaluate.checkerboard.study import evaluate_frames
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from checkerboard_render import pose_for, still_frames
@@ -68,12 +68,11 @@ def corner_errors() -> None:
     """RMS and max static corner error (px) per method over 1-5 m x 0-60 deg at 1280x720."""
     import cv2
 
-    from evaluate.checkerboard.corners import refine_xjunctions
-    from evaluate.checkerboard.pose import dist_coeffs
-    from simulate.model import load_model
-    from simulate.poses import standpoint_pose
-    from simulate.render import encode_srgb, render_color_linear
-    from simulate.scene import board_scene
+    from depthstation.evaluate.checkerboard.corners import refine_xjunctions
+    from depthstation.simulate.model import load_model
+    from depthstation.simulate.poses import standpoint_pose
+    from depthstation.simulate.scene import board_scene
+    from depthstation.simulate.scene_render import encode_srgb, render_color_linear
 
     board = Board()
     model = load_model("d455")
@@ -91,7 +90,7 @@ def corner_errors() -> None:
         gray = encode_srgb(render_color_linear(scene, ci, cpose, rc))[..., 1]
         b2c = np.linalg.inv(cpose)
         truth, _ = cv2.projectPoints(obj @ b2c[:3, :3].T + b2c[:3, 3], np.zeros(3), np.zeros(3), ci.K,
-                                     dist_coeffs(ci))
+                                     ci.opencv_distortion())
         truth = truth.reshape(-1, 2)
         found, c0 = cv2.findChessboardCorners(gray, board.inner_corners)
         if not found:

@@ -24,8 +24,8 @@ import numpy as np
 def prepare(cache: Path, frames: int, width: int, height: int) -> dict[str, Any]:
     import open3d as o3d
 
-    from evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
-    from evaluate.scan.trajectory import Trajectory, read_tum, write_tum
+    from depthstation.evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
+    from depthstation.evaluate.scan.trajectory import Trajectory, read_tum, write_tum
 
     folder = cache / f"room_{frames}_{width}x{height}"
     mesh = cache / "room_1M.ply"
@@ -66,15 +66,15 @@ def main() -> None:
 
     from dataclasses import replace
 
-    from depthstation.parallel import ChunkRunner
-    from evaluate.batch import (
+    from depthstation.core.parallel import ChunkRunner
+    from depthstation.evaluate.scan.chunks import (
         merge_scan_results,
         pack_scan_result,
         scan_chunk,
         scan_chunks,
         unpack_scan_result,
     )
-    from evaluate.scan.study import StudyConfig
+    from depthstation.evaluate.scan.study import StudyConfig
 
     w = prepare(args.cache, args.frames, args.width, args.height)
     rays = args.frames * args.width * args.height

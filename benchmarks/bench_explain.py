@@ -18,8 +18,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def main() -> None:
-    from depthstation.protocol import load_protocol
-    from simulate.checkerboard import simulate_checkerboard
+    from depthstation.core.protocol import load_protocol
+    from depthstation.simulate.checkerboard_session import simulate_checkerboard
 
     proto = load_protocol("checkerboard-d455")
     names = [s.name for s in proto.plan.standpoints()][:20]

@@ -22,8 +22,8 @@ import numpy as np
 def build_mesh(subdivide: int, segments: int) -> Any:
     """The synthetic room with subdivided walls and a finely tessellated table (>= 1 M triangles),
     vertices jittered by 1 mm like a Poisson mesh of a TLS cloud."""
-    from evaluate.scan._o3d import open3d
-    from evaluate.scan.synthetic import Room
+    from depthstation.core.lazy_open3d import open3d
+    from depthstation.evaluate.scan.synthetic import Room
 
     o3d = open3d()
     room = Room()
@@ -36,7 +36,7 @@ def build_mesh(subdivide: int, segments: int) -> Any:
 
 
 def make_workload(frames: int, distinct: int, width: int, height: int) -> Any:
-    from evaluate.scan.synthetic import SyntheticSequence, make_sequence
+    from depthstation.evaluate.scan.synthetic import SyntheticSequence, make_sequence
 
     base = make_sequence(frames=distinct, width=width, height=height, depth_units_m=0.001, seed=1)
     idx = [k % distinct for k in range(frames)]
@@ -57,21 +57,24 @@ def cpu_seconds() -> float:
 
 def time_study(seq: Any, mesh_path: Path, workers: int, nthreads: int,
                chunk: int) -> tuple[float, float, Any]:
-    from evaluate.scan.study import StudyConfig, run_study
-    from evaluate.scan.trajectory import Trajectory
+    from depthstation.core.parallel import ChunkRunner
+    from depthstation.evaluate.scan.chunks import run_scan_chunks
+    from depthstation.evaluate.scan.study import StudyConfig
+    from depthstation.evaluate.scan.trajectory import Trajectory
 
     traj = Trajectory(np.asarray(seq.timestamps_ns) * 1e-9, seq.poses)
     config = StudyConfig(nthreads=nthreads)
     c = cpu_seconds()
     t = time.perf_counter()
-    res = run_study(seq, mesh_path, traj, config, workers=workers, chunk_frames=chunk)
+    with ChunkRunner(workers) as runner:
+        res = run_scan_chunks(seq, mesh_path, traj, config, runner, chunk_frames=chunk)
     return time.perf_counter() - t, cpu_seconds() - c, res
 
 
 def time_breakdown(seq: Any, mesh: Any, n: int) -> tuple[float, float, float]:
     """CPU seconds per frame (one thread) of ray filling + casting, and of the fused numba pass."""
-    from evaluate.grid import Grid
-    from evaluate.scan.raycast import STAT_NAMES, MeshCaster, _fused_bin, cos_edges
+    from depthstation.core.grid import Grid
+    from depthstation.evaluate.scan.raycast import STAT_NAMES, MeshCaster, _fused_bin, cos_edges
 
     caster = MeshCaster(mesh, seq.info.depth_intrinsics, 1)
     grid = Grid.empty()
@@ -97,7 +100,7 @@ def time_breakdown(seq: Any, mesh: Any, n: int) -> tuple[float, float, float]:
 
 def time_raycast_only(seq: Any, mesh: Any, n: int, nthreads: int) -> float:
     """Open3D cast_rays alone (rays prepared), the floor under the study's time."""
-    from evaluate.scan.raycast import MeshCaster
+    from depthstation.evaluate.scan.raycast import MeshCaster
 
     caster = MeshCaster(mesh, seq.info.depth_intrinsics, nthreads)
     caster.cast(seq.poses[0])
@@ -112,8 +115,8 @@ def time_kdtree(seq: Any, mesh: Any, n: int, points: int) -> tuple[float, float,
     cKDTree (both cores), reference z and inclination from that point, same Welford grid."""
     from scipy.spatial import cKDTree
 
-    from evaluate.grid import Grid
-    from evaluate.scan.reference import sample_reference_points
+    from depthstation.core.grid import Grid
+    from depthstation.evaluate.scan.reference import sample_reference_points
 
     pc = sample_reference_points(mesh, points)
     pc.estimate_normals()
@@ -159,7 +162,7 @@ def main() -> None:
     args = ap.parse_args()
     skip = set(filter(None, args.skip.split(",")))
 
-    from evaluate.scan._o3d import open3d
+    from depthstation.core.lazy_open3d import open3d
 
     o3d = open3d()
     print(f"cpus available: {len(os.sched_getaffinity(0))}")

@@ -25,12 +25,16 @@ def main() -> None:
     t0 = time.perf_counter()
     import open3d  # noqa: F401  (import cost reported apart)
 
-    from depthstation.protocol import load_protocol
-    from simulate.checkerboard import render_frames, simulate_checkerboard, stream_info_for
-    from simulate.model import load_model
-    from simulate.poses import standpoint_pose
-    from simulate.renderer import ViewRenderer
-    from simulate.scene import board_scene
+    from depthstation.core.protocol import load_protocol
+    from depthstation.simulate.checkerboard_session import (
+        render_frames,
+        simulate_checkerboard,
+        stream_info_for,
+    )
+    from depthstation.simulate.model import load_model
+    from depthstation.simulate.poses import standpoint_pose
+    from depthstation.simulate.scene import board_scene
+    from depthstation.simulate.view_renderer import ViewRenderer
 
     t_import = time.perf_counter() - t0
     proto = load_protocol("checkerboard-d455")

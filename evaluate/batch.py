@@ -22,6 +22,7 @@ Manifest (TOML; relative paths are relative to the manifest's folder)::
 
 from __future__ import annotations
 
+import csv
 import hashlib
 import json
 from collections.abc import Callable, Sequence
@@ -29,53 +30,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import tomllib
-from numpy.typing import NDArray
 
-from depthstation.errors import DepthstationError, EvaluationError, InputError
-from depthstation.parallel import ChunkRunner, ProgressFn
-from depthstation.results import RESULT_FILE, write_json, write_result_info
-from evaluate.grid import GRID_FILE, Grid
+from depthstation.core.errors import DepthstationError, EvaluationError, InputError
+from depthstation.core.grid import GRID_FILE, Grid
+from depthstation.core.parallel import ChunkRunner, ProgressFn, progress_bar
+from depthstation.core.results import RESULT_FILE, write_json, write_result_info
+from depthstation.evaluate.checkerboard.chunks import StandpointOptions, checkerboard_chunk
+from depthstation.evaluate.checkerboard.run import finish_checkerboard, prepare_checkerboard
+from depthstation.evaluate.checkerboard.study import StandpointResult
+from depthstation.evaluate.scan.chunks import (
+    merge_scan_results,
+    pack_scan_result,
+    scan_chunk,
+    unpack_scan_result,
+)
+from depthstation.evaluate.scan.report import write_scan
+from depthstation.evaluate.scan.run import ScanOptions, prepare_scan
+from depthstation.evaluate.scan.study import ChunkResult
 
 DONE_MARKER = ".done"
 COMBINED_DIR = "combined"
 BATCH_FILE = "batch.json"
 STANDPOINTS_FILE = "standpoints.csv"
-
-
-# -- what travels: a grid as its non-empty cells ---------------------------------------------------
-@dataclass
-class PackedGrid:
-    """The non-empty cells of a :class:`Grid`: a partial grid of one chunk fills a few percent of
-    the 1200 x 900 cells, so this is ~28 bytes per used cell instead of 26 MB dense."""
-
-    distance_edges_m: NDArray[np.float64]
-    inclination_edges_deg: NDArray[np.float64]
-    cells: NDArray[np.int32]  # flat (distance, inclination) index, C order
-    count: NDArray[np.int64]
-    mean: NDArray[np.float64]
-    m2: NDArray[np.float64]
-
-    @property
-    def nbytes(self) -> int:
-        return sum(a.nbytes for a in (self.distance_edges_m, self.inclination_edges_deg, self.cells,
-                                      self.count, self.mean, self.m2))
-
-
-def pack_grid(grid: Grid) -> PackedGrid:
-    """Keep only the cells with samples (exact: the same floats come back)."""
-    cells = np.flatnonzero(grid.count).astype(np.int32)
-    return PackedGrid(grid.distance_edges_m, grid.inclination_edges_deg, cells,
-                      grid.count.ravel()[cells], grid.mean.ravel()[cells], grid.m2.ravel()[cells])
-
-
-def unpack_grid(packed: PackedGrid) -> Grid:
-    grid = Grid.with_edges(packed.distance_edges_m, packed.inclination_edges_deg)
-    grid.count.ravel()[packed.cells] = packed.count
-    grid.mean.ravel()[packed.cells] = packed.mean
-    grid.m2.ravel()[packed.cells] = packed.m2
-    return grid
 
 
 def merge_grids(a: Grid, b: Grid) -> Grid:
@@ -251,7 +228,6 @@ def combine_grids(paths: Sequence[Path], out_dir: Path, inputs: Sequence[str]) -
 
 def combine_tables(tables: Sequence[tuple[str, Path]], out: Path) -> Path:
     """All items' standpoints.csv in one table, an ``item`` column first (fleet comparisons)."""
-    import csv
 
     rows: list[dict[str, str]] = []
     columns: list[str] = ["item"]
@@ -288,7 +264,6 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
     on; an interruption (Ctrl-C, a killed process) leaves the unfinished items without their
     done marker, so the next run does them and only them.
     """
-    from depthstation.parallel import progress_bar
 
     man = load_manifest(manifest)
     say = log or (lambda s: None)
@@ -333,239 +308,51 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
     return report
 
 
-# -- the reference-scan study in chunks ------------------------------------------------------------
-@dataclass(frozen=True)
-class ScanChunk:
-    """Frames [start, start+limit) of a sequence: paths and poses travel, pixels are read there."""
-
-    sequence: str
-    mesh: str
-    trajectory: Any  # evaluate.scan.trajectory.Trajectory, camera-to-reference (registration applied)
-    config: Any      # evaluate.scan.study.StudyConfig
-    start: int
-    limit: int
-    intrinsics: str | None = None
+# -- manifest kinds: each calls its study's one prepare / finish path -------------------------------
+def _paths(item: BatchItem, keys: Sequence[str]) -> dict[str, Path]:
+    return {k: Path(item.inputs[k]) for k in keys if k in item.inputs}
 
 
-# One mesh scene and one open sequence per worker process, reused by its following chunks: the
-# mesh is loaded once per worker, not per chunk; only one is kept (bounded memory).
-_SCAN_CACHE: dict[str, Any] = {}
-
-
-def _scan_context(chunk: ScanChunk) -> tuple[Any, Any]:
-    from evaluate.scan.raycast import MeshCaster
-    from evaluate.scan.sequence import open_sequence
-
-    key_src = (chunk.sequence, chunk.intrinsics)
-    if _SCAN_CACHE.get("source_key") != key_src:
-        _SCAN_CACHE["source"] = open_sequence(Path(chunk.sequence),
-                                              Path(chunk.intrinsics) if chunk.intrinsics else None)
-        _SCAN_CACHE["source_key"] = key_src
-    source = _SCAN_CACHE["source"]
-    key_mesh = (chunk.mesh, source.info.depth_intrinsics, chunk.config.nthreads)
-    if _SCAN_CACHE.get("mesh_key") != key_mesh:
-        _SCAN_CACHE.pop("caster", None)
-        _SCAN_CACHE["caster"] = MeshCaster(Path(chunk.mesh), source.info.depth_intrinsics,
-                                           chunk.config.nthreads)
-        _SCAN_CACHE["mesh_key"] = key_mesh
-    return _SCAN_CACHE["caster"], source
-
-
-def scan_chunk(chunk: ScanChunk) -> Any:
-    """Partial scan result (grid + pixel counts + frames used) of one chunk, on the worker."""
-    from evaluate.scan.study import evaluate_chunk
-
-    caster, source = _scan_context(chunk)
-    return evaluate_chunk(caster, source, chunk.trajectory, chunk.config, chunk.start, chunk.limit)
-
-
-@dataclass
-class PackedScanResult:
-    grid: PackedGrid
-    stats: NDArray[np.int64]
-    used: list[int]
-    no_pose: list[int]
-    no_depth: list[int]
-
-
-def pack_scan_result(res: Any) -> PackedScanResult:
-    return PackedScanResult(pack_grid(res.grid), res.stats, res.used, res.no_pose, res.no_depth)
-
-
-def unpack_scan_result(p: PackedScanResult) -> Any:
-    from evaluate.scan.study import ChunkResult
-
-    return ChunkResult(unpack_grid(p.grid), p.stats, p.used, p.no_pose, p.no_depth)
-
-
-def merge_scan_results(a: Any, b: Any) -> Any:
-    return a.merge(b)
-
-
-def scan_chunks(sequence: Path, mesh: Path, trajectory: Any, config: Any, *, chunk_frames: int = 64,
-                intrinsics: Path | None = None) -> list[ScanChunk]:
-    """The chunks of a scan evaluation (the frame count comes from the sequence's index only)."""
-    from evaluate.scan.sequence import open_sequence
-    from evaluate.scan.study import chunk_ranges
-
-    source = open_sequence(Path(sequence), intrinsics)
-    n = source.frame_count
-    if n is None:
-        raise InputError(sequence, "the sequence does not say how many frames it holds; "
-                                   "cannot split it into chunks")
-    if config.max_frames is not None:
-        n = min(n, config.max_frames * config.every)
-    return [ScanChunk(str(sequence), str(mesh), trajectory, config, s, lim,
-                      None if intrinsics is None else str(intrinsics))
-            for s, lim in chunk_ranges(n, chunk_frames)]
-
-
-def run_scan(sequence: Path, mesh: Path, trajectory: Any, config: Any, *, chunk_frames: int = 64,
-             workers: int = 1, cluster: str | None = None, intrinsics: Path | None = None,
-             progress: ProgressFn | None = None, runner: ChunkRunner | None = None) -> Any:
-    """The scan study's ChunkResult over the whole sequence, chunks run serially, in local
-    processes or on a Dask cluster; partial grids travel as their non-empty cells."""
-    chunks = scan_chunks(sequence, mesh, trajectory, config, chunk_frames=chunk_frames,
-                         intrinsics=intrinsics)
-    own = runner is None
-    run = runner if runner is not None else ChunkRunner(workers, cluster)
-    try:
-        if own:
-            run.__enter__()
-        return run.reduce(scan_chunk, chunks, merge_scan_results, progress=progress or (lambda d, t: None),
-                          encode=pack_scan_result, decode=unpack_scan_result)
-    finally:
-        if own:
-            run.close()
-
-
-# -- the checkerboard study in chunks: one standpoint per task ---------------------------------------
-@dataclass(frozen=True)
-class CheckerboardChunk:
-    """One standpoint: the recording's path (opened and read by the worker) and the study options."""
-
-    path: str
-    board: Any  # depthstation.board.Board (a small dataclass)
-    frames: int = 150
-    options: tuple[tuple[str, Any], ...] = ()
-
-
-def checkerboard_chunk(chunk: CheckerboardChunk) -> Any:
-    """StandpointResult of one standpoint, evaluated where it is read."""
-    from depthstation.capture.reader import open_recording
-    from evaluate.checkerboard.study import evaluate_recording
-
-    rec = open_recording(Path(chunk.path))
-    return evaluate_recording(rec, chunk.board, frames=chunk.frames, **dict(chunk.options))
-
-
-def checkerboard_chunks(inputs: Sequence[Path], board: Any, *, frames: int = 150,
-                        **options: Any) -> list[CheckerboardChunk]:
-    """Expand sessions / dataset roots into standpoints (index only, no frames read here)."""
-    from depthstation.capture.reader import open_inputs
-
-    recs = open_inputs([Path(p) for p in inputs])
-    if not recs:
-        raise InputError(None, "no standpoint recordings found in the inputs")
-    opts = tuple(sorted(options.items()))
-    return [CheckerboardChunk(str(r.path), board, frames, opts) for r in recs]
-
-
-def run_checkerboard(inputs: Sequence[Path], board: Any, *, frames: int = 150, workers: int = 1,
-                     cluster: str | None = None, progress: ProgressFn | None = None,
-                     runner: ChunkRunner | None = None, **options: Any) -> list[Any]:
-    """StandpointResults of every standpoint in input order, standpoints spread over the workers.
-
-    ``options`` go to ``evaluate_recording`` (collect_samples, refine, reference, ...).
-    """
-    chunks = checkerboard_chunks(inputs, board, frames=frames, **options)
-    if runner is not None:
-        return runner.map(checkerboard_chunk, chunks, progress=progress or (lambda d, t: None))
-    with ChunkRunner(workers, cluster) as run:
-        return run.map(checkerboard_chunk, chunks, progress=progress or (lambda d, t: None))
-
-
-# -- manifest kinds --------------------------------------------------------------------------------
 def _prepare_checkerboard(item: BatchItem) -> ItemJob:
     """Item inputs: ``inputs`` (path or list: sessions, recordings, PNG folders), ``board``.
-    Options: ``frames`` (150), ``reference`` (auto|average|frame)."""
-    from depthstation.board import load_board
-    from depthstation.capture.reader import open_recording
-    from evaluate.checkerboard.report import write_study
-
+    Options: those of `evaluate checkerboard` (``frames``, ``reference``)."""
     raw = item.inputs.get("inputs")
     if raw is None or "board" not in item.inputs:
         raise InputError(None, f"{item.name}: a checkerboard item needs inputs.inputs and inputs.board")
+    known = {"frames", "reference"}
+    unknown = sorted(set(item.options) - known)
+    if unknown:
+        raise InputError(None, f"{item.name}: unknown checkerboard options {', '.join(unknown)} "
+                               f"(known: {', '.join(sorted(known))})")
     paths = [Path(p) for p in (raw if isinstance(raw, list) else [raw])]
-    board_path = Path(item.inputs["board"])
-    board = load_board(board_path)
-    frames = int(item.options.get("frames", 150))
-    reference = str(item.options.get("reference", "auto"))
-    chunks = checkerboard_chunks(paths, board, frames=frames, reference=reference)
+    options = StandpointOptions(frames=int(item.options.get("frames", 150)),
+                                reference=str(item.options.get("reference", "auto")))
+    job = prepare_checkerboard(paths, Path(item.inputs["board"]), options)
 
-    def finish(results: list[Any]) -> Path | None:
-        if not any(r.usable for r in results):
-            raise EvaluationError(f"{item.name}: no usable frame in any of {len(results)} standpoints")
-        first = open_recording(Path(chunks[0].path))
-        device = dict(first.metadata.get("device") or first.info.device or {})
-        params = {"board": str(board_path), "frames": frames, "reference": reference}
-        write_study(item.out, results, board, [str(p) for p in paths], params, device)
+    def finish(results: list[StandpointResult]) -> Path | None:
+        finish_checkerboard(job, results, item.out)
         return None
 
-    return ItemJob(checkerboard_chunk, chunks, finish, description="standpoints")
+    return ItemJob(checkerboard_chunk, job.chunks, finish, description="standpoints")
 
 
 def _prepare_scan(item: BatchItem) -> ItemJob:
     """Item inputs: ``sequence``, ``poses`` (TUM), ``reference`` (mesh or cloud), optional
-    ``similarity`` (4x4 text), ``pass_points`` (CSV), ``intrinsics``. Options: ``chunk_frames``
-    (64), ``icp`` (true), grid bins and frame selection of the scan study's StudyConfig."""
-    from dataclasses import fields
-
-    from evaluate.scan.reference import reference_mesh, sample_reference_points
-    from evaluate.scan.registration import read_pass_points, read_similarity, register
-    from evaluate.scan.sequence import open_sequence
-    from evaluate.scan.study import StudyConfig
-    from evaluate.scan.trajectory import read_tum
-
+    ``similarity`` (4x4 text), ``pass_points`` (CSV), ``intrinsics``. Options: those of `evaluate
+    scan` (``chunk_frames``, ``icp``, ``frames``, ``every``, grid bins ...)."""
     need = [k for k in ("sequence", "poses", "reference") if k not in item.inputs]
     if need:
         raise InputError(None, f"{item.name}: a scan item needs inputs {', '.join(need)}")
-    opts = dict(item.options)
-    chunk_frames = int(opts.pop("chunk_frames", 64))
-    icp = bool(opts.pop("icp", True))
-    names = {f.name for f in fields(StudyConfig)} - {"per_frame_dir"}
-    unknown = sorted(set(opts) - names)
-    if unknown:
-        raise InputError(None, f"{item.name}: unknown scan options {', '.join(unknown)}")
-    config = StudyConfig(**opts)
-    seq_path = Path(item.inputs["sequence"])
-    intr = Path(item.inputs["intrinsics"]) if "intrinsics" in item.inputs else None
-    item.out.mkdir(parents=True, exist_ok=True)
-    mesh, mesh_path, mesh_info = reference_mesh(Path(item.inputs["reference"]), item.out)
-    trajectory = read_tum(Path(item.inputs["poses"]))
-    sim = read_similarity(Path(item.inputs["similarity"])) if "similarity" in item.inputs else None
-    pp = read_pass_points(Path(item.inputs["pass_points"])) if "pass_points" in item.inputs else None
-    if icp or pp is not None or sim is None:
-        source = open_sequence(seq_path, intr)
-        reg = register(source, trajectory, mesh, sample_reference_points(mesh), similarity=sim,
-                       pass_points=pp, icp=icp, tolerance_s=config.tolerance_s)
-        matrix, registration = reg.matrix, reg.to_dict()
-    else:
-        matrix, registration = sim, {"method": "given", "matrix": sim.tolist()}
-    posed = trajectory.transformed(matrix)
-    chunks = scan_chunks(seq_path, mesh_path, posed, config, chunk_frames=chunk_frames, intrinsics=intr)
+    paths = _paths(item, ("similarity", "pass_points", "intrinsics"))
+    options = ScanOptions.from_mapping(item.options, paths, None, item.name)
+    job = prepare_scan(Path(item.inputs["sequence"]), Path(item.inputs["poses"]),
+                       Path(item.inputs["reference"]), item.out, options, in_process=False)
 
-    def finish(res: Any) -> Path:
-        grid_path = res.grid.save(item.out / GRID_FILE)
-        summary = {"inputs": item.inputs, "registration": registration, "mesh": mesh_info,
-                   "chunks": len(chunks), "chunk_frames": chunk_frames, **res.summary()}
-        write_json(item.out / "summary.json", summary)
-        write_result_info(item.out, "scan", [str(v) for v in item.inputs.values()],
-                          {**item.options, "chunk_frames": chunk_frames},
-                          extra={"files": [GRID_FILE, "summary.json"]})
-        return Path(grid_path)
+    def finish(res: ChunkResult) -> Path:
+        write_scan(job, res)
+        return item.out / GRID_FILE
 
-    return ItemJob(scan_chunk, chunks, finish, merge=merge_scan_results, encode=pack_scan_result,
+    return ItemJob(scan_chunk, job.chunks, finish, merge=merge_scan_results, encode=pack_scan_result,
                    decode=unpack_scan_result, description="frames")
 
 

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from depthstation.evaluate.batch import batch
+
 WORKERS_HELP = "Local worker processes for the chunks (1 = in this process)."
 CLUSTER_HELP = ("Address of an existing Dask distributed scheduler (tcp://host:8786); "
                 "needs the 'cluster' extra.")
@@ -18,7 +20,6 @@ def batch_command(
     quiet: bool = typer.Option(False, "--quiet", help="No progress bars."),
 ) -> None:
     """Run many scan/checkerboard evaluations; finished items are not redone; grids are combined."""
-    from evaluate.batch import batch
 
     report = batch(manifest, cluster=cluster, workers=workers, progress=not quiet,
                    log=lambda s: typer.echo(s, err=True))
@@ -26,8 +27,3 @@ def batch_command(
                f"results in {report.out}")
     if report.combined is not None:
         typer.echo(f"combined grid: {report.combined}")
-
-
-def register(app: typer.Typer) -> None:
-    """Mount the command as `batch` on the `evaluate` app."""
-    app.command("batch")(batch_command)

@@ -6,6 +6,11 @@ from pathlib import Path
 
 import typer
 
+from depthstation.core.results import write_result_info
+from depthstation.simulate.checkerboard_session import load_truth, simulate_checkerboard
+from depthstation.simulate.model import load_model
+from depthstation.simulate.scan_sequence import simulate_scan
+
 app = typer.Typer(no_args_is_help=True, help="Render captures with the simulated D455 (or D435, D415).")
 
 
@@ -23,8 +28,6 @@ def checkerboard_cmd(
                                                 help="only these standpoints (repeatable)"),
 ) -> None:
     """Simulate every standpoint of a checkerboard protocol, with truth.json beside the captures."""
-    from depthstation.results import write_result_info
-    from simulate.checkerboard import load_truth, simulate_checkerboard
 
     path = simulate_checkerboard(protocol, model, out, fmt=fmt, seed=seed, frames=frames,
                                  standpoints=standpoint or None, progress=True)
@@ -51,9 +54,6 @@ def scan_cmd(
     fps: float = typer.Option(30.0, "--fps"),
 ) -> None:
     """Simulate a scan sequence: sequence.mcap, trajectory.txt (TUM), scene.ply, truth.json."""
-    from depthstation.results import write_result_info
-    from simulate.checkerboard import load_truth
-    from simulate.scan import simulate_scan
 
     path = simulate_scan(scene, trajectory, model, out, seed=seed, frames=frames, width=width,
                          height=height, fps=fps, progress=True)
@@ -68,6 +68,5 @@ def scan_cmd(
 @app.command("model")
 def model_cmd(model: str = typer.Argument("d455", help="preset or model TOML")) -> None:
     """Print a model as TOML (every effect with its parameters and units)."""
-    from simulate.model import load_model
 
     typer.echo(load_model(model).to_toml(), nl=False)

@@ -16,11 +16,11 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from simulate.effects.base import DisparityJitter, DisparityShift, Effect, PixelContext
-from simulate.effects.depth_scale import DepthScale
-from simulate.effects.dropout import Dropout
-from simulate.effects.flying_pixels import FlyingPixels
-from simulate.effects.quantization import Quantization
+from depthstation.simulate.effects.base import DisparityJitter, DisparityShift, Effect, PixelContext
+from depthstation.simulate.effects.depth_scale import DepthScale
+from depthstation.simulate.effects.dropout import Dropout
+from depthstation.simulate.effects.flying_pixels import FlyingPixels
+from depthstation.simulate.effects.quantization import Quantization
 
 FUSABLE = (DisparityShift, DisparityJitter, DepthScale, Quantization, Dropout, FlyingPixels)
 

@@ -10,10 +10,11 @@ from typing import Any
 import numpy as np
 import tomllib
 
-from depthstation.errors import InputError, SimulationError
-from simulate.effects import EFFECTS
-from simulate.effects.base import Array, Effect, PixelContext
-from simulate.presets import PRESETS, CameraPreset
+from depthstation.core.errors import InputError, SimulationError
+from depthstation.simulate.effects import EFFECTS
+from depthstation.simulate.effects.base import Array, Effect, PixelContext
+from depthstation.simulate.fastpath import FusedSampler, fusable
+from depthstation.simulate.presets import PRESETS, CameraPreset
 
 MODEL_DIR = Path(__file__).resolve().parent / "models"
 
@@ -69,16 +70,13 @@ class SensorModel:
         (the default ones) run through one fused pass (`simulate.fastpath`), the same model in
         distribution; others apply effect by effect (`fused=False` forces that).
         """
-        if fused and ctx is not None:
-            from simulate.fastpath import FusedSampler, fusable
-
-            if fusable(self.effects):
-                with self._lock:
-                    key = (id(ctx), id(z_m))
-                    if self._fused is None or self._fused[0] != key:
-                        self._fused = (key, FusedSampler(self.effects, ctx, z_m), ctx, z_m)
-                    sampler = self._fused[1]
-                return sampler.sample(rng)
+        if fused and ctx is not None and fusable(self.effects):
+            with self._lock:
+                key = (id(ctx), id(z_m))
+                if self._fused is None or self._fused[0] != key:
+                    self._fused = (key, FusedSampler(self.effects, ctx, z_m), ctx, z_m)
+                sampler = self._fused[1]
+            return sampler.sample(rng)
         z = np.array(z_m, dtype=np.float32, copy=True)
         for e in self.effects:
             z = e.apply(ctx, z, rng)

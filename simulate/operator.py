@@ -12,13 +12,37 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.board import Board
-from depthstation.geometry import look_at, rodrigues
+from depthstation.core.board import Board
+from depthstation.core.geometry import look_at, rodrigues
+
+
+class Instructions(Protocol):
+    """What the operator reads off the station's screen (`depthstation.acquire.guidance.Guidance`
+    satisfies it; the simulator cannot import the acquisition, which stands above it)."""
+
+    @property
+    def seen(self) -> bool: ...
+    @property
+    def in_tolerance(self) -> bool: ...
+    @property
+    def distance_ok(self) -> bool: ...
+    @property
+    def inclination_ok(self) -> bool: ...
+    @property
+    def aim_ok(self) -> bool: ...
+    @property
+    def delta_distance_m(self) -> float: ...  # + = step back
+    @property
+    def delta_azimuth_deg(self) -> float: ...  # + = walk round to your left
+    @property
+    def aim_yaw_deg(self) -> float: ...  # + = turn the camera right
+    @property
+    def aim_pitch_deg(self) -> float: ...  # + = tilt the camera down
 
 FloatArray = NDArray[np.float64]
 
@@ -149,7 +173,7 @@ class SimulatedOperator:
         self._next_look_s = t_s + duration_s + self.settings.reaction_s
         self.moves += 1
 
-    def step(self, guidance: Any, t_s: float) -> None:
+    def step(self, guidance: Instructions, t_s: float) -> None:
         """Read the screen (when not walking and the reaction time has passed) and start a move."""
         self._current(t_s)
         if self._move is not None or t_s < self._next_look_s:

@@ -8,9 +8,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.board import Board
-from depthstation.errors import InputError
-from depthstation.geometry import inclination_deg, look_at, matrix_to_quaternion, quaternion_to_matrix
+from depthstation.core.board import Board
+from depthstation.core.errors import InputError
+from depthstation.core.geometry import (
+    inclination_deg,
+    look_at,
+    matrix_to_quaternion,
+    quaternion_to_matrix,
+    rodrigues,
+)
 
 Pose = NDArray[np.float64]
 
@@ -32,7 +38,6 @@ def standpoint_pose(board: Board, distance_m: float, inclination_deg_: float, si
     eye = c + distance_m * np.array([sign * np.sin(a), 0.0, -np.cos(a)])
     pose = look_at(eye, c, up=(0.0, -1.0, 0.0))
     if roll_deg:
-        from depthstation.geometry import rodrigues
 
         pose[:3, :3] = pose[:3, :3] @ rodrigues(np.array([0.0, 0.0, np.radians(roll_deg)]))
     return pose

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from depthstation.camera import Extrinsics, Intrinsics, StreamInfo
-from depthstation.errors import SimulationError
+from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
+from depthstation.core.errors import SimulationError
 
 # resolution -> scale of the 1280-wide focal length (4:3 and 16:10 modes come from the 1280x800 imager)
 _SCALE = {(1280, 720): 1.0, (1280, 800): 1.0, (848, 480): 848 / 1280, (640, 480): 0.6,

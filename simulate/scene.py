@@ -11,11 +11,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.board import Board
-from depthstation.errors import InputError, SimulationError
+from depthstation.core.board import Board
+from depthstation.core.errors import InputError, SimulationError
 
 WHITE_ALBEDO = 0.85  # matte print paper
 BLACK_ALBEDO = 0.05  # laser-printed black
@@ -129,7 +130,6 @@ def cylinder(center: Any, radius: float, y_top: float, y_bottom: float,
 
 def _charuco_texture(board: Board, px_per_square: int = 64) -> NDArray[np.float32]:
     """Albedo image of a ChArUco board from OpenCV's own drawing (so detection ids match)."""
-    import cv2
 
     name = str(board.dictionary or "DICT_4X4_50")
     if not hasattr(cv2.aruco, name):

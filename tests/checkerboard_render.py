@@ -14,10 +14,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.board import Board
-from depthstation.camera import Intrinsics, StreamInfo
-from depthstation.frames import FrameSet
-from depthstation.geometry import look_at
+from depthstation.core.board import Board
+from depthstation.core.camera_model import Intrinsics, StreamInfo
+from depthstation.core.frames import FrameSet
+from depthstation.core.geometry import look_at
 
 
 def board_image(board: Board, px_per_m: float) -> NDArray[np.uint8]:
@@ -27,7 +27,7 @@ def board_image(board: Board, px_per_m: float) -> NDArray[np.uint8]:
     sq = round(s * px_per_m)
     mp = round(m * px_per_m)
     if board.type == "charuco":
-        from evaluate.checkerboard.detection import charuco_legacy
+        from depthstation.evaluate.checkerboard.detection import charuco_legacy
 
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, str(board.dictionary)))
         cb = cv2.aruco.CharucoBoard((board.squares_x, board.squares_y), s,

@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from depthstation.board import Board
-from depthstation.capture.mcap_writer import write_mcap
-from depthstation.capture.reader import open_inputs
-from depthstation.frames import FrameSet
+from depthstation.core.board import Board
+from depthstation.core.capture.mcap_writer import write_mcap
+from depthstation.core.capture.registry import open_inputs
+from depthstation.core.frames import FrameSet
 
 # hidden(z, u, v, black, t_s, temperature, cam) -> z error (m); cam holds fx, ppx, ppy, baseline_m
 Hidden = Callable[..., Any]
@@ -45,7 +45,7 @@ def wide_protocol(width: int = 640, height: int = 360) -> Any:
     z^2 (disparity offset) and z (depth scale) differ by a factor 5 in shape over this span, and
     the board is still found at 5 m at 640x360.
     """
-    from depthstation.protocol import load_protocol
+    from depthstation.core.protocol import load_protocol
 
     p = load_protocol("demo-d455")
     plan = replace(p.plan, start_distance_m=1.0, step_m=1.0, max_distance_m=5.0, inclinations_deg=(0.0, 30.0))

@@ -6,11 +6,11 @@ import base64
 
 import pytest
 
-from acquire.calibrate import GOOD, IMPROVABLE, REQUIRED, health_verdict, run_calibration
-from acquire.camera import CalibrationResult
-from acquire.live import LiveCamera, read_options, read_temperatures
-from depthstation.errors import InputError
-from depthstation.protocol import Calibration
+from depthstation.acquire.calibrate import GOOD, IMPROVABLE, REQUIRED, health_verdict, run_calibration
+from depthstation.acquire.live_camera import LiveCamera, read_options, read_temperatures
+from depthstation.core.device import CalibrationResult
+from depthstation.core.errors import InputError
+from depthstation.core.protocol import Calibration
 
 
 class FakeDevice:
@@ -88,7 +88,7 @@ def test_live_camera_imports_without_device() -> None:
 
 @pytest.mark.hardware
 def test_live_d455_streams_and_reports() -> None:
-    from depthstation.protocol import Streams
+    from depthstation.core.protocol import Streams
 
     cam = LiveCamera()
     info = cam.start(Streams(width=640, height=480, fps=30))

@@ -13,12 +13,12 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from test_acquire_loop import INTR, RenderedBoardCamera
 
-from acquire.select import parse_camera
-from depthstation.board import Board
-from depthstation.camera import StreamInfo
-from depthstation.errors import InputError
-from depthstation.protocol import Streams
-from simulate.operator import Stance
+from depthstation.acquire.camera_select import parse_camera
+from depthstation.core.board import Board
+from depthstation.core.camera_model import StreamInfo
+from depthstation.core.errors import InputError
+from depthstation.core.protocol import Streams
+from depthstation.simulate.operator import Stance
 
 ROOT = Path(__file__).resolve().parents[1]
 EXE = str(ROOT / ".venv" / "bin" / "depthstation")
@@ -62,7 +62,7 @@ def write_protocol(tmp: Path, frames: int = 5) -> Path:
 
 def make_recording(path: Path, n: int = 30) -> Path:
     """A .db3 of a board held at 1.0 m facing the camera, through librealsense's recorder."""
-    from depthstation.capture.rsrecord import write_realsense_recording
+    from depthstation.core.capture.rs_writer import write_realsense_recording
 
     cam = RenderedBoardCamera(Board())
     cam.set_pose(Stance(range_m=1.0).camera_to_board(Board()))
@@ -99,7 +99,7 @@ def test_capture_from_a_recording(tmp_path: Path) -> None:
     data = json.loads((sess / "session.json").read_text())
     entries = {e["name"]: e for e in data["standpoints"]}
     assert entries["standpoint_01"]["status"] == "complete" and entries["standpoint_01"]["frames"] == 5
-    from depthstation.capture.reader import open_recording
+    from depthstation.core.capture.registry import open_recording
 
     r1 = open_recording(sess / "standpoint_01.mcap")
     meas = r1.metadata["standpoint"]["measured"]

@@ -44,7 +44,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_sigkill_then_resume_rerecords_only_the_broken_standpoint(recording: Path, tmp_path: Path) -> None:
-    from depthstation.capture.reader import open_recording
+    from depthstation.core.capture.registry import open_recording
 
     proto = tmp_path / "two.toml"
     proto.write_text(TWO_HERE.replace("frames_per_standpoint = {frames}", "frames_per_standpoint = 80"))
@@ -100,10 +100,10 @@ def test_ctrl_c_while_a_standpoint_is_being_closed_still_finishes_it(tmp_path: P
     import os
     import threading
 
-    from depthstation.camera import Intrinsics, StreamInfo
-    from depthstation.capture.reader import open_recording
-    from depthstation.capture.session import Session
-    from depthstation.frames import FrameSet
+    from depthstation.core.camera_model import Intrinsics, StreamInfo
+    from depthstation.core.capture.registry import open_recording
+    from depthstation.core.capture.session import Session
+    from depthstation.core.frames import FrameSet
 
     info = StreamInfo(Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5), None)
     session = Session.create(tmp_path / "s", protocol={"name": "t"}, device={})

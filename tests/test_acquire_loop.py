@@ -7,14 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.capture import GuidedCapture
-from depthstation.board import Board
-from depthstation.camera import Intrinsics, StreamInfo, project
-from depthstation.capture.session import Session
-from depthstation.errors import CameraDisconnected, CameraError
-from depthstation.frames import FrameSet
-from depthstation.protocol import Plan, Protocol, Streams, Tolerances
-from simulate.operator import OperatorSettings, SimulatedOperator, Stance
+from depthstation.acquire.guided_capture import GuidedCapture
+from depthstation.core.board import Board
+from depthstation.core.camera_model import Intrinsics, StreamInfo, project
+from depthstation.core.capture.session import Session
+from depthstation.core.errors import CameraDisconnected, CameraError
+from depthstation.core.frames import FrameSet
+from depthstation.core.protocol import Plan, Protocol, Streams, Tolerances
+from depthstation.simulate.operator import OperatorSettings, SimulatedOperator, Stance
 
 INTR = Intrinsics(640, 360, 320.0, 320.0, 319.5, 179.5)
 

@@ -26,8 +26,8 @@ SIM_TOML = (SMALL_TOML.replace("max_distance_m = 1.5", "max_distance_m = 1.6")
 
 
 def test_guided_session_with_simulated_operator(tmp_path: Path) -> None:
-    from depthstation.capture.session import Session
-    from depthstation.protocol import load_protocol
+    from depthstation.core.capture.session import Session
+    from depthstation.core.protocol import load_protocol
 
     proto_path = tmp_path / "sim.toml"
     proto_path.write_text(SIM_TOML.replace("{frames}", "5"))
@@ -61,11 +61,11 @@ def test_guided_session_with_simulated_operator(tmp_path: Path) -> None:
 
 
 def test_simulated_disconnect_is_reported_and_redone(tmp_path: Path) -> None:
-    from acquire.capture import GuidedCapture
-    from depthstation.capture.session import Session
-    from depthstation.protocol import Plan, Protocol, Streams, Tolerances
-    from simulate.camera import SimulatedCamera
-    from simulate.operator import SimulatedOperator, Stance
+    from depthstation.acquire.guided_capture import GuidedCapture
+    from depthstation.core.capture.session import Session
+    from depthstation.core.protocol import Plan, Protocol, Streams, Tolerances
+    from depthstation.simulate.operator import SimulatedOperator, Stance
+    from depthstation.simulate.simulated_camera import SimulatedCamera
 
     proto = Protocol("one", streams=Streams(width=640, height=360),
                      plan=Plan(frames_per_standpoint=8, start_distance_m=1.2, max_distance_m=1.2,
@@ -91,11 +91,11 @@ def test_simulated_disconnect_is_reported_and_redone(tmp_path: Path) -> None:
 
 def test_no_dropped_frame_at_real_time(tmp_path: Path) -> None:
     """Small frames here (benchmarks/bench_acquire.py does 1280x720): frame numbers contiguous."""
-    from acquire.capture import GuidedCapture
-    from depthstation.capture.session import Session
-    from depthstation.protocol import Plan, Protocol, Streams, Tolerances
-    from simulate.camera import SimulatedCamera
-    from simulate.poses import standpoint_pose
+    from depthstation.acquire.guided_capture import GuidedCapture
+    from depthstation.core.capture.session import Session
+    from depthstation.core.protocol import Plan, Protocol, Streams, Tolerances
+    from depthstation.simulate.poses import standpoint_pose
+    from depthstation.simulate.simulated_camera import SimulatedCamera
 
     proto = Protocol("rt", streams=Streams(width=424, height=240, fps=30),
                      plan=Plan(frames_per_standpoint=45, start_distance_m=0.8, max_distance_m=0.8,

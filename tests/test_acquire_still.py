@@ -14,14 +14,15 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from test_acquire_loop import RenderedBoardCamera, drive
 
-from acquire.boardpose import board_pose, pose_metrics
-from acquire.capture import MOVED_MESSAGE, GuidedCapture, LiveState
-from acquire.guidance import points_agree
-from depthstation.board import Board
-from depthstation.capture.session import Session
-from depthstation.frames import FrameSet
-from depthstation.protocol import PROTOCOL_DIR, Plan, Protocol, Streams, Tolerances
-from simulate.operator import SimulatedOperator, Stance
+from depthstation.acquire.board_detection import board_pose
+from depthstation.acquire.guidance import points_agree
+from depthstation.acquire.guided_capture import MOVED_MESSAGE, GuidedCapture, LiveState
+from depthstation.core.board import Board
+from depthstation.core.board_pose import pose_metrics
+from depthstation.core.capture.session import Session
+from depthstation.core.frames import FrameSet
+from depthstation.core.protocol import PROTOCOL_DIR, Plan, Protocol, Streams, Tolerances
+from depthstation.simulate.operator import SimulatedOperator, Stance
 
 
 class TrackedCamera(RenderedBoardCamera):
@@ -103,7 +104,7 @@ def test_a_take_with_a_moving_camera_is_discarded_and_recorded_again(tmp_path: P
     # the moved take is kept aside, never deleted, and it did move
     aside = tmp_path / "s" / "standpoint_01.discarded-1.mcap"
     assert aside.is_file()
-    from depthstation.capture.reader import open_recording
+    from depthstation.core.capture.registry import open_recording
 
     first = [true_points(board, cam.truth[fs.index]) for fs in open_recording(aside).frames()]
     # it did move (not a false alarm of pose noise: a still camera's truth does not move at all); the
@@ -127,8 +128,8 @@ def test_demo_standpoint_01_is_still_after_warmup_and_calibration(tmp_path: Path
     tare calibration) recorded standpoint_01 while the operator was still stepping back from 0.95 to
     1.02 m: the stillness window accepted the first frame of the step. Its frames must be still
     now, without a retake (the stillness check, not the safeguard, keeps it still)."""
-    from acquire.cli import Station, do_calibrate, do_capture, do_warmup
-    from depthstation.viz import RerunTarget
+    from depthstation.acquire.station import Station, do_calibrate, do_capture, do_warmup
+    from depthstation.core.rerun_bridge import RerunTarget
 
     text = (PROTOCOL_DIR / "demo-d455.toml").read_text()
     # only standpoint_01 of the demo plan, and a warm-up of 2 to 3 simulated minutes (the clock jump

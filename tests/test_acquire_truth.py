@@ -10,15 +10,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from depthstation.protocol import Plan, Protocol, Streams, Tolerances
+from depthstation.core.protocol import Plan, Protocol, Streams, Tolerances
 
 
 def run_session(out: Path, proto: Protocol, seed: int, model: Any = "d455") -> tuple[list[Any], Any]:
     """In-process: the CLI's wiring (operator steps on frame time) without the subprocess."""
-    from acquire.capture import GuidedCapture
-    from depthstation.capture.session import Session
-    from simulate.camera import SimulatedCamera
-    from simulate.operator import SimulatedOperator, Stance
+    from depthstation.acquire.guided_capture import GuidedCapture
+    from depthstation.core.capture.session import Session
+    from depthstation.simulate.operator import SimulatedOperator, Stance
+    from depthstation.simulate.simulated_camera import SimulatedCamera
 
     cam = SimulatedCamera(model, board=proto.board, seed=seed)
     op = SimulatedOperator(proto.board, Stance(range_m=proto.plan.start_distance_m + 0.3, azimuth_deg=-4.0,
@@ -55,8 +55,8 @@ def guided(tmp_path_factory: pytest.TempPathFactory) -> tuple[Protocol, Path, li
 def test_guided_session_evaluates_to_the_simulators_truth(guided: tuple[Protocol, Path, list[Any]]) -> None:
     """Judged: the evaluation of the guided session agrees with the simulator's truth (the
     checkerboard study's own tolerances: distance 0.5 %, pose inclination 0.5 degrees)."""
-    from depthstation.capture.session import Session
-    from evaluate.checkerboard.study import evaluate_recording
+    from depthstation.core.capture.session import Session
+    from depthstation.evaluate.checkerboard.study import evaluate_recording
 
     proto, out, outcomes = guided
     plan = proto.plan.standpoints()
@@ -84,8 +84,8 @@ def test_end_of_range_moves_to_the_next_trajectory(tmp_path: Path) -> None:
     """A protocol reaching past the camera's range: the fill rate on the board collapses at 2.2 m
     (a unit whose range ends at ~1.7 m), the station skips the rest of that trajectory, starts
     the next inclination at the first distance again, and says so in session.json."""
-    from depthstation.capture.session import Session
-    from simulate.model import load_model
+    from depthstation.core.capture.session import Session
+    from depthstation.simulate.model import load_model
 
     proto = Protocol("range", streams=Streams(width=640, height=360, fps=30),
                      plan=Plan(frames_per_standpoint=4, start_distance_m=1.0, step_m=1.2, max_distance_m=2.2,

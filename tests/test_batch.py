@@ -19,21 +19,19 @@ from typing import Any
 import numpy as np
 import pytest
 
-from depthstation.errors import InputError
-from depthstation.parallel import FrameChunk, frame_chunks
-from depthstation.results import write_result_info
-from evaluate import batch as batch_mod
-from evaluate.batch import (
+from depthstation.core.errors import InputError
+from depthstation.core.grid import GRID_FILE, Grid, pack_grid, unpack_grid
+from depthstation.core.parallel import FrameChunk, frame_chunks
+from depthstation.core.results import write_result_info
+from depthstation.evaluate import batch as batch_mod
+from depthstation.evaluate.batch import (
     DONE_MARKER,
     BatchItem,
     ItemJob,
     batch,
     load_manifest,
     merge_grids,
-    pack_grid,
-    unpack_grid,
 )
-from evaluate.grid import GRID_FILE, Grid
 
 EDGES_D = np.linspace(0.0, 6.0, 13)    # 0.5 m bins
 EDGES_I = np.linspace(0.0, 90.0, 10)   # 10 degree bins
@@ -181,7 +179,7 @@ def test_killed_batch_process_resumes(tmp_path: Path) -> None:
         import sys
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         import test_batch
-        from evaluate import batch as b
+        from depthstation.evaluate import batch as b
         b.KINDS["synthgrid"] = test_batch.prepare_synth
         b.batch(b.Path({str(manifest)!r}), workers=1)
     """)
@@ -203,7 +201,7 @@ def test_changed_item_is_redone(tmp_path: Path) -> None:
 
 
 def test_failed_item_is_reported_and_others_finish(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from depthstation.errors import EvaluationError
+    from depthstation.core.errors import EvaluationError
 
     def prepare_maybe_fail(item: BatchItem) -> Any:
         if item.name == "seq_a":

@@ -16,8 +16,8 @@ pytest.importorskip("open3d")
 def make_scan_item(root: Path, name: str, seed: int) -> dict[str, Path]:
     import open3d as o3d
 
-    from evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
-    from evaluate.scan.trajectory import write_tum
+    from depthstation.evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
+    from depthstation.evaluate.scan.trajectory import write_tum
 
     room = Room()
     seq = make_sequence(frames=6, width=64, height=48, room=room, seed=seed)
@@ -32,10 +32,12 @@ def make_scan_item(root: Path, name: str, seed: int) -> dict[str, Path]:
 
 
 def test_batch_of_scans_and_checkerboard(tmp_path: Path, charuco_dir: Path) -> None:
-    from evaluate.batch import batch
-    from evaluate.grid import GRID_FILE, Grid
-    from evaluate.scan.study import StudyConfig, run_study
-    from evaluate.scan.trajectory import read_tum
+    from depthstation.core.grid import GRID_FILE, Grid
+    from depthstation.core.parallel import ChunkRunner
+    from depthstation.evaluate.batch import batch
+    from depthstation.evaluate.scan.chunks import run_scan_chunks
+    from depthstation.evaluate.scan.study import StudyConfig
+    from depthstation.evaluate.scan.trajectory import read_tum
 
     items = {n: make_scan_item(tmp_path, n, s) for n, s in (("room_a", 1), ("room_b", 2))}
     opts = 'options = { icp = false, chunk_frames = 2, distance_bin_m = 0.05, inclination_bin_deg = 1.0 }'
@@ -54,7 +56,9 @@ def test_batch_of_scans_and_checkerboard(tmp_path: Path, charuco_dir: Path) -> N
     config = StudyConfig(distance_bin_m=0.05, inclination_bin_deg=1.0)
     expected = None
     for n, inp in items.items():
-        one = run_study(inp["sequence"], inp["reference"], read_tum(inp["poses"]), config).grid
+        with ChunkRunner(1) as serial:
+            one = run_scan_chunks(inp["sequence"], inp["reference"], read_tum(inp["poses"]), config,
+                                  serial).grid
         got = Grid.load(out / n / GRID_FILE)
         np.testing.assert_array_equal(got.count, one.count)
         np.testing.assert_allclose(got.mean, one.mean, rtol=1e-9, atol=1e-15)

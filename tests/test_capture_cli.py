@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from depthstation.capture.mcap_writer import McapFileWriter
-from depthstation.capture.samples import sample_frames, sample_info
+from depthstation.core.capture.mcap_writer import McapFileWriter
+from depthstation.core.capture.sample_recordings import sample_frames, sample_info
 
 EXE = str(Path(sys.executable).parent / "depthstation")
 
@@ -83,13 +83,13 @@ def test_truncated_mcap_info_warns_once(tmp_path: Path) -> None:
 def test_compact_rewrites_with_zstd(tmp_path: Path) -> None:
     info = sample_info(32, 24)
     src = tmp_path / "a.mcap"
-    from depthstation.capture.mcap_writer import write_mcap
+    from depthstation.core.capture.mcap_writer import write_mcap
 
     frames = list(sample_frames(info, 3))
     write_mcap(src, info, frames, {"standpoint": {"distance_m": 2.0}})
     p = run("compact", str(src), str(tmp_path / "b.mcap"))
     assert p.returncode == 0, p.stderr
-    from depthstation.capture.reader import open_recording
+    from depthstation.core.capture.registry import open_recording
 
     rec = open_recording(tmp_path / "b.mcap")
     assert rec.metadata["standpoint"] == {"distance_m": 2.0}

@@ -10,11 +10,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from depthstation.capture.mcap_writer import write_mcap
-from depthstation.capture.reader import McapRecording, open_inputs, open_recording
-from depthstation.capture.samples import sample_frames, sample_info
-from depthstation.capture.session import Session
-from depthstation.errors import InputError
+from depthstation.core.capture.mcap_reader import McapRecording
+from depthstation.core.capture.mcap_writer import write_mcap
+from depthstation.core.capture.registry import open_inputs, open_recording
+from depthstation.core.capture.sample_recordings import sample_frames, sample_info
+from depthstation.core.capture.session import Session
+from depthstation.core.errors import InputError
 
 
 def test_mcap_round_trip_is_bit_exact(tmp_path: Path) -> None:
@@ -56,7 +57,7 @@ def test_truncated_mcap_recovers_complete_chunks(tmp_path: Path, caplog: pytest.
     info = sample_info(32, 24)
     frames = list(sample_frames(info, 40, seed=2))
     full = tmp_path / "full.mcap"
-    from depthstation.capture.mcap_writer import McapFileWriter
+    from depthstation.core.capture.mcap_writer import McapFileWriter
 
     with McapFileWriter(full, info, compression="lz4", chunk_size=8 * 1024) as w:
         for f in frames:
@@ -66,7 +67,7 @@ def test_truncated_mcap_recovers_complete_chunks(tmp_path: Path, caplog: pytest.
     cut.write_bytes(data[: len(data) // 2])
     rec = open_recording(cut)
     assert rec.frame_count is None  # no summary in a cut file
-    with caplog.at_level(logging.WARNING, logger="depthstation.capture"):
+    with caplog.at_level(logging.WARNING, logger="depthstation.core.capture"):
         got = list(rec.frames())
     # Every frame whose chunk survived: count the complete chunks independently.
     from mcap.records import Chunk
@@ -131,8 +132,8 @@ def test_session_lifecycle_crash_and_resume(tmp_path: Path) -> None:
     # A crash mid-standpoint: another process writes standpoint_02 and dies without closing.
     script = (
         "import os, sys\n"
-        "from depthstation.capture.session import Session\n"
-        "from depthstation.capture.samples import sample_frames, sample_info\n"
+        "from depthstation.core.capture.session import Session\n"
+        "from depthstation.core.capture.sample_recordings import sample_frames, sample_info\n"
         "info = sample_info(32, 24)\n"
         "w = Session.open(sys.argv[1]).standpoint_writer('standpoint_02', info, {'distance_m': 1.5})\n"
         "for f in sample_frames(info, 3):\n"
@@ -227,7 +228,7 @@ def test_rosbags_anyreader_opens_our_mcap(tmp_path: Path) -> None:
             )
         ]
         # /tf_static holds the pose of the colour frame in the depth frame: colour->depth.
-        from depthstation.capture.rosmsgs import extrinsics_from_transform
+        from depthstation.core.capture.rosmsgs import extrinsics_from_transform
 
         pose = extrinsics_from_transform(tf[0].transforms[0].transform)
         np.testing.assert_allclose(pose.matrix, info.depth_to_color.inverse().matrix, atol=1e-12)

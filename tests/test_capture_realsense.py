@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthstation.camera import StreamInfo
-from depthstation.capture.importer import import_recordings
-from depthstation.capture.reader import open_inputs, open_recording
-from depthstation.capture.rsrecord import write_realsense_recording
-from depthstation.capture.samples import sample_frames, sample_info
-from depthstation.errors import InputError
+from depthstation.core.camera_model import StreamInfo
+from depthstation.core.capture.importer import import_recordings
+from depthstation.core.capture.registry import open_inputs, open_recording
+from depthstation.core.capture.rs_writer import write_realsense_recording
+from depthstation.core.capture.sample_recordings import sample_frames, sample_info
+from depthstation.core.errors import InputError
 
 
 def assert_same_info(a: StreamInfo, b: StreamInfo, tol: float = 1e-6) -> None:
@@ -54,7 +54,7 @@ def test_real_d435_bag(d435_bag: Path) -> None:
     prof = pipe.start(cfg)
     try:
         e = prof.get_stream(rs.stream.depth).get_extrinsics_to(prof.get_stream(rs.stream.color))
-        from depthstation.camera import Extrinsics
+        from depthstation.core.camera_model import Extrinsics
 
         ref = Extrinsics.from_librealsense(e.rotation, e.translation)
         np.testing.assert_allclose(info.depth_to_color.matrix, ref.matrix, atol=1e-6)

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 from checkerboard_render import pose_for, still_frames
 
-from depthstation.board import Board
-from depthstation.camera import Extrinsics, Intrinsics, StreamInfo
-from depthstation.frames import FrameSet
-from depthstation.geometry import rodrigues
-from evaluate.checkerboard.errors import BoardMismatchError
-from evaluate.checkerboard.metrics import fit_plane_moments, moment_matrix, svd_plane_rms
-from evaluate.checkerboard.study import evaluate_frames
+from depthstation.core.board import Board
+from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
+from depthstation.core.frames import FrameSet
+from depthstation.core.geometry import rodrigues
+from depthstation.evaluate.checkerboard.errors import BoardMismatchError
+from depthstation.evaluate.checkerboard.metrics import fit_plane_moments, moment_matrix, svd_plane_rms
+from depthstation.evaluate.checkerboard.study import evaluate_frames
 
 INTR = Intrinsics(640, 360, 320.0, 320.0, 319.5, 179.5)
 ALIGNED = StreamInfo(INTR, INTR, depth_units_m=1e-4, depth_aligned_to_color=True)
@@ -145,7 +145,7 @@ def test_moment_plane_fit_equals_svd() -> None:
 
 def test_tracking_follows_a_still_board_and_lets_go_of_a_moved_one() -> None:
     """Corners are tracked from frame to frame only while they stay on the board's X-junctions."""
-    from evaluate.checkerboard.detection import BoardDetector
+    from depthstation.evaluate.checkerboard.detection import BoardDetector
 
     board = Board()
     det = BoardDetector(board)
@@ -168,8 +168,9 @@ def test_normal_std_matches_monte_carlo_of_pnp() -> None:
     from noisy corners: 5 m head-on, 12 px squares at 1280x720, 0.05 px corner noise."""
     import cv2
 
-    from evaluate.checkerboard.detection import Detection
-    from evaluate.checkerboard.pose import corner_noise_px, estimate_pose, normal_std_deg
+    from depthstation.core.board_pose import solve_board_pose
+    from depthstation.evaluate.checkerboard.detection import Detection
+    from depthstation.evaluate.checkerboard.pose import corner_noise_px, normal_std_deg
 
     board = Board()
     pose = pose_for(board, 5.0, 0.0, azimuth_deg=20.0)
@@ -181,7 +182,7 @@ def test_normal_std_matches_monte_carlo_of_pnp() -> None:
     tilts, noise = [], []
     for _ in range(400):
         det = Detection(uv + rng.normal(0.0, sigma, uv.shape), obj, np.arange(len(obj)))
-        p = estimate_pose(det, HD)
+        p = solve_board_pose(det.object_points, det.image_points, HD)
         assert p is not None
         noise.append(corner_noise_px(p, det, HD))
         tilts.append(np.cross(pose[:3, 2], p.matrix[:3, 2]))  # small-angle tilt vector (rad)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from depthstation.board import Board
+from depthstation.core.board import Board
 
 # (distance m, inclination deg, side): 1-5 m x 0-60 deg
 STANDPOINTS = [(1.0, 0.0, "left"), (2.0, 30.0, "right"), (3.0, 60.0, "left"),
@@ -20,13 +20,13 @@ FRAMES = 4
 
 def test_noise_accuracy_and_geometry_match_the_model() -> None:
     pytest.importorskip("open3d")
-    from evaluate.checkerboard.study import evaluate_frames
-    from simulate.checkerboard import render_frames
-    from simulate.effects.base import PixelContext
-    from simulate.model import load_model
-    from simulate.poses import standpoint_pose, standpoint_truth
-    from simulate.renderer import ViewRenderer
-    from simulate.scene import board_scene
+    from depthstation.evaluate.checkerboard.study import evaluate_frames
+    from depthstation.simulate.checkerboard_session import render_frames
+    from depthstation.simulate.effects.base import PixelContext
+    from depthstation.simulate.model import load_model
+    from depthstation.simulate.poses import standpoint_pose, standpoint_truth
+    from depthstation.simulate.scene import board_scene
+    from depthstation.simulate.view_renderer import ViewRenderer
 
     board = Board()
     model = load_model("d455")
@@ -80,7 +80,7 @@ def test_noise_accuracy_and_geometry_match_the_model() -> None:
 
 def _plane_offset(ref: np.ndarray, true: np.ndarray, u: np.ndarray, v: np.ndarray, intr: object) -> float:
     """Mean orthogonal distance (along the reference normal) of the true plane behind the reference."""
-    from depthstation.camera import Intrinsics
+    from depthstation.core.camera_model import Intrinsics
 
     assert isinstance(intr, Intrinsics)
     rx = (u - intr.ppx) / intr.fx

@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthstation.board import load_board
-from depthstation.camera import deproject
+from depthstation.core.board import load_board
+from depthstation.core.camera_model import deproject
 
 
 def test_real_charuco_every_standpoint(charuco_dir: Path) -> None:
-    from depthstation.capture.reader import open_inputs
-    from evaluate.checkerboard.study import evaluate_recording
+    from depthstation.core.capture.registry import open_inputs
+    from depthstation.evaluate.checkerboard.study import evaluate_recording
 
     board = load_board(charuco_dir / "board.json")
     recs = open_inputs([charuco_dir])

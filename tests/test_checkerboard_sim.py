@@ -12,10 +12,10 @@ import pytest
 
 def test_simulated_standpoints_match_truth(tmp_path: Path) -> None:
     pytest.importorskip("open3d")
-    from depthstation.capture.reader import open_inputs
-    from depthstation.protocol import load_protocol
-    from evaluate.checkerboard.study import evaluate_recording
-    from simulate.checkerboard import simulate_checkerboard
+    from depthstation.core.capture.registry import open_inputs
+    from depthstation.core.protocol import load_protocol
+    from depthstation.evaluate.checkerboard.study import evaluate_recording
+    from depthstation.simulate.checkerboard_session import simulate_checkerboard
 
     proto = load_protocol("demo-d455")
     names = ["standpoint_01", "standpoint_04", "standpoint_06"]
@@ -43,10 +43,10 @@ def test_pose_inclination_head_on_far_demo_standpoint(tmp_path: Path) -> None:
     X-junction fit (corners.py, ~0.01 px) brings it to a few hundredths.
     """
     pytest.importorskip("open3d")
-    from depthstation.capture.reader import open_inputs
-    from depthstation.protocol import load_protocol
-    from evaluate.checkerboard.study import evaluate_recording
-    from simulate.checkerboard import simulate_checkerboard
+    from depthstation.core.capture.registry import open_inputs
+    from depthstation.core.protocol import load_protocol
+    from depthstation.evaluate.checkerboard.study import evaluate_recording
+    from depthstation.simulate.checkerboard_session import simulate_checkerboard
 
     proto = load_protocol("demo-d455")
     far = max((s for s in proto.plan.standpoints() if s.inclination_deg == 0), key=lambda s: s.distance_m)
@@ -60,11 +60,11 @@ def test_db3_gives_the_same_table_as_mcap(tmp_path: Path) -> None:
     """The same simulated frames through librealsense's recorder (.db3) and our MCAP writer."""
     pytest.importorskip("open3d")
     pytest.importorskip("pyrealsense2")
-    from depthstation.capture.reader import open_inputs
-    from depthstation.protocol import load_protocol
-    from evaluate.checkerboard.report import COLUMNS, standpoint_row
-    from evaluate.checkerboard.study import evaluate_recording
-    from simulate.checkerboard import simulate_checkerboard
+    from depthstation.core.capture.registry import open_inputs
+    from depthstation.core.protocol import load_protocol
+    from depthstation.evaluate.checkerboard.report import COLUMNS, standpoint_row
+    from depthstation.evaluate.checkerboard.study import evaluate_recording
+    from depthstation.simulate.checkerboard_session import simulate_checkerboard
 
     proto = load_protocol("demo-d455")
     names = ["standpoint_01", "standpoint_05"]

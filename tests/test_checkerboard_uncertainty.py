@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from depthstation.board import Board
-from depthstation.camera import Intrinsics
+from depthstation.core.board import Board
+from depthstation.core.camera_model import Intrinsics
 
 FRAMES = 16
 DISTANCES = (1.0, 1.8, 2.6)
@@ -22,7 +22,7 @@ TILT_DEG = 8.0  # near-frontal: the worse tilt axis is the inclination's (see do
 
 def _vertical_pose(board: Board, distance_m: float, inclination: float) -> Any:
     """Camera above the board's centre line, tilted about the board's long (x) axis."""
-    from depthstation.geometry import look_at
+    from depthstation.core.geometry import look_at
 
     a = np.radians(inclination)
     c = board.center
@@ -32,10 +32,10 @@ def _vertical_pose(board: Board, distance_m: float, inclination: float) -> Any:
 def _study(tmp: Path, colour_noise_dn: float | None, monkeypatch: pytest.MonkeyPatch) -> list[Any]:
     """Three still standpoints at 1.0, 1.8, 2.6 m (640x360, 16 frames), evaluated."""
     pytest.importorskip("open3d")
-    import simulate.checkerboard as sim
-    from depthstation.capture.reader import open_inputs
-    from depthstation.protocol import load_protocol
-    from evaluate.checkerboard.study import evaluate_recording
+    import depthstation.simulate.checkerboard_session as sim
+    from depthstation.core.capture.registry import open_inputs
+    from depthstation.core.protocol import load_protocol
+    from depthstation.evaluate.checkerboard.study import evaluate_recording
 
     if colour_noise_dn is not None:
         monkeypatch.setattr(sim, "ViewRenderer", functools.partial(sim.ViewRenderer,
@@ -87,8 +87,8 @@ def test_default_colour_noise_prediction_is_conservative(tmp_path: Path,
     """At the simulator's 2 grey levels the residuals also hold the static corner error, so the
     prediction may only overstate: the measured scatter is never significantly above it. The
     result folder carries the columns, frames.csv the per-frame corner noise and inclination."""
-    from depthstation.protocol import load_protocol
-    from evaluate.checkerboard.report import write_study
+    from depthstation.core.protocol import load_protocol
+    from depthstation.evaluate.checkerboard.report import write_study
 
     results = _study(tmp_path, None, monkeypatch)
     hi = _std_ratio_bounds(FRAMES - 1)[1]
@@ -118,10 +118,11 @@ def test_frame_corner_noise_equals_the_residual_estimate() -> None:
     """The per-frame corner noise recovered from RMS and corner count is pose.corner_noise_px."""
     import cv2
 
-    from evaluate.checkerboard.detection import Detection
-    from evaluate.checkerboard.frame import FrameResult
-    from evaluate.checkerboard.pose import corner_noise_px, estimate_pose
-    from evaluate.checkerboard.study import frame_corner_noise_px
+    from depthstation.core.board_pose import solve_board_pose
+    from depthstation.evaluate.checkerboard.detection import Detection
+    from depthstation.evaluate.checkerboard.frame import FrameResult
+    from depthstation.evaluate.checkerboard.pose import corner_noise_px
+    from depthstation.evaluate.checkerboard.study import frame_corner_noise_px
 
     intr = Intrinsics(640, 360, 460.0, 460.0, 319.5, 179.5, "none", (0.0,) * 5)
     board = Board()
@@ -130,7 +131,7 @@ def test_frame_corner_noise_equals_the_residual_estimate() -> None:
     uv, _ = cv2.projectPoints(obj, cv2.Rodrigues(pose[:3, :3])[0], pose[:3, 3], intr.K, np.zeros(5))
     det = Detection(uv.reshape(-1, 2) + np.random.default_rng(0).normal(0, 0.03, (len(obj), 2)), obj,
                     np.arange(len(obj)))
-    p = estimate_pose(det, intr)
+    p = solve_board_pose(det.object_points, det.image_points, intr)
     assert p is not None
     res = FrameResult(0, 0, reprojection_px=p.reprojection_px, corners=len(obj))
     assert frame_corner_noise_px(res) == pytest.approx(corner_noise_px(p, det, intr), rel=1e-9)

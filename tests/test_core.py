@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthstation.board import Board, load_board
-from depthstation.camera import Extrinsics, Intrinsics, deproject, project
-from depthstation.errors import InputError, ProtocolError
-from depthstation.geometry import (
+from depthstation.core.board import Board, load_board
+from depthstation.core.camera_model import Extrinsics, Intrinsics, deproject, project
+from depthstation.core.errors import InputError, ProtocolError
+from depthstation.core.geometry import (
     average_rotations,
     fit_plane,
     inclination_deg,
@@ -19,7 +19,7 @@ from depthstation.geometry import (
     rodrigues,
     rotation_angle_deg,
 )
-from depthstation.protocol import load_protocol
+from depthstation.core.protocol import load_protocol
 
 
 def test_project_deproject_round_trip() -> None:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from simulate.effects import EFFECTS, PixelContext
-from simulate.effects.base import Effect
+from depthstation.simulate.effects import EFFECTS, PixelContext
+from depthstation.simulate.effects.base import Effect
 
 # A non-trivial parameter set per effect (defaults of calibration-type effects are zero).
 TEST_PARAMS: dict[str, dict[str, float]] = {
@@ -113,7 +113,7 @@ def test_signatures_have_their_physical_shape() -> None:
 
 
 def test_unknown_parameter_is_refused() -> None:
-    from depthstation.errors import SimulationError
+    from depthstation.core.errors import SimulationError
 
     with pytest.raises(SimulationError, match="unknown parameter"):
         EFFECTS["disparity_noise"]({"sigma": 0.1})
@@ -122,7 +122,7 @@ def test_unknown_parameter_is_refused() -> None:
 @pytest.mark.parametrize("fused", [True, False])
 def test_model_sample_matches_model_signature(fused: bool) -> None:
     """The whole default model plus calibration effects, fused pass and effect-by-effect alike."""
-    from simulate.model import load_model
+    from depthstation.simulate.model import load_model
 
     model = (load_model("d455").with_effect("disparity_offset", offset_px=0.1)
              .with_effect("albedo_noise", sigma_px_black=0.1).with_effect("depth_scale", scale_error=0.002)

@@ -41,9 +41,9 @@ def test_scan_on_a_dask_cluster_equals_one_process(tmp_path: Path) -> None:
     import open3d as o3d
 
     distributed = pytest.importorskip("distributed")
-    from evaluate.scan.run import ScanOptions, run_scan
-    from evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
-    from evaluate.scan.trajectory import write_tum
+    from depthstation.evaluate.scan.run import ScanOptions, run_scan
+    from depthstation.evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
+    from depthstation.evaluate.scan.trajectory import write_tum
 
     seq = make_sequence(frames=6, width=80, height=60, seed=3)
     write_tum_folder(seq, tmp_path / "seq")
@@ -70,10 +70,10 @@ def test_scan_rrd_carries_the_grid_as_named_tensors(tmp_path: Path) -> None:
     import numpy as np
     import open3d as o3d
 
-    from depthstation.viz import DISTANCE_DIM, INCLINATION_DIM, RerunTarget, read_rrd
-    from evaluate.scan.run import ScanOptions, run_scan
-    from evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
-    from evaluate.scan.trajectory import write_tum
+    from depthstation.core.rerun_bridge import DISTANCE_DIM, INCLINATION_DIM, RerunTarget, read_rrd
+    from depthstation.evaluate.scan.run import ScanOptions, run_scan
+    from depthstation.evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
+    from depthstation.evaluate.scan.trajectory import write_tum
 
     seq = make_sequence(frames=4, width=80, height=60, seed=4)
     write_tum_folder(seq, tmp_path / "seq")

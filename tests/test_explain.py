@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluate.explain.samples import Samples
+from depthstation.evaluate.explain.samples import Samples
 
 sys.path.insert(0, str(Path(__file__).parent))
 from explain_cases import conceal, wide_protocol
@@ -22,7 +22,7 @@ EXE = ROOT / ".venv" / "bin" / "depthstation"
 
 @pytest.fixture(scope="module")
 def plain_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from simulate.checkerboard import simulate_checkerboard
+    from depthstation.simulate.checkerboard_session import simulate_checkerboard
 
     out = tmp_path_factory.mktemp("plain") / "sim"
     return simulate_checkerboard("demo-d455", "d455", out, frames=6, seed=11)
@@ -31,7 +31,7 @@ def plain_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def wide_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """10 standpoints over 1-5 m at 0 and 30 deg (640x360): z and z^2 differ in shape by 5x."""
-    from simulate.checkerboard import simulate_checkerboard
+    from depthstation.simulate.checkerboard_session import simulate_checkerboard
 
     out = tmp_path_factory.mktemp("wide") / "sim"
     return simulate_checkerboard(wide_protocol(), "d455", out, frames=6, seed=11)
@@ -115,7 +115,7 @@ def test_concealed_focal_mismatch(plain_session: Path, tmp_path: Path) -> None:
     assert "lr_focal_mismatch" in (tmp_path / "out" / "model.toml").read_text()
     # the re-simulation with the new model shows no significant mismatch anywhere
     assert not data["mismatch_after"]["significant"], data["mismatch_after"]["regions"]
-    from depthstation.viz import read_rrd
+    from depthstation.core.rerun_bridge import read_rrd
 
     rrd = read_rrd(tmp_path / "explain.rrd")
     for label in ("before", "after"):   # the residual grid as heatmaps, distance x inclination
@@ -127,7 +127,7 @@ def test_concealed_dark_squares(plain_session: Path, tmp_path: Path) -> None:
     """Range error 2 mm/m^2 * z^2 * (1 - reflectance): dark print returns less IR. The reflectance is
     the simulator's truth albedo of the print (0.05 black, 0.85 white, not a 0/1 mask), so white
     squares carry a sixth of the black ones' error; the all-pixel means hide most of it."""
-    from simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO
+    from depthstation.simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO
 
     def dark(z, u, v, black, t, temp, cam):  # type: ignore[no-untyped-def]
         rho = np.where(black, BLACK_ALBEDO, WHITE_ALBEDO)
@@ -172,10 +172,10 @@ def test_real_d435_runs_end_to_end(charuco_dir: Path, tmp_path: Path) -> None:
 
 def test_workers_give_the_same_real_side(plain_session: Path) -> None:
     """--workers 2 (standpoints evaluated in two processes) gives exactly the figures of one process."""
-    from depthstation.board import load_board
-    from evaluate.explain.attribute import attribute
-    from evaluate.explain.basis import module_candidates
-    from evaluate.explain.pipeline import evaluate_real
+    from depthstation.core.board import load_board
+    from depthstation.evaluate.explain.attribute import attribute
+    from depthstation.evaluate.explain.basis import module_candidates
+    from depthstation.evaluate.explain.run import evaluate_real
 
     paths = sorted(plain_session.glob("*.mcap"))[:2]
     board = load_board(ROOT / "protocols" / "demo-d455.toml")

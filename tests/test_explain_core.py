@@ -14,10 +14,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from evaluate.explain.attribute import attribute
-from evaluate.explain.basis import module_candidates
-from evaluate.explain.locate import holm, locate
-from evaluate.explain.samples import Samples, concat
+from depthstation.evaluate.explain.attribute import attribute
+from depthstation.evaluate.explain.basis import module_candidates
+from depthstation.evaluate.explain.locate import holm, locate
+from depthstation.evaluate.explain.samples import Samples, concat
 
 W, H, FX, B = 160, 90, 124.8, 0.095
 PPX, PPY = (W - 1) / 2, (H - 1) / 2

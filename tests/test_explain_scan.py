@@ -15,7 +15,7 @@ EXE = ROOT / ".venv" / "bin" / "depthstation"
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from simulate.scan import simulate_scan
+    from depthstation.simulate.scan_sequence import simulate_scan
 
     out = tmp_path_factory.mktemp("room") / "sim"
     return simulate_scan("room", "walk", "d455", out, frames=24, width=256, height=144, color=False, seed=5)
@@ -24,9 +24,9 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _conceal(sim: Path, out: Path, c_per_m: float) -> Path:
     """The sequence with every depth measured c * z^2 too far (what a wrong disparity offset does),
     written here as a z-domain error, not through simulate.effects."""
-    from depthstation.capture.mcap_writer import write_mcap
-    from depthstation.capture.reader import open_recording
-    from depthstation.frames import FrameSet
+    from depthstation.core.capture.mcap_writer import write_mcap
+    from depthstation.core.capture.registry import open_recording
+    from depthstation.core.frames import FrameSet
 
     rec = open_recording(sim / "sequence.mcap")
     units = rec.info.depth_units_m

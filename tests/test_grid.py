@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthstation.errors import InputError
-from evaluate.grid import Grid
+from depthstation.core.errors import InputError
+from depthstation.core.grid import Grid
 
 
 def _samples(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.boardpose import board_mask, board_pose, fill_rate, pose_metrics
-from acquire.guidance import StillnessTracker, end_of_range, guide
-from depthstation.board import Board
-from depthstation.camera import Extrinsics, Intrinsics, StreamInfo, project
-from depthstation.geometry import look_at
-from depthstation.protocol import Standpoint, Tolerances
+from depthstation.acquire.board_detection import board_mask, board_pose, fill_rate
+from depthstation.acquire.guidance import StillnessTracker, end_of_range, guide
+from depthstation.core.board import Board
+from depthstation.core.board_pose import pose_metrics
+from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo, project
+from depthstation.core.geometry import look_at
+from depthstation.core.protocol import Standpoint, Tolerances
 
 BOARD = Board()
 INTR = Intrinsics(640, 360, 320.0, 320.0, 319.5, 179.5)
@@ -155,7 +156,7 @@ def test_stillness_rejects_the_first_frames_of_a_step() -> None:
 
 def test_end_of_range_and_fill_rate() -> None:
     r, t = pose_at(1.0, 0.0)
-    from acquire.boardpose import BoardPose
+    from depthstation.core.board_pose import BoardPose
 
     pose = BoardPose(r, t, np.zeros((0, 2)), 1.0, 0.0, 0.0, (319.5, 179.5))
     mask = board_mask(pose, BOARD, INTR)

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthstation.parallel import ChunkRunner, WorkerLost, reduce_chunks, run_chunks
+from depthstation.core.parallel import ChunkRunner, WorkerLost, reduce_chunks, run_chunks
 
 CELLS = 16
 
@@ -163,7 +163,7 @@ def test_single_machine_path_does_not_import_dask(frames_file: Path) -> None:
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         from test_parallel import welford_chunk, chunks_of, chan
         from pathlib import Path
-        from depthstation.parallel import reduce_chunks
+        from depthstation.core.parallel import reduce_chunks
         if __name__ == "__main__":
             reduce_chunks(welford_chunk, chunks_of(Path({str(frames_file)!r})), chan, workers=2)
             bad = sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed'))
@@ -194,7 +194,7 @@ def test_dask_cluster_equals_serial_and_survives_a_killed_worker(
 
 def test_unreachable_cluster_is_a_clear_input_error(monkeypatch: pytest.MonkeyPatch) -> None:
     pytest.importorskip("distributed")
-    from depthstation.errors import InputError
+    from depthstation.core.errors import InputError
 
     monkeypatch.setenv("DEPTHSTATION_CLUSTER_TIMEOUT", "1")
     with pytest.raises(InputError, match="cannot reach the Dask scheduler"):

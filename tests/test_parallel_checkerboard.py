@@ -9,7 +9,16 @@ from typing import Any
 
 import pytest
 
-from evaluate.batch import run_checkerboard
+from depthstation.core.board import Board
+from depthstation.core.capture.registry import open_inputs
+from depthstation.core.parallel import ChunkRunner
+from depthstation.evaluate.checkerboard.chunks import StandpointOptions, run_standpoints
+
+
+def run_checkerboard(inputs: list[Path], board: Board, *, frames: int, workers: int = 1,
+                     cluster: str | None = None) -> list[Any]:
+    with ChunkRunner(workers, cluster) as runner:
+        return run_standpoints(open_inputs(inputs), board, StandpointOptions(frames=frames), runner)
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +54,7 @@ def assert_same_rows(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> None:
 
 def test_checkerboard_table_equal_on_all_paths(standpoints: list[Path], charuco_dir: Path) -> None:
     distributed = pytest.importorskip("distributed")
-    from depthstation.board import load_board
+    from depthstation.core.board import load_board
 
     board = load_board(charuco_dir / "board.json")
     serial = rows(run_checkerboard(standpoints, board, frames=3))

@@ -13,17 +13,24 @@ import numpy as np
 import pytest
 
 pytest.importorskip("open3d")
-from evaluate import batch as batch_mod
-from evaluate.batch import ScanChunk, run_scan, scan_chunk
+from depthstation.core.parallel import ChunkRunner
+from depthstation.evaluate.scan import chunks as chunks_mod
+from depthstation.evaluate.scan.chunks import ScanChunk, run_scan_chunks, scan_chunk
+
+
+def run_scan(sequence: Path, mesh: Path, trajectory: Any, config: Any, *, chunk_frames: int = 64,
+             workers: int = 1, cluster: str | None = None) -> Any:
+    with ChunkRunner(workers, cluster) as runner:
+        return run_scan_chunks(sequence, mesh, trajectory, config, runner, chunk_frames=chunk_frames)
 
 
 @pytest.fixture(scope="module")
 def scan_case(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     import open3d as o3d
 
-    from evaluate.scan.study import StudyConfig
-    from evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
-    from evaluate.scan.trajectory import Trajectory
+    from depthstation.evaluate.scan.study import StudyConfig
+    from depthstation.evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
+    from depthstation.evaluate.scan.trajectory import Trajectory
 
     root = tmp_path_factory.mktemp("scan")
     room = Room()
@@ -39,9 +46,8 @@ def scan_case(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 @pytest.fixture(scope="module")
 def one_pass(scan_case: dict[str, Any]) -> Any:
     """The scan helper's own single-process evaluation, all frames in one chunk."""
-    from evaluate.scan.study import run_study
-
-    return run_study(scan_case["sequence"], scan_case["mesh"], scan_case["trajectory"], scan_case["config"])
+    return run_scan(scan_case["sequence"], scan_case["mesh"], scan_case["trajectory"], scan_case["config"],
+                    chunk_frames=10**6)
 
 
 def assert_same(a: Any, b: Any) -> None:
@@ -86,7 +92,7 @@ def test_scan_on_dask_with_a_killed_worker(scan_case: dict[str, Any], one_pass: 
                        scan_case["config"], chunk_frames=3, cluster=cluster)
     assert_same(on_dask, one_pass)
     flag = Path(str(scan_case["sequence"]) + ".killed")
-    monkeypatch.setattr(batch_mod, "scan_chunk", killing_scan_chunk)
+    monkeypatch.setattr(chunks_mod, "scan_chunk", killing_scan_chunk)
     killed = run_scan(scan_case["sequence"], scan_case["mesh"], scan_case["trajectory"],
                       scan_case["config"], chunk_frames=3, cluster=cluster)
     assert flag.exists(), "no worker was killed"
@@ -96,7 +102,7 @@ def test_scan_on_dask_with_a_killed_worker(scan_case: dict[str, Any], one_pass: 
 def test_scan_chunks_carry_no_pixels(scan_case: dict[str, Any]) -> None:
     import pickle
 
-    chunks = batch_mod.scan_chunks(scan_case["sequence"], scan_case["mesh"], scan_case["trajectory"],
+    chunks = chunks_mod.scan_chunks(scan_case["sequence"], scan_case["mesh"], scan_case["trajectory"],
                                    replace(scan_case["config"]), chunk_frames=4)
     assert [(c.start, c.limit) for c in chunks] == [(0, 4), (4, 4), (8, 2)]
     assert len(pickle.dumps(chunks[0])) < 10 * 1024  # 60x80 depth alone would be 9.6 kB per frame

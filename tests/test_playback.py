@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.camera import Camera
-from acquire.playback import PlaybackCamera
-from depthstation.capture.rsrecord import write_realsense_recording
-from depthstation.capture.samples import sample_frames, sample_info
-from depthstation.errors import InputError
-from depthstation.protocol import Streams
+from depthstation.acquire.playback_camera import PlaybackCamera
+from depthstation.core.capture.rs_writer import write_realsense_recording
+from depthstation.core.capture.sample_recordings import sample_frames, sample_info
+from depthstation.core.device import Camera
+from depthstation.core.errors import InputError
+from depthstation.core.protocol import Streams
 
 
 def test_playback_of_recorded_db3_delivers_every_frame(tmp_path: Path) -> None:

@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthstation.errors import InputError
-from depthstation.geometry import rodrigues
-from evaluate.scan.reference import PoissonParams, load_reference, reference_mesh
-from evaluate.scan.registration import read_pass_points, read_similarity
-from evaluate.scan.sequence import open_sequence
-from evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
-from evaluate.scan.trajectory import compose_similarity, read_tum, write_tum
+from depthstation.core.capture.registry import open_recording
+from depthstation.core.errors import InputError
+from depthstation.core.geometry import rodrigues
+from depthstation.evaluate.scan.reference import PoissonParams, load_reference, reference_mesh
+from depthstation.evaluate.scan.registration import read_pass_points, read_similarity
+from depthstation.evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
+from depthstation.evaluate.scan.trajectory import compose_similarity, read_tum, write_tum
 
 
 def test_tum_roundtrip_and_matching(tmp_path: Path) -> None:
@@ -100,7 +100,7 @@ def test_scan_command_writes_a_result_folder(tmp_path: Path) -> None:
     import typer
     from typer.testing import CliRunner
 
-    from evaluate.scan.cli import scan
+    from depthstation.evaluate.scan.cli import scan
 
     seq = make_sequence(frames=8, width=80, height=60, seed=2)
     write_tum_folder(seq, tmp_path / "seq")
@@ -109,7 +109,7 @@ def test_scan_command_writes_a_result_folder(tmp_path: Path) -> None:
     write_tum(tmp_path / "poses.txt", t[keep], seq.poses[keep])
     o3d.io.write_triangle_mesh(str(tmp_path / "room.ply"), Room().mesh(segments=128))
     np.savetxt(tmp_path / "identity.txt", np.eye(4))
-    assert open_sequence(tmp_path / "seq").frame_count == 8
+    assert open_recording(tmp_path / "seq").frame_count == 8
 
     app = typer.Typer()
     app.command()(scan)
@@ -137,7 +137,7 @@ def test_scan_command_writes_a_result_folder(tmp_path: Path) -> None:
     assert json.loads((out / "result.json").read_text())["kind"] == "scan"
     frame_grids = sorted((out / "frame_grids").glob("frame_*.npz"))
     assert len(frame_grids) == 7
-    from evaluate.grid import Grid
+    from depthstation.core.grid import Grid
 
     merged = Grid.load(frame_grids[0])
     for f in frame_grids[1:]:
@@ -148,7 +148,7 @@ def test_scan_command_writes_a_result_folder(tmp_path: Path) -> None:
 
 
 def test_scan_rejects_conflicting_registration_inputs(tmp_path: Path) -> None:
-    from evaluate.scan.run import ScanOptions, run_scan
+    from depthstation.evaluate.scan.run import ScanOptions, run_scan
 
     with pytest.raises(InputError, match="either --similarity or --pass-points"):
         run_scan(tmp_path, tmp_path / "p.txt", tmp_path / "r.ply", tmp_path / "o",

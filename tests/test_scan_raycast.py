@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from depthstation.camera import Intrinsics
-from evaluate.grid import Grid
-from evaluate.scan.raycast import _inclination_bin, camera_directions, cos_edges
+from depthstation.core.camera_model import Intrinsics, pixel_rays
+from depthstation.core.grid import Grid
+from depthstation.evaluate.scan.raycast import _inclination_bin, cos_edges
 
 
 def test_inclination_bin_equals_exact_arccos_binning() -> None:
@@ -27,6 +27,6 @@ def test_inclination_bin_equals_exact_arccos_binning() -> None:
 
 def test_ray_directions_pass_through_integer_pixel_centres() -> None:
     intr = Intrinsics(8, 6, 10.0, 12.0, 3.0, 2.0)
-    d = camera_directions(intr).reshape(6, 8, 3)
+    d = pixel_rays(intr)
     np.testing.assert_allclose(d[2, 3], [0.0, 0.0, 1.0])  # principal point at integer (3, 2)
     np.testing.assert_allclose(d[0, 0], [-0.3, -2.0 / 12.0, 1.0], rtol=1e-6)

@@ -9,14 +9,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-pytest.importorskip("simulate.scan")
+pytest.importorskip("depthstation.simulate.scan_sequence")
 
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    from simulate.model import load_model
-    from simulate.poses import walk_around, write_tum
-    from simulate.scan import simulate_scan
+    from depthstation.simulate.model import load_model
+    from depthstation.simulate.poses import walk_around, write_tum
+    from depthstation.simulate.scan_sequence import simulate_scan
 
     # flying pixels depend on the distance to depth edges, which the grid does not resolve
     model = load_model("d455").without_effect("flying_pixels")
@@ -32,15 +32,15 @@ def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 
 
 def test_grid_matches_the_simulator_signature(simulated: dict[str, Any]) -> None:
-    from evaluate.grid import Grid
-    from evaluate.scan.raycast import MeshCaster
-    from evaluate.scan.sequence import open_sequence
-    from evaluate.scan.study import StudyConfig, evaluate_chunk
-    from evaluate.scan.trajectory import read_tum
-    from simulate.effects.base import PixelContext
+    from depthstation.core.capture.registry import open_recording
+    from depthstation.core.grid import Grid
+    from depthstation.evaluate.scan.raycast import MeshCaster
+    from depthstation.evaluate.scan.study import StudyConfig, evaluate_chunk
+    from depthstation.evaluate.scan.trajectory import read_tum
+    from depthstation.simulate.effects.base import PixelContext
 
     d: Path = simulated["dir"]
-    rec = open_sequence(d / "sequence.mcap")
+    rec = open_recording(d / "sequence.mcap")
     traj = read_tum(d / "trajectory.txt")  # true poses in the mesh frame: identity registration
     intr = rec.info.depth_intrinsics
     caster = MeshCaster(d / "scene.ply", intr, nthreads=1)
@@ -88,14 +88,14 @@ def test_registration_of_the_simulated_sequence_recovers_a_rigid_perturbation(
     rotation within 0.05 deg."""
     import open3d as o3d
 
-    from depthstation.geometry import rodrigues, rotation_angle_deg
-    from evaluate.scan.reference import sample_reference_points
-    from evaluate.scan.registration import register
-    from evaluate.scan.sequence import open_sequence
-    from evaluate.scan.trajectory import compose_similarity, decompose_similarity, read_tum
+    from depthstation.core.capture.registry import open_recording
+    from depthstation.core.geometry import rodrigues, rotation_angle_deg
+    from depthstation.evaluate.scan.reference import sample_reference_points
+    from depthstation.evaluate.scan.registration import register
+    from depthstation.evaluate.scan.trajectory import compose_similarity, decompose_similarity, read_tum
 
     d: Path = simulated["dir"]
-    rec = open_sequence(d / "sequence.mcap")
+    rec = open_recording(d / "sequence.mcap")
     truth = read_tum(d / "trajectory.txt")
     S = compose_similarity(1.0, rodrigues(np.radians([1.0, 25.0, -2.0])), np.array([0.4, 0.1, -0.7]))
     moved = truth.transformed(np.linalg.inv(S))

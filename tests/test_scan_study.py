@@ -5,14 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from depthstation.geometry import rodrigues, rotation_angle_deg
-from evaluate.grid import Grid
-from evaluate.scan.raycast import MeshCaster
-from evaluate.scan.reference import sample_reference_points
-from evaluate.scan.registration import register, umeyama
-from evaluate.scan.study import StudyConfig, evaluate_chunk, run_study
-from evaluate.scan.synthetic import ErrorModel, Room, make_sequence, render_truth
-from evaluate.scan.trajectory import Trajectory, compose_similarity, decompose_similarity
+from depthstation.core.geometry import rodrigues, rotation_angle_deg
+from depthstation.core.grid import Grid
+from depthstation.core.parallel import ChunkRunner
+from depthstation.evaluate.scan.chunks import run_scan_chunks
+from depthstation.evaluate.scan.raycast import MeshCaster
+from depthstation.evaluate.scan.reference import sample_reference_points
+from depthstation.evaluate.scan.registration import register, umeyama
+from depthstation.evaluate.scan.study import StudyConfig, evaluate_chunk
+from depthstation.evaluate.scan.synthetic import ErrorModel, Room, make_sequence, render_truth
+from depthstation.evaluate.scan.trajectory import Trajectory, compose_similarity, decompose_similarity
 
 MODEL = ErrorModel(a_per_m=0.002, b_m=0.004, sigma_per_m=0.0015)
 UNITS = 1e-4
@@ -80,8 +82,9 @@ def test_merged_chunks_in_two_processes_equal_one_pass(mesh: object, seq, tmp_pa
     path = tmp_path / "room.ply"
     o3d.io.write_triangle_mesh(str(path), mesh)
     config = StudyConfig(distance_bin_m=0.05, inclination_bin_deg=1.0, nthreads=1)
-    one = run_study(seq, path, _traj(seq), config, workers=1)
-    two = run_study(seq, path, _traj(seq), config, workers=2, chunk_frames=5)
+    with ChunkRunner(1) as serial, ChunkRunner(2) as pool:
+        one = run_scan_chunks(seq, path, _traj(seq), config, serial)
+        two = run_scan_chunks(seq, path, _traj(seq), config, pool, chunk_frames=5)
     np.testing.assert_array_equal(two.grid.count, one.grid.count)
     np.testing.assert_allclose(two.grid.mean, one.grid.mean, rtol=0, atol=1e-12)
     np.testing.assert_allclose(two.grid.m2, one.grid.m2, rtol=1e-9, atol=1e-15)

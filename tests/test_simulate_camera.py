@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.camera import CalibratableCamera, Camera
-from depthstation.errors import CameraDisconnected, CameraError
-from depthstation.protocol import Streams
-from simulate.camera import SimulatedCamera
-from simulate.effects.base import PixelContext
-from simulate.poses import standpoint_pose
+from depthstation.core.device import CalibratableCamera, Camera
+from depthstation.core.errors import CameraDisconnected, CameraError
+from depthstation.core.protocol import Streams
+from depthstation.simulate.effects.base import PixelContext
+from depthstation.simulate.poses import standpoint_pose
+from depthstation.simulate.simulated_camera import SimulatedCamera
 
 STREAMS = Streams(width=320, height=180, fps=30)
 

@@ -9,13 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-from depthstation.camera import Intrinsics, project
-from depthstation.protocol import load_protocol
-from simulate.checkerboard import simulate_checkerboard
-from simulate.model import load_model
-from simulate.poses import standpoint_pose, standpoint_truth
-from simulate.render import encode_srgb, render_color_linear
-from simulate.scene import board_scene
+from depthstation.core.camera_model import Intrinsics, project
+from depthstation.core.protocol import load_protocol
+from depthstation.simulate.checkerboard_session import simulate_checkerboard
+from depthstation.simulate.model import load_model
+from depthstation.simulate.poses import standpoint_pose, standpoint_truth
+from depthstation.simulate.scene import board_scene
+from depthstation.simulate.scene_render import encode_srgb, render_color_linear
 
 
 def test_opencv_finds_board_at_every_standpoint_full_resolution() -> None:
@@ -70,7 +70,7 @@ def test_standpoint_pose_is_exact() -> None:
 
 
 def test_session_reads_back_with_truth(tmp_path: Path) -> None:
-    from depthstation.capture.reader import open_inputs
+    from depthstation.core.capture.registry import open_inputs
 
     out = simulate_checkerboard("demo-d455", "d455", tmp_path / "sim", frames=3,
                                 standpoints=["standpoint_01", "standpoint_05"])
@@ -91,7 +91,7 @@ def test_session_reads_back_with_truth(tmp_path: Path) -> None:
         assert z == pytest.approx(t["distance_m"], abs=0.01)
         assert frames[0].color is not None and frames[0].color.shape == (360, 640, 3)
     # never overwrite
-    from depthstation.errors import InputError
+    from depthstation.core.errors import InputError
 
     with pytest.raises(InputError, match="not empty"):
         simulate_checkerboard("demo-d455", "d455", out, frames=1)
@@ -102,7 +102,7 @@ def proto_center() -> np.ndarray:
 
 
 def test_same_seed_same_frames(tmp_path: Path) -> None:
-    from depthstation.capture.reader import open_recording
+    from depthstation.core.capture.registry import open_recording
 
     a, b = (simulate_checkerboard("demo-d455", "d455", tmp_path / n, frames=2,
                                   standpoints=["standpoint_02"], seed=5) for n in ("a", "b"))
@@ -152,7 +152,7 @@ def test_db3_plays_back_through_pyrealsense2(tmp_path: Path) -> None:
 
 
 def test_charuco_board_is_detected_with_its_ids() -> None:
-    from depthstation.board import Board
+    from depthstation.core.board import Board
 
     board = Board(type="charuco", squares_x=7, squares_y=5, square_length_m=0.06, marker_length_m=0.045,
                   dictionary="DICT_4X4_50")
@@ -197,7 +197,7 @@ def _clip_area(poly: list[np.ndarray], u: int, v: int) -> float:
 
 def test_pixel_coverage_is_exact_area() -> None:
     """The colour renderer's coverage equals the exact area of each projected quad in each pixel."""
-    from simulate.render import polygon_coverage
+    from depthstation.simulate.scene_render import polygon_coverage
 
     intr = Intrinsics(24, 18, 30.0, 30.0, 11.5, 8.5)
     rng = np.random.default_rng(1)
@@ -219,8 +219,8 @@ def test_detected_corners_have_no_static_bias(charuco: bool) -> None:
     What remains is cornerSubPix's own pixel locking (error by sub-pixel phase, ~0.05 px), which
     an area-exact image cannot remove; a pure render check is the exact-area test above.
     """
-    from depthstation.board import Board
-    from evaluate.checkerboard.detection import BoardDetector
+    from depthstation.core.board import Board
+    from depthstation.evaluate.checkerboard.detection import BoardDetector
 
     board = (Board(type="charuco", squares_x=7, squares_y=5, square_length_m=0.06, marker_length_m=0.045,
                    dictionary="DICT_4X4_50") if charuco else Board())

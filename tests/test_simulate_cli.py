@@ -37,10 +37,10 @@ def test_checkerboard_command_and_errors(tmp_path: Path) -> None:
 
 
 def test_scan_writes_sequence_trajectory_and_mesh(tmp_path: Path) -> None:
-    from depthstation.camera import deproject
-    from depthstation.capture.reader import open_inputs
-    from simulate.poses import read_tum
-    from simulate.scene import mesh_scene
+    from depthstation.core.camera_model import deproject
+    from depthstation.core.capture.registry import open_inputs
+    from depthstation.simulate.poses import read_tum
+    from depthstation.simulate.scene import mesh_scene
 
     out = tmp_path / "scan"
     r = _run("scan", "--scene", "room", "--trajectory", "walk", "--out", str(out), "--frames", "3",

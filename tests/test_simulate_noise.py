@@ -7,11 +7,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from depthstation.camera import deproject
-from depthstation.geometry import fit_plane
-from simulate.model import load_model
-from simulate.render import render_geometry
-from simulate.scene import Scene, Surface, quad
+from depthstation.core.camera_model import deproject
+from depthstation.core.geometry import fit_plane
+from depthstation.simulate.model import load_model
+from depthstation.simulate.scene import Scene, Surface, quad
+from depthstation.simulate.scene_render import render_geometry
 
 W, H = 640, 360  # the demo protocol's mode; the test uses that resolution's own f
 
@@ -55,7 +55,7 @@ def test_frontal_wall_noise_follows_intel(z: float) -> None:
     measured = float(np.mean(rms))
     assert abs(measured / intel - 1) < 0.10, f"z={z}: RMS {measured * 1e3:.3f} vs Intel {intel * 1e3:.3f} mm"
     # and the model's own signature (noise + quantisation) explains it more closely still
-    from simulate.effects.base import PixelContext
+    from depthstation.simulate.effects.base import PixelContext
 
     ctx = PixelContext(z_m=z, fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy, baseline_m=model.camera.baseline_m)
     assert abs(measured / float(np.sqrt(model.variance_m2(ctx))) - 1) < 0.06

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthstation.errors import InputError
-from depthstation.results import write_result_info
-from depthstation.station.compare import compare_grids, compare_standpoints, match_standpoints
-from depthstation.station.compare_write import COMPARE_CSV, run_compare
-from depthstation.station.resultdir import read_grid, read_standpoints
-from depthstation.viz import RerunTarget, read_rrd
+from depthstation.app.compare import compare_grids, compare_standpoints, match_standpoints
+from depthstation.app.compare_report import COMPARE_CSV, run_compare
+from depthstation.core.errors import InputError
+from depthstation.core.grid import Grid
+from depthstation.core.rerun_bridge import RerunTarget, read_rrd
+from depthstation.core.results import read_standpoints, write_result_info
 
 COLUMNS = ["standpoint", "frames", "distance_m", "inclination_deg", "reference_distance_std_m", "fill_rate",
            "noise_m", "noise_std_m", "accuracy_m", "accuracy_std_m", "accuracy_rms_m", "noise_black_m",
@@ -56,7 +56,7 @@ def write_checkerboard(folder: Path, baseline_m: float, *, names: str = "standpo
 
 
 def write_scan(folder: Path, sigma_m: float, *, bias_m: float = 0.0, seed: int = 0, n: int = 60000) -> Path:
-    from evaluate.grid import Grid
+    from depthstation.core.grid import Grid
 
     rng = np.random.default_rng(seed)
     g = Grid.empty(distance_bin_m=0.25, inclination_bin_deg=15.0, distance_max_m=2.0,
@@ -111,11 +111,11 @@ def test_nearest_match_when_names_differ(tmp_path: Path) -> None:
 
 
 def test_grid_differences(tmp_path: Path) -> None:
-    a = read_grid(write_scan(tmp_path / "a", 0.004) / "grid.npz")
+    a = Grid.load(write_scan(tmp_path / "a", 0.004) / "grid.npz")
     same = compare_grids(a, a, min_count=100)
     assert same.mask.sum() > 10
     assert np.all(same.mean_diff_m[same.mask] == 0) and np.all(same.std_diff_m[same.mask] == 0)
-    b = read_grid(write_scan(tmp_path / "b", 0.008, bias_m=0.002, seed=1) / "grid.npz")
+    b = Grid.load(write_scan(tmp_path / "b", 0.008, bias_m=0.002, seed=1) / "grid.npz")
     d = compare_grids(a, b, min_count=100)
     n = np.minimum(a.count, b.count)[d.mask]
     # std of a sample std is about sigma / sqrt(2n); of a mean about sigma / sqrt(n): 5 standard errors
@@ -156,7 +156,7 @@ def test_mixed_kinds_and_bad_grids_are_input_errors(tmp_path: Path) -> None:
         run_compare([s, other], tmp_path / "cmp2", quiet=True)
     np.savez(other / "grid.npz", count=np.ones((4, 2)))
     with pytest.raises(InputError, match="lacks"):
-        read_grid(other / "grid.npz")
+        Grid.load(other / "grid.npz")
 
 
 def test_cli_exit_codes(tmp_path: Path) -> None:

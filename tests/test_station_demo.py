@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 
-from depthstation.errors import DepthstationError, InputError
-from depthstation.station.demo import DemoContext, Step, fresh_dir, missing_requirement, run_demo
+from depthstation.app.demo import DemoContext, Step, fresh_dir, missing_requirement, run_demo
+from depthstation.core.errors import DepthstationError, InputError
 
 
 def test_missing_requirement() -> None:
-    assert missing_requirement(("json:dumps", "depthstation.viz:send_heatmap")) is None
+    assert missing_requirement(("json:dumps", "depthstation.core.rerun_bridge:send_heatmap")) is None
     assert missing_requirement(("json:dumps", "no_such_module_xyz:run")) == "no_such_module_xyz:run"
     assert missing_requirement(("json:no_such_function",)) == "json:no_such_function"
 
@@ -77,13 +77,13 @@ def test_demo_checkerboard_and_compare_steps_for_real(tmp_path: Path) -> None:
     the checkerboard step then simulates the session directly). Judged here too: the same data
     evaluated twice compares to zero; the D435's shorter baseline (50 vs 95 mm) shows as larger
     noise (Intel: noise ~ z^2 / B, about 1.9x; we ask for more than 1.4x)."""
-    pytest.importorskip("simulate.checkerboard")
-    from depthstation.protocol import PROTOCOL_DIR
-    from depthstation.station.compare_write import run_compare
-    from depthstation.station.demo_steps import CHECKERBOARD, COMPARE
-    from depthstation.station.view import view_path
-    from depthstation.viz import read_rrd
-    from evaluate.checkerboard.run import run_study
+    pytest.importorskip("depthstation.simulate.checkerboard_session")
+    from depthstation.app.compare_report import run_compare
+    from depthstation.app.demo_steps import CHECKERBOARD, COMPARE
+    from depthstation.app.view import view_path
+    from depthstation.core.protocol import PROTOCOL_DIR
+    from depthstation.core.rerun_bridge import read_rrd
+    from depthstation.evaluate.checkerboard.run import run_checkerboard
 
     out = tmp_path / "demo"
     outcomes = run_demo(out, rrd=True, steps=[CHECKERBOARD, COMPARE])
@@ -98,7 +98,7 @@ def test_demo_checkerboard_and_compare_steps_for_real(tmp_path: Path) -> None:
     viewed = read_rrd(view_path(out / "checkerboard", spawn=False))
     assert viewed.series["/standpoints/noise_m"].size == 6 and viewed.has_blueprint
     again = tmp_path / "again"
-    run_study([out / "session-simulated"], PROTOCOL_DIR / "demo-d455.toml", again)
+    run_checkerboard([out / "session-simulated"], PROTOCOL_DIR / "demo-d455.toml", again)
     same = run_compare([out / "checkerboard", again], tmp_path / "same", quiet=True)
     per = same["standpoints"]["others"]["again"]
     assert per["matched"] == per["of"] == 6

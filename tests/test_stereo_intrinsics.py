@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthstation.camera import Intrinsics, StreamInfo
+from depthstation.core.camera_model import Intrinsics, StreamInfo
 
 
 def test_real_aligned_set_carries_the_stereo_intrinsics(charuco_dir: Path) -> None:
-    from depthstation.capture.reader import open_recording
+    from depthstation.core.capture.registry import open_recording
 
     info = open_recording(charuco_dir / "pose03").info
     assert info.depth_aligned_to_color
@@ -25,8 +25,8 @@ def test_real_aligned_set_carries_the_stereo_intrinsics(charuco_dir: Path) -> No
 def test_simulated_noise_of_aligned_depth_follows_the_stereo_focal_length() -> None:
     """Intel's RMS_z = z^2 s / (f B) with f the stereo imager's: aligning the depth to a colour
     camera of twice the focal length must not halve the noise."""
-    from simulate.model import load_model
-    from simulate.render import GeometryMaps
+    from depthstation.simulate.model import load_model
+    from depthstation.simulate.scene_render import GeometryMaps
 
     color = Intrinsics(320, 180, 276.0, 276.0, 159.5, 89.5)
     stereo = Intrinsics(160, 90, 128.0, 128.0, 79.5, 44.5)

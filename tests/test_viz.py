@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthstation import viz
-from depthstation.station.view import folder_to_rrd, view_path
+from depthstation.app.view import folder_to_rrd, view_path
+from depthstation.core import rerun_bridge as viz
+from depthstation.core.heatmaps import colorize
 
 
 def test_recording_round_trip(tmp_path: Path) -> None:
@@ -51,7 +52,7 @@ def test_heatmap_shape_must_match_edges(tmp_path: Path) -> None:
 
 
 def test_colorize_greys_out_nan() -> None:
-    img = viz.colorize(np.array([[0.0, 1.0], [np.nan, 0.5]]))
+    img = colorize(np.array([[0.0, 1.0], [np.nan, 0.5]]))
     assert img.shape == (2, 2, 3) and img.dtype == np.uint8
     assert img[1, 0].tolist() == [128, 128, 128]
     assert not np.array_equal(img[0, 0], img[0, 1])

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.warmup import WarmupSample, temperature_slope, warmup_decision
-from depthstation.protocol import Warmup
+from depthstation.acquire.warmup import WarmupSample, temperature_slope, warmup_decision
+from depthstation.core.protocol import Warmup
 
 RULE = Warmup(min_minutes=10.0, max_slope_c_per_min=0.1, window_minutes=2.0, max_minutes=40.0)
 

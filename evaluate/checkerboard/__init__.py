@@ -4,7 +4,7 @@ Public entry points: `evaluate_recording` (one standpoint -> `StandpointResult`)
 `write_study` (tables, summary and figures of many standpoints).
 """
 
-from evaluate.checkerboard.study import (
+from depthstation.evaluate.checkerboard.study import (
     FrameResult,
     PixelSamples,
     StandpointResult,

@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.board import Board
-from evaluate.checkerboard.corners import refine_xjunctions
+from depthstation.core.board import Board
+from depthstation.core.errors import InputError
+from depthstation.evaluate.checkerboard.corners import refine_xjunctions
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
 
@@ -65,7 +66,6 @@ class BoardDetector:
         b = self.board
         name = str(b.dictionary)
         if not hasattr(cv2.aruco, name):
-            from depthstation.errors import InputError
 
             raise InputError(None, f"board.dictionary '{name}' is not an OpenCV ArUco dictionary")
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from depthstation.errors import InputError
+from depthstation.core.errors import InputError
 
 
 class BoardMismatchError(InputError):

@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from depthstation.board import Board
-from evaluate.checkerboard.study import StandpointResult
+from depthstation.core.board import Board
+from depthstation.evaluate.checkerboard.study import StandpointResult
 
 
 def _plt() -> Any:

@@ -7,15 +7,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.board import Board
-from depthstation.camera import StreamInfo
-from depthstation.frames import FrameSet
-from evaluate.checkerboard.detection import BoardDetector, Detection
-from evaluate.checkerboard.errors import BoardMismatchError
-from evaluate.checkerboard.kernels import board_moments
-from evaluate.checkerboard.mask import BoardMask, board_mask, board_to_depth
-from evaluate.checkerboard.metrics import fit_plane_moments
-from evaluate.checkerboard.pose import BoardPose, estimate_pose, flip_board, square_contrast
+from depthstation.core.board import Board
+from depthstation.core.board_pose import PnPPose, solve_board_pose
+from depthstation.core.camera_model import StreamInfo
+from depthstation.core.frames import FrameSet
+from depthstation.evaluate.checkerboard.detection import BoardDetector, Detection
+from depthstation.evaluate.checkerboard.errors import BoardMismatchError
+from depthstation.evaluate.checkerboard.kernels import board_moments
+from depthstation.evaluate.checkerboard.mask import BoardMask, board_mask, board_to_depth
+from depthstation.evaluate.checkerboard.metrics import fit_plane_moments
+from depthstation.evaluate.checkerboard.pose import flip_board, square_contrast
 
 MIN_CONTRAST = 5.0  # grey levels white minus black below which the colours count as swapped
 
@@ -101,14 +102,15 @@ class FrameEvaluator:
         return float(np.median(shifts)) if shifts else float("nan")
 
     def _check_colours(self, color: NDArray[np.uint8], det: Detection,
-                       pose: BoardPose) -> tuple[Detection, BoardPose]:
+                       pose: PnPPose) -> tuple[Detection, PnPPose]:
         black, white = square_contrast(color, pose.matrix, self.color_intr, self.board)
         if white - black >= MIN_CONTRAST or not np.isfinite(white - black):
             self._colours_checked = True
             return det, pose
         if self._check_every_frame:
             flipped = flip_board(det, self.board)
-            fpose = estimate_pose(flipped, self.color_intr, self.refine)
+            fpose = solve_board_pose(flipped.object_points, flipped.image_points, self.color_intr,
+                                     self.refine)
             if fpose is not None:
                 b2, w2 = square_contrast(color, fpose.matrix, self.color_intr, self.board)
                 if w2 - b2 >= MIN_CONTRAST:
@@ -147,7 +149,7 @@ class FrameEvaluator:
                 raise BoardMismatchError(self.source, msg)
             res.status = "board not found"
             return res, None
-        pose = estimate_pose(det, self.color_intr, self.refine)
+        pose = solve_board_pose(det.object_points, det.image_points, self.color_intr, self.refine)
         if pose is None:
             res.status = "pose failed"
             return res, None

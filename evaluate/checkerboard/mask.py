@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.board import Board
-from depthstation.camera import Intrinsics
+from depthstation.core.board import Board
+from depthstation.core.camera_model import Intrinsics
 
 OTHER, BLACK, WHITE = 0, 1, 2
 

@@ -1,72 +1,18 @@
-"""Board pose from detected corners: EPnP (the paper's method), optionally refined by Levenberg-Marquardt."""
+"""What the study checks of a board pose from its corners: the print's colours against the pose (a
+flipped board), the pose's tilt uncertainty and the corner noise it implies. The pose itself is
+`depthstation.core.board_pose.solve_board_pose` (EPnP + LM, IPPE fallback)."""
 
 from __future__ import annotations
-
-from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.board import Board
-from depthstation.camera import Intrinsics
-from depthstation.geometry import rodrigues
-from evaluate.checkerboard.detection import Detection, to_gray
-
-
-@dataclass(frozen=True)
-class BoardPose:
-    """Board-to-camera transform (p_cam = R p_board + t) and its reprojection RMS in pixels."""
-
-    matrix: NDArray[np.float64]  # 4x4
-    reprojection_px: float
-
-
-def dist_coeffs(intr: Intrinsics) -> NDArray[np.float64]:
-    """OpenCV distortion vector for an intrinsics record (zeros for 'none' or unknown models)."""
-    return intr.opencv_distortion()
-
-
-def _solve(obj: NDArray[np.float64], img: NDArray[np.float64], k: NDArray[np.float64],
-           dist: NDArray[np.float64], flag: int, refine: bool) -> tuple[Any, Any, float] | None:
-    ok, rvec, tvec = cv2.solvePnP(obj, img, k, dist, flags=flag)
-    if not ok:
-        return None
-    if refine:
-        rvec, tvec = cv2.solvePnPRefineLM(obj, img, k, dist, rvec, tvec)
-    proj, _ = cv2.projectPoints(obj, rvec, tvec, k, dist)
-    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
-    return rvec, tvec, rms
-
-
-def estimate_pose(det: Detection, intr: Intrinsics, refine: bool = True,
-                  fallback_px: float = 0.0) -> BoardPose | None:
-    """EPnP pose of the board in the colour camera; None when it fails or lies behind the camera.
-
-    EPnP on a plane can land in a wrong minimum at steep views; IPPE, the planar solver, is tried
-    too and the better fit kept whenever EPnP reprojects above `fallback_px` (default: always;
-    0.1 ms). A wrong minimum need not look bad: at 5 m / 60 deg (6 px squares) EPnP + LM settled
-    at 0.9 px RMS and 1.2 deg of tilt while the right pose reprojects at 0.01 px.
-    """
-    obj = det.object_points.astype(np.float64)
-    img = det.image_points.astype(np.float64)
-    k = intr.K
-    dist = dist_coeffs(intr)
-    best = _solve(obj, img, k, dist, cv2.SOLVEPNP_EPNP, refine)
-    if best is None or best[2] > fallback_px:
-        ippe = _solve(obj, img, k, dist, cv2.SOLVEPNP_IPPE, refine)
-        if ippe is not None and (best is None or ippe[2] < best[2]):
-            best = ippe
-    if best is None:
-        return None
-    rvec, tvec, rms = best
-    m = np.eye(4)
-    m[:3, :3] = cv2.Rodrigues(rvec)[0]
-    m[:3, 3] = tvec.reshape(3)
-    if m[2, 3] <= 0:
-        return None
-    return BoardPose(m, rms)
+from depthstation.core.board import Board
+from depthstation.core.board_pose import PnPPose
+from depthstation.core.camera_model import Intrinsics
+from depthstation.core.geometry import rodrigues
+from depthstation.evaluate.checkerboard.detection import Detection, to_gray
 
 
 def square_contrast(color: NDArray[np.uint8], pose: NDArray[np.float64], intr: Intrinsics,
@@ -86,7 +32,7 @@ def square_contrast(color: NDArray[np.uint8], pose: NDArray[np.float64], intr: I
     y = (rows.ravel() + frac) * s
     pts = np.stack([x, y, np.zeros_like(x)], axis=1)
     cam = pts @ pose[:3, :3].T + pose[:3, 3]
-    uv, _ = cv2.projectPoints(cam, np.zeros(3), np.zeros(3), intr.K, dist_coeffs(intr))
+    uv, _ = cv2.projectPoints(cam, np.zeros(3), np.zeros(3), intr.K, intr.opencv_distortion())
     uv = np.rint(uv.reshape(-1, 2)).astype(np.int64)
     h, w = gray.shape
     ok = (uv[:, 0] >= 1) & (uv[:, 0] < w - 1) & (uv[:, 1] >= 1) & (uv[:, 1] < h - 1)
@@ -114,7 +60,7 @@ def normal_std_deg(pose: NDArray[np.float64], object_points: NDArray[np.float64]
     """
     obj = np.asarray(object_points, dtype=np.float64)
     k = intr.K
-    dist = dist_coeffs(intr)
+    dist = intr.opencv_distortion()
     cam = obj @ pose[:3, :3].T  # rotated board points (the rotation vector near pi is unstable)
     t0 = pose[:3, 3]
 
@@ -141,11 +87,11 @@ def normal_std_deg(pose: NDArray[np.float64], object_points: NDArray[np.float64]
     return float(np.degrees(np.sqrt(max(float(np.linalg.eigvalsh(cov_n)[-1]), 0.0))))
 
 
-def corner_noise_px(pose: BoardPose | NDArray[np.float64], det: Detection, intr: Intrinsics) -> float:
+def corner_noise_px(pose: PnPPose | NDArray[np.float64], det: Detection, intr: Intrinsics) -> float:
     """Per-coordinate corner noise (px) from the reprojection residuals (2N - 6 degrees of freedom)."""
-    m = pose.matrix if isinstance(pose, BoardPose) else pose
+    m = pose.matrix if isinstance(pose, PnPPose) else pose
     rvec = cv2.Rodrigues(m[:3, :3])[0]
-    uv, _ = cv2.projectPoints(det.object_points, rvec, m[:3, 3], intr.K, dist_coeffs(intr))
+    uv, _ = cv2.projectPoints(det.object_points, rvec, m[:3, 3], intr.K, intr.opencv_distortion())
     res = np.asarray(uv, dtype=np.float64).reshape(-1, 2) - det.image_points
     dof = max(res.size - 6, 1)
     return float(np.sqrt(np.sum(res**2) / dof))

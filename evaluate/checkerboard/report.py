@@ -10,10 +10,15 @@ from typing import Any
 
 import numpy as np
 
-from depthstation.board import Board
-from depthstation.results import software_versions, write_json, write_result_info
-from evaluate.checkerboard.frame import FrameResult
-from evaluate.checkerboard.study import StandpointResult, frame_corner_noise_px, frame_inclination_deg
+from depthstation.core.board import Board
+from depthstation.core.results import software_versions, write_json, write_result_info
+from depthstation.evaluate.checkerboard.figures import write_figures
+from depthstation.evaluate.checkerboard.frame import FrameResult
+from depthstation.evaluate.checkerboard.study import (
+    StandpointResult,
+    frame_corner_noise_px,
+    frame_inclination_deg,
+)
 
 COLUMNS = ("standpoint", "frames", "frames_read", "distance_m", "inclination_deg",
            "inclination_depth_deg", "pose_depth_normal_angle_deg",
@@ -111,7 +116,6 @@ def write_study(out: Path, results: list[StandpointResult], board: Board, inputs
     write_json(out / "summary.json", summary(results, board, inputs, parameters, device))
     pngs: list[Path] = []
     if figures:
-        from evaluate.checkerboard.figures import write_figures
 
         pngs = write_figures(out, results, board)
     samples = [r for r in results if r.samples is not None]

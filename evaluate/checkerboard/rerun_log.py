@@ -6,10 +6,17 @@ from typing import Any
 
 import numpy as np
 
-from depthstation.frames import FrameSet
-from depthstation.viz import blueprint, image_view, send_scalar, send_table, send_text, series_view
-from evaluate.checkerboard.frame import FrameResult
-from evaluate.checkerboard.study import StandpointResult
+from depthstation.core.frames import FrameSet
+from depthstation.core.rerun_bridge import (
+    blueprint,
+    image_view,
+    send_scalar,
+    send_table,
+    send_text,
+    series_view,
+)
+from depthstation.evaluate.checkerboard.frame import FrameResult
+from depthstation.evaluate.checkerboard.study import StandpointResult
 
 DESCRIPTION = """# Checkerboard study (paper Section 3.1)
 Per standpoint and frame: the colour image with the detected board corners, the depth image,

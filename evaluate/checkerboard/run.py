@@ -1,87 +1,137 @@
-"""The `evaluate checkerboard` workflow: open inputs, evaluate each standpoint, write the folder."""
+"""The `evaluate checkerboard` workflow: prepare (open the inputs once), run the standpoints, write.
+
+One path for everyone: the command, `evaluate batch`, explain's real side and the demo call
+`prepare_checkerboard`, run its standpoints on a ChunkRunner (`chunks.run_standpoints`), and
+`finish_checkerboard` writes the result folder, so a batch item and the command write the same files.
+"""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from depthstation.board import load_board
-from depthstation.errors import EvaluationError, InputError
-from depthstation.viz import RerunTarget, recording
-from evaluate.checkerboard import rerun_log
-from evaluate.checkerboard.report import standpoint_row, write_study
-from evaluate.checkerboard.study import StandpointResult, evaluate_recording
+from depthstation.core.board import Board, load_board
+from depthstation.core.capture.recording import Recording
+from depthstation.core.capture.registry import open_inputs
+from depthstation.core.errors import EvaluationError, InputError
+from depthstation.core.frames import FrameSet
+from depthstation.core.parallel import ChunkRunner
+from depthstation.core.progress import progress
+from depthstation.core.rerun_bridge import RerunTarget, recording
+from depthstation.evaluate.checkerboard import rerun_log
+from depthstation.evaluate.checkerboard.chunks import (
+    REFERENCES,
+    CheckerboardChunk,
+    StandpointOptions,
+    run_standpoints,
+)
+from depthstation.evaluate.checkerboard.frame import FrameResult
+from depthstation.evaluate.checkerboard.report import standpoint_row, write_study
+from depthstation.evaluate.checkerboard.study import StandpointResult
+
+POSE_METHOD = "EPnP + LM (IPPE fallback)"
 
 
-def run_study(inputs: list[Path], board_path: Path, out: Path, *, frames: int = 150,
-              reference: str = "auto", target: RerunTarget | None = None,
-              collect_samples: bool = False, workers: int = 1,
-              cluster: str | None = None) -> list[dict[str, Any]]:
-    """Evaluate every standpoint in `inputs`; returns the rows of standpoints.csv.
+@dataclass
+class CheckerboardJob:
+    """A prepared checkerboard study: the board, the standpoints' recordings (opened once)."""
+
+    inputs: list[Path]
+    board_source: str               # the board file, or a description of a board given in code
+    board: Board
+    recordings: list[Recording]
+    options: StandpointOptions
+
+    @property
+    def chunks(self) -> list[CheckerboardChunk]:
+        return [CheckerboardChunk(str(r.path), self.board, self.options) for r in self.recordings]
+
+    @property
+    def parameters(self) -> dict[str, Any]:
+        o = self.options
+        return {"board": self.board_source, "frames": o.frames, "reference": o.reference,
+                "margin_m": o.margin_m, "pose": POSE_METHOD}
+
+    @property
+    def device(self) -> dict[str, Any]:
+        first = self.recordings[0]
+        return dict(first.metadata.get("device") or first.info.device or {})
+
+
+def prepare_checkerboard(inputs: list[Path], board: Path | Board,
+                         options: StandpointOptions | None = None) -> CheckerboardJob:
+    """Load the board (a board JSON or protocol TOML, or a Board), expand the inputs into
+    standpoints and open each one once."""
+    opt = options or StandpointOptions()
+    if opt.reference not in REFERENCES:
+        raise InputError(None, f"--reference must be auto, average or frame, not '{opt.reference}'")
+    if opt.frames < 1:
+        raise InputError(None, f"--frames must be at least 1, not {opt.frames}")
+    brd = board if isinstance(board, Board) else load_board(board)
+    source = f"{brd.type} {brd.squares_x}x{brd.squares_y}, {brd.square_length_m} m squares (given)" \
+        if isinstance(board, Board) else str(board)
+    recs = open_inputs(inputs)
+    if not recs:
+        raise InputError(inputs[0] if inputs else None, "no standpoints found")
+    return CheckerboardJob(list(inputs), source, brd, recs, opt)
+
+
+def check_usable(job: CheckerboardJob, results: list[StandpointResult]) -> None:
+    """No usable frame anywhere is a failure that names the likely cause."""
+    if not any(x.usable for x in results):
+        reasons = sorted({k for x in results for k in x.rejected})
+        msg = (f"no usable frame in any of {len(results)} standpoints ({', '.join(reasons) or 'no frames'}); "
+               f"does {job.board_source} describe the printed board (type, squares, dictionary)?")
+        raise EvaluationError(msg)
+
+
+def finish_checkerboard(job: CheckerboardJob, results: list[StandpointResult],
+                        out: Path) -> list[dict[str, Any]]:
+    """Write the result folder of finished standpoints; the rows of standpoints.csv."""
+    check_usable(job, results)
+    write_study(out, results, job.board, [str(p) for p in job.inputs], job.parameters, job.device)
+    return [standpoint_row(x) for x in results]
+
+
+def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames: int = 150,
+                     reference: str = "auto", target: RerunTarget | None = None,
+                     collect_samples: bool = False, workers: int = 1,
+                     cluster: str | None = None) -> list[dict[str, Any]]:
+    """The checkerboard study (paper Section 3.1) of every standpoint in `inputs` into `out`.
 
     With `workers > 1` or a Dask `cluster`, standpoints go out as tasks (each read by the worker
     that evaluates it); the per-frame rerun stream then shows standpoints, not frames.
     """
-    from depthstation.capture.reader import open_inputs
-    from depthstation.progress import progress
-
-    if reference not in ("auto", "average", "frame"):
-        raise InputError(None, f"--reference must be auto, average or frame, not '{reference}'")
-    board = load_board(board_path)
-    recs = open_inputs(inputs)
-    if not recs:
-        raise InputError(inputs[0] if inputs else None, "no standpoints found")
+    job = prepare_checkerboard(inputs, board_path, replace(StandpointOptions(), frames=frames,
+                                                           reference=reference,
+                                                           collect_samples=collect_samples))
     target = target or RerunTarget()
-    with recording("depthstation_checkerboard", target, rerun_log.study_blueprint(),
-                   rerun_log.DESCRIPTION) as rec, progress() as bar:
-        total = sum(min(r.frame_count or frames, frames) for r in recs)
-        task = bar.add_task("checkerboard", total=total, status="")
-        if workers > 1 or cluster is not None:
-            from evaluate.batch import run_checkerboard
+    recs = job.recordings
+    with ChunkRunner(workers, cluster) as runner, \
+            recording("depthstation_checkerboard", target, rerun_log.study_blueprint(),
+                      rerun_log.DESCRIPTION) as rec, progress() as bar:
+        total = (sum(min(r.frame_count or frames, frames) for r in recs) if runner.in_process
+                 else len(recs))
+        task = bar.add_task("checkerboard", total=total,
+                            status="" if runner.in_process else f"{len(recs)} standpoints on workers")
+        step = [0]
 
-            bar.update(task, total=len(recs), status=f"{len(recs)} standpoints on workers")
+        def frame_hook(r: Recording) -> Any:
+            bar.update(task, status=r.name)
 
-            def on_chunk(done: int, total: int) -> None:
+            def on_frame(fs: FrameSet, res: FrameResult) -> None:
+                rerun_log.log_frame(rec, step[0], r.name, fs, res, r.info.depth_units_m)
+                step[0] += 1
+                bar.advance(task)
+            return on_frame
+
+        def on_chunks(done: int, n: int) -> None:
+            if not runner.in_process:
                 bar.update(task, completed=done)
 
-            results = run_checkerboard(inputs, board, frames=frames, workers=workers, cluster=cluster,
-                                       progress=on_chunk, reference=reference,
-                                       collect_samples=collect_samples)
-            for i, result in enumerate(results):
-                rerun_log.log_standpoint(rec, i, result)
-        else:
-            results = _serial(recs, board, frames, reference, collect_samples, rec, bar, task)
-        rows = [standpoint_row(x) for x in results]
-        rerun_log.log_table(rec, rows)
-    if not any(x.usable for x in results):
-        reasons = sorted({k for x in results for k in x.rejected})
-        msg = (f"no usable frame in any of {len(results)} standpoints ({', '.join(reasons) or 'no frames'}); "
-               f"does {board_path} describe the printed board (type, squares, dictionary)?")
-        raise EvaluationError(msg)
-    first = recs[0]
-    device = dict(first.metadata.get("device") or first.info.device or {})
-    params = {"board": str(board_path), "frames": frames, "reference": reference,
-              "margin_m": 0.01, "pose": "EPnP + LM (IPPE fallback)"}
-    write_study(out, results, board, [str(p) for p in inputs], params, device)
-    return rows
-
-
-def _serial(recs: list[Any], board: Any, frames: int, reference: str, collect_samples: bool,
-            rec: Any, bar: Any, task: Any) -> list[StandpointResult]:
-    """Standpoints one after the other in this process, streaming every frame to rerun."""
-    results: list[StandpointResult] = []
-    step = 0
-    for i, r in enumerate(recs):
-        bar.update(task, status=r.name)
-
-        def on_frame(fs: Any, res: Any, name: str = r.name, units: float = r.info.depth_units_m) -> None:
-            nonlocal step
-            rerun_log.log_frame(rec, step, name, fs, res, units)
-            step += 1
-            bar.advance(task)
-
-        result = evaluate_recording(r, board, frames=frames, reference=reference,
-                                    collect_samples=collect_samples, on_frame=on_frame)
-        results.append(result)
-        rerun_log.log_standpoint(rec, i, result)
-    return results
+        results = run_standpoints(recs, job.board, job.options, runner, on_frame=frame_hook,
+                                  on_standpoint=lambda i, r: rerun_log.log_standpoint(rec, i, r),
+                                  progress=on_chunks)
+        rerun_log.log_table(rec, [standpoint_row(x) for x in results])
+    return finish_checkerboard(job, results, out)

@@ -5,35 +5,23 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.board import Board
-from depthstation.camera import Intrinsics, StreamInfo
-from depthstation.errors import EvaluationError
-from depthstation.frames import FrameSet
-from depthstation.geometry import average_poses, inclination_deg
-from evaluate.checkerboard.frame import FrameEvaluator, FramePixels, FrameResult
-from evaluate.checkerboard.mask import BLACK, WHITE
-from evaluate.checkerboard.metrics import plane_distance_stats
-from evaluate.checkerboard.pose import normal_std_deg
+from depthstation.core.board import Board
+from depthstation.core.camera_model import Intrinsics, StreamInfo
+from depthstation.core.capture.recording import Recording
+from depthstation.core.errors import EvaluationError
+from depthstation.core.frames import FrameSet
+from depthstation.core.geometry import average_poses, inclination_deg
+from depthstation.evaluate.checkerboard.frame import FrameEvaluator, FramePixels, FrameResult
+from depthstation.evaluate.checkerboard.mask import BLACK, WHITE
+from depthstation.evaluate.checkerboard.metrics import plane_distance_stats
+from depthstation.evaluate.checkerboard.pose import normal_std_deg
 
 FrameCallback = Callable[[FrameSet, FrameResult], None]
-
-
-class RecordingLike(Protocol):
-    """What the study needs of `depthstation.capture.reader.Recording` (contract 1)."""
-
-    name: str
-    path: Path
-    info: StreamInfo
-    metadata: dict[str, Any]
-    frame_count: int | None
-
-    def frames(self, limit: int | None = None, start: int = 0) -> Iterable[FrameSet]: ...
 
 
 @dataclass
@@ -196,7 +184,7 @@ def evaluate_frames(name: str, frames: Iterable[FrameSet], info: StreamInfo, boa
                      kept=kept if collect_samples else None, example=example, reference=reference)
 
 
-def evaluate_recording(rec: RecordingLike, board: Board, *, frames: int = 150,
+def evaluate_recording(rec: Recording, board: Board, *, frames: int = 150,
                        collect_samples: bool = False, sample_stride: int = 1, refine: bool = True,
                        margin_m: float = 0.01, on_frame: FrameCallback | None = None,
                        reference: str = "auto") -> StandpointResult:

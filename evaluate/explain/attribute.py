@@ -20,9 +20,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
-from evaluate.explain.basis import Candidate
-from evaluate.explain.locate import temporal_dev2
-from evaluate.explain.samples import FloatArray, IntArray, Samples
+from depthstation.evaluate.explain.basis import Candidate
+from depthstation.evaluate.explain.locate import temporal_dev2
+from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples
 
 BIC_THRESHOLD = -10.0      # "very strong" evidence (Kass & Raftery)
 NEAR_TIE = 6.0             # a runner-up within this BIC gap is only "positive" evidence apart: reported

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from evaluate.explain.samples import FloatArray, Samples
+from depthstation.evaluate.explain.samples import FloatArray, Samples
+from depthstation.simulate.effects import EFFECTS, PixelContext
 
 Columns = Callable[[Samples], FloatArray]
 
@@ -178,7 +179,6 @@ _VAR_REF = {"sigma_px": 0.08, "sigma_px_black": 0.05, "window_px": 2.0, "corner_
 def _module_column(name: str, param: str, kind: str, present: dict[str, dict[str, float]]) -> Columns:
     """d(bias)/d(param) at the model's current value (central difference), or variance / param^2."""
     def cols(s: Samples) -> FloatArray:
-        from simulate.effects import EFFECTS, PixelContext
 
         ctx = PixelContext(**s.context())
         base = dict(present.get(name, {}))
@@ -207,7 +207,7 @@ def module_candidates(present: dict[str, dict[str, float]] | None = None) -> lis
     """
     present = present or {}
     try:
-        from simulate.effects import EFFECTS
+        pass
     except ImportError:
         return list(OWN_CANDIDATES)
     own = own_candidates()

@@ -6,6 +6,13 @@ from pathlib import Path
 
 import typer
 
+from depthstation.core.errors import InputError
+from depthstation.core.progress import stderr_console
+from depthstation.core.rerun_bridge import RerunTarget
+from depthstation.evaluate.explain.run import run_explain
+from depthstation.evaluate.explain.scan_form import explain_scan, write_scan_outputs
+from depthstation.simulate.model import load_model
+
 
 def register(app: typer.Typer) -> None:
     """Add this part's commands to the root `depthstation` app."""
@@ -36,13 +43,6 @@ def explain(
     cluster: str | None = typer.Option(None, "--cluster", help="Dask scheduler address (tcp://host:8786)."),
 ) -> None:
     """Locate where simulation and real data differ, name the missing physics, refit, show the gain."""
-    from depthstation.board import load_board
-    from depthstation.errors import InputError
-    from depthstation.progress import stderr_console
-    from depthstation.viz import RerunTarget
-    from evaluate.explain.pipeline import evaluate_real, explain_sides, simulate_like
-    from evaluate.explain.report import write_outputs
-    from simulate.model import load_model
 
     for p in real:
         if not p.exists():
@@ -59,24 +59,16 @@ def explain(
         raise InputError(None, "--workers must be at least 1")
     if frames < 2:
         raise InputError(None, "--frames must be at least 2 (noise needs several frames)")
-    brd = load_board(board)
     mdl = load_model(model)
 
     def tick(msg: str) -> None:
         stderr_console.print(f"[bold]explain[/]: {msg}")
 
-    real_side = evaluate_real(real, brd, frames=frames, baseline_m=mdl.camera.baseline_m, tick=tick,
-                              workers=workers, cluster=cluster)
-    sim_side = simulate_like(real_side, brd, mdl, seed=seed, tick=tick)
-    ex = explain_sides(real_side, sim_side, mdl, brd, seed=seed, resimulate=not no_resimulate, tick=tick)
-    data = write_outputs(ex, out, [str(p) for p in real],
-                         {"board": str(board), "model": model, "frames": frames, "seed": seed,
-                          "workers": workers, "cluster": cluster})
-    target = RerunTarget(rrd, spawn, serve)
-    if target.enabled:
-        from evaluate.explain.rerun_log import log_explanation
-
-        log_explanation(ex, target)
+    data = run_explain(real, board, mdl, out, frames=frames, seed=seed, resimulate=not no_resimulate,
+                       workers=workers, cluster=cluster,
+                       parameters={"board": str(board), "model": model, "frames": frames, "seed": seed,
+                                   "workers": workers, "cluster": cluster},
+                       target=RerunTarget(rrd, spawn, serve), tick=tick)
     verdict = ("significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch")
     typer.echo(f"{verdict}; selected: {', '.join(data['selected']) or 'nothing'}; "
                f"missing physics: {', '.join(data['missing_physics']) or 'none'}; results in {out}")
@@ -86,10 +78,6 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
                   frames: int, seed: int, similarity: Path | None, icp: bool, block_frames: int,
                   resimulate: bool) -> None:
     """`explain --scan`: a reference-scan sequence against its simulation along the same trajectory."""
-    from depthstation.errors import InputError
-    from depthstation.progress import stderr_console
-    from evaluate.explain.scan import explain_scan, write_scan_outputs
-    from simulate.model import load_model
 
     if len(real) != 1:
         raise InputError(None, "--scan takes exactly one sequence")

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
-from evaluate.explain.samples import FloatArray, IntArray, Samples
+from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples
 
 ALPHA = 0.05
 MIN_SAMPLES = 30
@@ -272,3 +272,20 @@ def locate(real: Samples, sim: Samples, alpha: float = ALPHA, groups: list[Group
     for t, a, r in zip(tests, adj, rej, strict=True):
         t.p_adj, t.significant = float(a), bool(r)
     return LocateResult(tests)
+
+
+def residual_grid(loc: LocateResult, kind: str = "bias") -> tuple[Any, Any, Any] | None:
+    """(distance edges m, inclination edges deg, real - sim per cell, NaN where untested)."""
+    tests = loc.family("grid", kind)
+    if not tests:
+        return None
+    d = sorted({t.coords["distance_min_m"] for t in tests} | {t.coords["distance_max_m"] for t in tests})
+    i = sorted({t.coords["inclination_min_deg"] for t in tests}
+               | {t.coords["inclination_max_deg"] for t in tests})
+    de, ie = np.array(d), np.array(i)
+    m = np.full((len(de) - 1, len(ie) - 1), np.nan)
+    for t in tests:
+        a = int(np.searchsorted(de, t.coords["distance_min_m"]))
+        b = int(np.searchsorted(ie, t.coords["inclination_min_deg"]))
+        m[a, b] = t.diff
+    return de, ie, m

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from evaluate.explain.attribute import NEAR_TIE
-from evaluate.explain.locate import LocateResult
-from evaluate.explain.pipeline import Explanation
+from depthstation.core.results import write_json, write_result_info
+from depthstation.evaluate.explain.attribute import NEAR_TIE
+from depthstation.evaluate.explain.figures import residual_grid_figure
+from depthstation.evaluate.explain.locate import residual_grid
+
+if TYPE_CHECKING:
+    from depthstation.evaluate.explain.run import Explanation
 
 
 def explain_dict(ex: Explanation) -> dict[str, Any]:
@@ -38,18 +42,6 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
     }
 
 
-def _grid(loc: LocateResult) -> tuple[Any, Any, Any]:
-    tests = loc.family("grid")
-    if not tests:
-        return None, None, None
-    d = sorted({t.coords["distance_min_m"] for t in tests})
-    i = sorted({t.coords["inclination_min_deg"] for t in tests})
-    m = np.full((len(i), len(d)), np.nan)
-    for t in tests:
-        m[i.index(t.coords["inclination_min_deg"]), d.index(t.coords["distance_min_m"])] = t.diff * 1000
-    return np.array(d), np.array(i), m
-
-
 def figures(ex: Explanation, out: Path) -> list[str]:
     """Before/after pictures of real minus sim: grid, columns, black/white, time/temperature."""
     import matplotlib
@@ -59,23 +51,9 @@ def figures(ex: Explanation, out: Path) -> list[str]:
 
     names = []
     sides = [("before", ex.before)] + ([("after", ex.after)] if ex.after is not None else [])
-    fig, axes = plt.subplots(1, len(sides), figsize=(6 * len(sides), 4), squeeze=False)
-    vmax = max((np.nanmax(np.abs(_grid(loc)[2])) for _, loc in sides if _grid(loc)[2] is not None),
-               default=1.0) or 1.0
-    for ax, (label, loc) in zip(axes[0], sides, strict=True):
-        d, i, m = _grid(loc)
-        if m is None:
-            continue
-        im = ax.imshow(m, origin="lower", aspect="auto", cmap="coolwarm", vmin=-vmax, vmax=vmax,
-                       extent=(d[0], d[-1] + (d[1] - d[0] if len(d) > 1 else 0.25), i[0],
-                               i[-1] + (i[1] - i[0] if len(i) > 1 else 10)))
-        ax.set_xlabel("distance (m)")
-        ax.set_ylabel("inclination (deg)")
-        ax.set_title(f"mean error real - sim, {label} (mm)")
-        fig.colorbar(im, ax=ax, label="mm")
-    fig.tight_layout()
-    fig.savefig(out / "residual_grid.png", dpi=100)
-    plt.close(fig)
+    panels = [(label, g[0], g[1], g[2]) for label, loc in sides
+              if (g := residual_grid(loc)) is not None]
+    residual_grid_figure(out / "residual_grid.png", panels)
     names.append("residual_grid.png")
     for fam, xlabel, fname in (("column", "image column u (px)", "residual_columns.png"),
                                ("albedo", "square colour", "residual_albedo.png"),
@@ -156,7 +134,6 @@ def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
 
 def write_outputs(ex: Explanation, out: Path, inputs: list[str], parameters: dict[str, Any]
                   ) -> dict[str, Any]:
-    from depthstation.results import write_json, write_result_info
 
     out.mkdir(parents=True, exist_ok=True)
     data = explain_dict(ex)

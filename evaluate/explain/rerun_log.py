@@ -3,30 +3,13 @@ the refit as distance x inclination heatmaps, and the residual along each hidden
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
+from depthstation.core.rerun_bridge import RerunTarget, recording, send_heatmap, send_text
+from depthstation.evaluate.explain.locate import residual_grid
 
-from depthstation.viz import RerunTarget, recording, send_heatmap, send_text
-from evaluate.explain.locate import LocateResult
-from evaluate.explain.pipeline import Explanation
-
-
-def residual_grid(loc: LocateResult, kind: str = "bias") -> tuple[Any, Any, Any] | None:
-    """(distance edges m, inclination edges deg, real - sim per cell, NaN where untested)."""
-    tests = loc.family("grid", kind)
-    if not tests:
-        return None
-    d = sorted({t.coords["distance_min_m"] for t in tests} | {t.coords["distance_max_m"] for t in tests})
-    i = sorted({t.coords["inclination_min_deg"] for t in tests}
-               | {t.coords["inclination_max_deg"] for t in tests})
-    de, ie = np.array(d), np.array(i)
-    m = np.full((len(de) - 1, len(ie) - 1), np.nan)
-    for t in tests:
-        a = int(np.searchsorted(de, t.coords["distance_min_m"]))
-        b = int(np.searchsorted(ie, t.coords["inclination_min_deg"]))
-        m[a, b] = t.diff
-    return de, ie, m
+if TYPE_CHECKING:
+    from depthstation.evaluate.explain.run import Explanation
 
 
 def log_explanation(ex: Explanation, target: RerunTarget) -> None:

@@ -9,6 +9,9 @@ from pathlib import Path
 
 import typer
 
+from depthstation.core.rerun_bridge import RerunTarget
+from depthstation.evaluate.scan.run import ScanOptions, run_scan
+
 
 def scan(
     sequence: Path = typer.Option(..., "--sequence", help="Depth sequence: .mcap/.bag/.db3 capture or a "
@@ -58,8 +61,6 @@ def scan(
 ) -> None:
     """The reference-scan study (paper Section 3.2): per-pixel depth error against a TLS reference,
     gridded over distance x inclination."""
-    from depthstation.viz import RerunTarget
-    from evaluate.scan.run import ScanOptions, run_scan
 
     opts = ScanOptions(similarity=similarity, pass_points=pass_points, icp=icp,
                        icp_band_m=(icp_min_m, icp_max_m), frames=frames, every=every,

@@ -11,8 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from evaluate.grid import Grid
-from evaluate.scan.raycast import FrameImages
+from depthstation.core.grid import Grid
+from depthstation.core.heatmaps import colormap
+from depthstation.evaluate.scan.raycast import FrameImages
 
 
 def _plt() -> Any:
@@ -41,7 +42,7 @@ def frame_figure(images: FrameImages, path: Path, title: str = "") -> Path:
         (err_mm, "(d) depth error, measured - reference", "error (mm)", "RdBu_r", -lim, lim),
     ]
     for ax, (img, name, unit, cmap, lo, hi) in zip(axes.ravel(), panels, strict=True):
-        cm = plt.get_cmap(cmap).with_extremes(bad="black")
+        cm = colormap(cmap)
         im = ax.imshow(np.ma.masked_invalid(img), cmap=cm, vmin=lo, vmax=hi, interpolation="nearest")
         ax.set_title(name)
         ax.set_xlabel("u (px)")
@@ -78,7 +79,7 @@ def grid_figure(grid: Grid, path: Path, min_count: int, title: str = "") -> Path
          plt.Normalize(0.0, smax)),
     ]
     for ax, (data, name, unit, cmap, norm) in zip(axes, panels, strict=True):
-        cm = plt.get_cmap(cmap).with_extremes(bad="white")
+        cm = colormap(cmap)
         im = ax.imshow(data.T, origin="lower", aspect="auto", extent=extent, cmap=cm, norm=norm,
                        interpolation="nearest")
         ax.set_xlim(float(de[0]), dmax)
@@ -91,14 +92,3 @@ def grid_figure(grid: Grid, path: Path, min_count: int, title: str = "") -> Path
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
-
-
-def colorize(values: np.ndarray[Any, Any], cmap: str, lo: float, hi: float) -> np.ndarray[Any, Any]:
-    """RGB uint8 image of a masked/NaN array (for rerun), NaN -> black."""
-    plt = _plt()
-    data = np.ma.masked_invalid(np.ma.filled(np.ma.asarray(values, dtype=np.float64), np.nan))
-    norm = (data - lo) / max(hi - lo, 1e-12)
-    rgba = plt.get_cmap(cmap)(np.ma.filled(np.clip(norm, 0, 1), np.nan))
-    rgb = (rgba[..., :3] * 255).astype(np.uint8)
-    rgb[np.ma.getmaskarray(data)] = 0
-    return rgb

@@ -20,35 +20,12 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.camera import Intrinsics
-from evaluate.grid import _FAST, Grid, bin_index, welford_add
-from evaluate.scan._o3d import open3d
+from depthstation.core.camera_model import Intrinsics, pixel_rays
+from depthstation.core.grid import _FAST, Grid, bin_index, welford_add
+from depthstation.core.lazy_open3d import open3d
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
-
-
-def camera_directions(intr: Intrinsics) -> F32:
-    """(H*W) x 3 camera-frame ray directions with z = 1 through integer pixel centres.
-
-    Distortion coefficients, when present, are inverted with OpenCV so that a ray meets the
-    point the lens imaged at that pixel (D4xx depth streams normally report none).
-    """
-    v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
-    if any(abs(c) > 0 for c in intr.coeffs) and intr.model not in ("none", ""):
-        import cv2
-
-        pts = np.stack([u.ravel(), v.ravel()], axis=-1).reshape(-1, 1, 2)
-        und = cv2.undistortPoints(pts, intr.K, np.asarray(intr.coeffs, dtype=np.float64)).reshape(-1, 2)
-        x, y = und[:, 0], und[:, 1]
-    else:
-        x = ((u - intr.ppx) / intr.fx).ravel()
-        y = ((v - intr.ppy) / intr.fy).ravel()
-    d = np.empty((x.size, 3), dtype=np.float32)
-    d[:, 0] = x
-    d[:, 1] = y
-    d[:, 2] = 1.0
-    return d
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
@@ -209,7 +186,7 @@ class MeshCaster:
         self.scene.add_triangles(mesh)
         self.nthreads = int(nthreads)
         self.intr = intr
-        self.dirs = camera_directions(intr)
+        self.dirs = pixel_rays(intr).reshape(-1, 3)
         self.inv_norm = (1.0 / np.linalg.norm(self.dirs.astype(np.float64), axis=1)).astype(np.float32)
         self.rays = np.empty((self.dirs.shape[0], 6), dtype=np.float32)
         self._rays_t = o3d.core.Tensor.from_numpy(self.rays)

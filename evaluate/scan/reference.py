@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from depthstation.errors import EvaluationError, InputError
-from evaluate.scan._o3d import open3d
+from depthstation.core.errors import EvaluationError, InputError
+from depthstation.core.lazy_open3d import open3d
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".gltf", ".glb")

@@ -15,11 +15,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.errors import EvaluationError, InputError
-from depthstation.geometry import rodrigues, rotation_angle_deg
-from evaluate.scan._o3d import open3d
-from evaluate.scan.sequence import FrameSource
-from evaluate.scan.trajectory import Trajectory, compose_similarity, decompose_similarity
+from depthstation.core.errors import EvaluationError, InputError
+from depthstation.core.frames import FrameSource
+from depthstation.core.geometry import rodrigues, rotation_angle_deg
+from depthstation.core.lazy_open3d import open3d
+from depthstation.evaluate.scan.trajectory import Trajectory, compose_similarity, decompose_similarity
 
 F64 = NDArray[np.float64]
 

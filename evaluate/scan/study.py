@@ -1,5 +1,6 @@
 """The reference-scan study as a pure pipeline: frames in, one grid (and optional per-frame grids)
-out, in chunks of frames that can run in separate processes and merge (Chan) to the same result.
+out. `evaluate_chunk` does frames [start, start + limit); `chunks.py` runs chunks on a ChunkRunner
+and merges them (Chan) to the same result.
 
 Why processes: Open3D's ray casting holds the GIL, so threads do not add; two processes with one
 ray-casting thread each beat one process with two on a two-core machine (PERF-NOTES). Partial
@@ -16,11 +17,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.errors import EvaluationError
-from evaluate.grid import Grid
-from evaluate.scan.raycast import STAT_NAMES, FrameImages, MeshCaster
-from evaluate.scan.sequence import FrameSource, open_sequence
-from evaluate.scan.trajectory import Trajectory
+from depthstation.core.errors import EvaluationError
+from depthstation.core.frames import FrameSource
+from depthstation.core.grid import Grid
+from depthstation.evaluate.scan.raycast import STAT_NAMES, FrameImages, MeshCaster
+from depthstation.evaluate.scan.trajectory import Trajectory
 
 PER_FRAME_DIR = "frame_grids"
 
@@ -118,73 +119,3 @@ def frame_images(caster: MeshCaster, source: FrameSource, trajectory: Trajectory
             return None
         return caster.images(pose, fs.depth, source.info.depth_units_m)
     return None
-
-
-# -- processes -----------------------------------------------------------------------------------
-_WORKER: dict[str, Any] = {}
-
-
-def _init_worker(source_spec: Path | FrameSource, mesh_path: Path, trajectory: Trajectory,
-                 config: StudyConfig) -> None:
-    source = open_sequence(source_spec) if isinstance(source_spec, (str, Path)) else source_spec
-    _WORKER.update(source=source, trajectory=trajectory, config=config,
-                   caster=MeshCaster(mesh_path, source.info.depth_intrinsics, config.nthreads))
-
-
-def _run_chunk(start: int, limit: int) -> ChunkResult:
-    w = _WORKER
-    return evaluate_chunk(w["caster"], w["source"], w["trajectory"], w["config"], start, limit)
-
-
-def chunk_ranges(frame_count: int, chunk_frames: int) -> list[tuple[int, int]]:
-    return [(s, min(chunk_frames, frame_count - s)) for s in range(0, frame_count, chunk_frames)]
-
-
-def run_study(source_spec: Path | FrameSource, mesh_path: Path, trajectory: Trajectory,
-              config: StudyConfig, *, workers: int = 1, chunk_frames: int = 64,
-              on_frame: FrameCallback | None = None,
-              on_chunk: Callable[[int, int, ChunkResult], None] | None = None) -> ChunkResult:
-    """The whole sequence: in-process for one worker, else chunks in `workers` processes.
-
-    `source_spec` is a path (each worker opens it) or a picklable frame source; `trajectory`
-    holds camera-to-reference poses (registration applied). Chunks merge in frame order, so the
-    result does not depend on which worker finished first.
-    """
-    if config.per_frame_dir is not None:
-        Path(config.per_frame_dir).mkdir(parents=True, exist_ok=True)
-    source = open_sequence(source_spec) if isinstance(source_spec, (str, Path)) else source_spec
-    n = source.frame_count
-    if config.max_frames is not None:
-        n = min(n, config.max_frames * config.every) if n is not None else config.max_frames * config.every
-    if workers <= 1 or n is None:
-        caster = MeshCaster(mesh_path, source.info.depth_intrinsics, config.nthreads)
-        if on_frame is None and on_chunk is None:
-            return evaluate_chunk(caster, source, trajectory, config, 0, n)
-        total = ChunkResult(config.empty_grid())
-        ranges = chunk_ranges(n, chunk_frames) if n is not None else [(0, None)]
-        for k, (start, limit) in enumerate(ranges):
-            part = evaluate_chunk(caster, source, trajectory, config, start, limit, on_frame)
-            total.merge(part)
-            if on_chunk is not None:
-                on_chunk(k, len(ranges), total)
-        return total
-
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    ranges = chunk_ranges(n, chunk_frames)
-    total = ChunkResult(config.empty_grid())
-    pending: dict[int, ChunkResult] = {}
-    next_k = 0
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"),
-                             initializer=_init_worker,
-                             initargs=(source_spec, Path(mesh_path), trajectory, config)) as pool:
-        futures = {pool.submit(_run_chunk, s, lim): k for k, (s, lim) in enumerate(ranges)}
-        for fut in as_completed(futures):
-            pending[futures[fut]] = fut.result()
-            while next_k in pending:
-                total.merge(pending.pop(next_k))
-                if on_chunk is not None:
-                    on_chunk(next_k, len(ranges), total)
-                next_k += 1
-    return total

@@ -8,18 +8,20 @@ a wrong depth definition or a sign error in the study shows up as a mismatch.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.camera import Intrinsics, StreamInfo
-from depthstation.frames import FrameSet
-from depthstation.geometry import look_at
-from evaluate.scan._o3d import open3d
+from depthstation.core.camera_model import Intrinsics, StreamInfo
+from depthstation.core.frames import FrameSet
+from depthstation.core.geometry import look_at
+from depthstation.core.lazy_open3d import open3d
 
 F64 = NDArray[np.float64]
 
@@ -192,9 +194,7 @@ def make_sequence(frames: int = 24, width: int = 160, height: int = 120, *, room
 
 def write_tum_folder(seq: SyntheticSequence, out: Path) -> Path:
     """The sequence as a TUM RGB-D folder (depth/*.png, depth.txt, camera.json)."""
-    import json
 
-    import cv2
 
     out = Path(out)
     (out / "depth").mkdir(parents=True, exist_ok=True)

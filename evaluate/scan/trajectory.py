@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.errors import InputError
-from depthstation.geometry import matrix_to_quaternion, quaternion_to_matrix
+from depthstation.core.errors import InputError
+from depthstation.core.geometry import matrix_to_quaternion, quaternion_to_matrix
 
 
 @dataclass(frozen=True)

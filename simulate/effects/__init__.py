@@ -2,22 +2,22 @@
 
 from __future__ import annotations
 
-from simulate.effects.albedo_bias import AlbedoBias
-from simulate.effects.albedo_noise import AlbedoNoise
-from simulate.effects.base import Effect, PixelContext
-from simulate.effects.depth_scale import DepthScale
-from simulate.effects.disparity_noise import DisparityNoise
-from simulate.effects.disparity_offset import DisparityOffset
-from simulate.effects.distortion_residual import DistortionResidual
-from simulate.effects.dropout import Dropout
-from simulate.effects.flying_pixels import FlyingPixels
-from simulate.effects.lr_focal_mismatch import LrFocalMismatch
-from simulate.effects.pixel_locking import PixelLocking
-from simulate.effects.quantization import Quantization
-from simulate.effects.reference_pose_noise import ReferencePoseNoise
-from simulate.effects.slant_bias import SlantBias
-from simulate.effects.slant_noise import SlantNoise
-from simulate.effects.thermal_drift import ThermalDrift
+from depthstation.simulate.effects.albedo_bias import AlbedoBias
+from depthstation.simulate.effects.albedo_noise import AlbedoNoise
+from depthstation.simulate.effects.base import Effect, PixelContext
+from depthstation.simulate.effects.depth_scale import DepthScale
+from depthstation.simulate.effects.disparity_noise import DisparityNoise
+from depthstation.simulate.effects.disparity_offset import DisparityOffset
+from depthstation.simulate.effects.distortion_residual import DistortionResidual
+from depthstation.simulate.effects.dropout import Dropout
+from depthstation.simulate.effects.flying_pixels import FlyingPixels
+from depthstation.simulate.effects.lr_focal_mismatch import LrFocalMismatch
+from depthstation.simulate.effects.pixel_locking import PixelLocking
+from depthstation.simulate.effects.quantization import Quantization
+from depthstation.simulate.effects.reference_pose_noise import ReferencePoseNoise
+from depthstation.simulate.effects.slant_bias import SlantBias
+from depthstation.simulate.effects.slant_noise import SlantNoise
+from depthstation.simulate.effects.thermal_drift import ThermalDrift
 
 EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (
     DisparityNoise, Quantization, Dropout, DisparityOffset, DepthScale, LrFocalMismatch,

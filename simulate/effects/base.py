@@ -15,7 +15,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.errors import SimulationError
+from depthstation.core.errors import SimulationError
 
 Array = NDArray[Any]
 

@@ -6,7 +6,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from simulate.effects.base import Array, Effect, PixelContext
+from depthstation.simulate.effects.base import Array, Effect, PixelContext
 
 
 class ReferencePoseNoise(Effect):

@@ -6,7 +6,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from simulate.effects.base import Array, DisparityShift, PixelContext
+from depthstation.simulate.effects.base import Array, DisparityShift, PixelContext
 
 
 class ThermalDrift(DisparityShift):

@@ -1,0 +1,377 @@
+"""The guided capture loop: guide the operator to each standpoint, record it when in place and still.
+
+One standpoint = one MCAP in the session (written by the capture helper's
+`Session.standpoint_writer`, `.partial` until closed). Faults lose nothing: a device that drops
+off mid-standpoint is reported, its partial file discarded, the camera reopened and the standpoint
+re-done; Ctrl-C closes the open file properly and leaves the standpoint incomplete for `--resume`;
+a killed process leaves every finished standpoint readable.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from depthstation.acquire.board_detection import BoardPose, board_mask, board_pose, fill_rate
+from depthstation.acquire.guidance import Guidance, StillnessTracker, end_of_range, guide, points_agree
+from depthstation.core.board_pose import pose_metrics
+from depthstation.core.camera_model import StreamInfo
+from depthstation.core.errors import CameraDisconnected, CameraError, CaptureError
+from depthstation.core.frames import FrameSet
+from depthstation.core.geometry import average_poses
+from depthstation.core.protocol import Protocol, Standpoint
+
+
+class CameraMoved(CaptureError):
+    """The board pose on the recorded frames left the stillness tolerances: the take is discarded."""
+
+
+MOVED_MESSAGE = "camera moved during recording: hold still; recording again"
+NOTICE_SECONDS = 3.0  # a fault notice stays in front of the guidance this long (frame time)
+
+
+class CaptureInterrupted(CaptureError):
+    """Ctrl-C: the open standpoint was closed as a finished '.partial' MCAP; exit code 130 (SIGINT)."""
+
+    exit_code = 130
+
+
+END_OF_RANGE_FRAMES = 10  # consecutive frames with a collapsed fill rate before we call it
+MAX_POSE_STRIDE = 5  # during recording the board pose is measured on every 5th frame at most
+
+
+def pose_stride(frames: int) -> int:
+    """Measure the pose on every frame of a short standpoint, on every 5th of a long one (at least
+    10 poses go into the average)."""
+    return max(1, min(MAX_POSE_STRIDE, frames // 10))
+
+
+@dataclass
+class LiveState:
+    """What the panel and rerun show for the latest frame."""
+
+    standpoint: Standpoint
+    index: int  # position of the standpoint in the plan
+    total: int
+    phase: str  # 'guiding', 'recording', 'reconnecting', 'done'
+    frame: FrameSet | None = None
+    pose: BoardPose | None = None
+    guidance: Guidance | None = None
+    recorded: int = 0
+    frames_per_standpoint: int = 0
+    done: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    message: str = ""
+
+
+@dataclass
+class StandpointOutcome:
+    name: str
+    status: str  # 'complete' or 'end_of_range'
+    measured: dict[str, Any] = field(default_factory=dict)
+    frames: int = 0
+
+
+class GuidedCapture:
+    """Runs the plan of a protocol against a camera, writing into a session.
+
+    `on_guidance(guidance, frameset, t_s)` lets a simulated operator act on what the screen says;
+    `on_state(LiveState)` feeds the terminal panel and rerun.
+    """
+
+    def __init__(self, camera: Any, protocol: Protocol, session: Any, *,
+                 on_guidance: Callable[[Guidance, FrameSet, float], None] | None = None,
+                 on_state: Callable[[LiveState], None] | None = None,
+                 max_guidance_s: float | None = None, reconnect_timeout_s: float = 60.0,
+                 frame_timeout_s: float = 5.0, sleep: Callable[[float], None] = time.sleep) -> None:
+        self.camera = camera
+        self.protocol = protocol
+        self.session = session
+        self.on_guidance = on_guidance
+        self.on_state = on_state
+        self.max_guidance_s = max_guidance_s
+        self.reconnect_timeout_s = reconnect_timeout_s
+        self.frame_timeout_s = frame_timeout_s
+        self.sleep = sleep
+        self.info: StreamInfo | None = None
+        self.events: list[dict[str, Any]] = []
+        self.skipped: dict[str, str] = {}
+        self.dropped = 0
+        self.retakes = 0  # takes discarded because the camera moved while recording
+        self._t0_ns: int | None = None
+        self._last_temp_ns = 0
+
+    # -- camera ------------------------------------------------------------------------------
+    def _start(self) -> StreamInfo:
+        self.info = self.camera.start(self.protocol.streams)
+        return self.info
+
+    def _reconnect(self, state: LiveState) -> None:
+        """Stop, then retry starting the camera until it answers or the timeout passes."""
+        state.phase = "reconnecting"
+        state.message = "camera disconnected: reconnect it (waiting)"
+        self._emit(state)
+        with contextlib.suppress(CameraError):
+            self.camera.stop()
+        t_end = time.monotonic() + self.reconnect_timeout_s
+        while True:
+            try:
+                self._start()
+                self.events.append({"event": "reconnected", "standpoint": state.standpoint.name,
+                                    "time_ns": time.time_ns()})
+                self._save_log()
+                return
+            except CameraError as exc:
+                if time.monotonic() > t_end:
+                    raise CameraError(f"camera did not come back within {self.reconnect_timeout_s:g} s: "
+                                      f"{exc}") from exc
+                self.sleep(0.5)
+
+    def _frame(self) -> FrameSet:
+        fs: FrameSet = self.camera.wait_for_frames(self.frame_timeout_s)
+        if self._t0_ns is None:
+            self._t0_ns = fs.timestamp_ns
+        return fs
+
+    def _t_s(self, fs: FrameSet) -> float:
+        return (fs.timestamp_ns - (self._t0_ns or fs.timestamp_ns)) / 1e9
+
+    def _emit(self, state: LiveState) -> None:
+        if self.on_state is not None:
+            self.on_state(state)
+
+    # -- measuring ---------------------------------------------------------------------------
+    def _measure(self, fs: FrameSet) -> tuple[BoardPose | None, float | None]:
+        assert self.info is not None
+        if fs.color is None:
+            return None, None
+        pose = board_pose(fs.color, self.protocol.board, self.info)
+        if pose is None or fs.depth is None:
+            return pose, None
+        intr = self.info.color_intrinsics if self.info.depth_aligned_to_color else self.info.depth_intrinsics
+        assert intr is not None
+        mask = board_mask(pose, self.protocol.board, intr, margin_m=0.5 * self.protocol.board.square_length_m)
+        return pose, fill_rate(fs.depth, mask)
+
+    def _guidance(self, sp: Standpoint, pose: BoardPose | None, fill: float | None, still: bool) -> Guidance:
+        assert self.info is not None
+        intr = self.info.color_intrinsics if self.info.depth_aligned_to_color else self.info.depth_intrinsics
+        tol = self.protocol.tolerances
+        if pose is None or intr is None:
+            return guide(sp, tol, distance_m=None, inclination_deg=None, azimuth_deg=None, fill=fill)
+        return guide(sp, tol, distance_m=pose.distance_m, inclination_deg=pose.inclination_deg,
+                     azimuth_deg=pose.azimuth_deg, center_px=pose.center_px,
+                     image_size=(intr.width, intr.height), fx=intr.fx, still=still, fill=fill)
+
+    # -- the plan ----------------------------------------------------------------------------
+    def run(self, done: set[str] | None = None, skipped: set[str] | None = None) -> list[StandpointOutcome]:
+        """Capture every standpoint not yet `done` (or `skipped` at the end of a range), in order."""
+        prior = self.session.data.get("capture") or {}
+        self.skipped.update(prior.get("skipped") or {})
+        self.events = list(prior.get("events") or []) + self.events
+        done = set(done or ()) | {e["name"] for e in self.session.standpoints
+                                  if e.get("status") == "complete"}
+        skipped = set(skipped or ()) | set(self.skipped)
+        plan = self.protocol.plan.standpoints()
+        outcomes: list[StandpointOutcome] = []
+        self._start()
+        try:
+            ended_trajectories: set[int] = set()
+            for i, sp in enumerate(plan):
+                if sp.name in done or sp.name in skipped:
+                    if sp.name in skipped:
+                        ended_trajectories.add(sp.trajectory)
+                    continue
+                if sp.trajectory in ended_trajectories:
+                    outcomes.append(StandpointOutcome(sp.name, "end_of_range"))
+                    skipped.add(sp.name)
+                    self._mark_skipped(sp)
+                    continue
+                state = LiveState(sp, i, len(plan), "guiding",
+                                  frames_per_standpoint=self.protocol.plan.frames_per_standpoint,
+                                  done=sorted(done), skipped=sorted(skipped))
+                out = self._standpoint(sp, state)
+                outcomes.append(out)
+                if out.status == "complete":
+                    done.add(sp.name)
+                else:
+                    skipped.add(sp.name)
+                    ended_trajectories.add(sp.trajectory)
+                    self._mark_skipped(sp)
+        finally:
+            with contextlib.suppress(CameraError):
+                self.camera.stop()
+        return outcomes
+
+    def _mark_skipped(self, sp: Standpoint) -> None:
+        self.skipped[sp.name] = "end of range: the board's depth fill rate collapsed"
+        self.events.append({"event": "end_of_range", "standpoint": sp.name, "trajectory": sp.trajectory,
+                            "time_ns": time.time_ns()})
+        self._save_log()
+
+    def _save_log(self) -> None:
+        """The capture's own record in session.json: skipped standpoints and fault events."""
+        self.session.set("capture", {"skipped": dict(self.skipped), "events": list(self.events)})
+
+    def _standpoint(self, sp: Standpoint, state: LiveState) -> StandpointOutcome:
+        """Guide, then record; a disconnect during either restarts the standpoint after reconnect,
+        a camera that moved while recording has its take set aside and recorded again."""
+        notice = ""
+        while True:
+            try:
+                if self._guide_until_ready(sp, state, notice) == "end_of_range":
+                    return StandpointOutcome(sp.name, "end_of_range")
+                return self._record(sp, state)
+            except CameraMoved as exc:
+                # the writer closed the take as 'partial'; keep it aside (never deleted) and redo it
+                self.retakes += 1
+                self.session.discard(sp.name, str(exc))
+                self.events.append({"event": "camera_moved", "standpoint": sp.name,
+                                    "frames_recorded": state.recorded, "error": str(exc),
+                                    "time_ns": time.time_ns()})
+                self._save_log()
+                state.recorded = 0
+                state.phase = "guiding"
+                state.message = notice = MOVED_MESSAGE
+                self._emit(state)
+            except CameraDisconnected as exc:
+                self.events.append({"event": "disconnected", "standpoint": sp.name, "during": state.phase,
+                                    "frames_recorded": state.recorded, "error": str(exc),
+                                    "time_ns": time.time_ns()})
+                if state.phase == "recording":
+                    # the writer closed the file as 'partial'; move it aside (never deleted)
+                    self.session.discard(sp.name, f"camera disconnected after {state.recorded} frames")
+                self._save_log()
+                state.recorded = 0
+                self._reconnect(state)
+                state.phase = "guiding"
+
+    def _guide_until_ready(self, sp: Standpoint, state: LiveState, notice: str = "") -> str:
+        """Guide until in tolerance and still ('ready') or the end of the range; `notice` (why the
+        standpoint starts again) stays in front of the guidance for NOTICE_SECONDS."""
+        tol = self.protocol.tolerances
+        still = StillnessTracker.from_tolerances(tol)
+        fills: list[float] = []
+        state.phase = "guiding"
+        t_start: float | None = None
+        while True:
+            fs = self._frame()
+            t = self._t_s(fs)
+            t_start = t if t_start is None else t_start
+            pose, fill = self._measure(fs)
+            is_still = still.update(fs.timestamp_ns,
+                                    None if pose is None else pose.stillness_points(self.protocol.board))
+            g = self._guidance(sp, pose, fill, is_still)
+            # end of range: the board is seen within half a step of the target, and depth is gone
+            # (farther than that, as when a new trajectory starts from the last one's end, the
+            # operator is told to step closer and the fill rate there says nothing of the target)
+            if pose is not None and fill is not None:
+                if abs(pose.distance_m - sp.distance_m) <= 0.5 * self.protocol.plan.step_m:
+                    fills.append(fill)
+                else:
+                    fills.clear()
+            if end_of_range(fills, tol.end_fill_rate, END_OF_RANGE_FRAMES):
+                state.message = (f"end of range at {sp.distance_m:.2f} m: the board's depth fill rate "
+                                 f"fell below {tol.end_fill_rate:.0%}; next trajectory")
+                self._emit(state)
+                return "end_of_range"
+            state.frame, state.pose, state.guidance, state.message = fs, pose, g, g.text
+            if notice and t - t_start < NOTICE_SECONDS:
+                state.message = f"{notice}; {g.text}"
+            self._emit(state)
+            if g.in_tolerance and is_still:
+                return "ready"
+            if self.on_guidance is not None:
+                self.on_guidance(g, fs, t)
+            if self.max_guidance_s is not None and t - t_start > self.max_guidance_s:
+                raise CaptureError(f"{sp.name}: not reached within {self.max_guidance_s:g} s of guidance")
+
+    def _record(self, sp: Standpoint, state: LiveState) -> StandpointOutcome:
+        assert self.info is not None
+        n = self.protocol.plan.frames_per_standpoint
+        g = state.guidance
+        target = {"distance_m": sp.distance_m, "inclination_deg": sp.inclination_deg, "side": sp.side}
+        meta: dict[str, Any] = {
+            "name": sp.name, "trajectory": sp.trajectory, "target": target,
+            "measured_at_start": None if g is None else {
+                "distance_m": g.distance_m, "inclination_deg": g.inclination_deg,
+                "azimuth_deg": g.azimuth_deg},
+        }
+        state.phase = "recording"
+        state.recorded = 0
+        stride = pose_stride(n)
+        poses: list[np.ndarray] = []
+        centres: list[np.ndarray] = []
+        with self.session.standpoint_writer(sp.name, self.info, meta) as writer:
+            while state.recorded < n:
+                fs = self._frame()
+                if writer.write(fs) is False:
+                    state.message = f"writer queue full: frame {fs.index} dropped"
+                state.recorded += 1
+                if fs.timestamp_ns - self._last_temp_ns >= 1_000_000_000:
+                    temps = self.camera.temperatures()
+                    if temps:
+                        writer.write_temperature(fs.timestamp_ns, temps)
+                    self._last_temp_ns = fs.timestamp_ns
+                # the pose on every `stride`-th frame is plenty for the average (30 of 150) and keeps
+                # 30 fps at 1280x720: detection costs about a frame period there
+                pose = self._measure(fs)[0] if (state.recorded - 1) % stride == 0 else None
+                if pose is not None:
+                    m = np.eye(4)
+                    m[:3, :3], m[:3, 3] = pose.R, pose.t
+                    poses.append(m)
+                    centres.append(pose.stillness_points(self.protocol.board))
+                    moved = self._moved(centres)
+                    if moved is not None:
+                        raise CameraMoved(f"{sp.name}: {moved} after {state.recorded} frames")
+                state.frame = fs
+                state.pose = pose or state.pose
+                state.message = f"recording {sp.name}: {state.recorded}/{n} frames, hold still"
+                self._emit(state)
+                if self.on_guidance is not None and state.guidance is not None:
+                    self.on_guidance(state.guidance, fs, self._t_s(fs))
+            measured = self._measured(poses, n)
+            meta["measured"] = measured
+            writer.set_metadata("standpoint", meta)
+            truth = getattr(self.camera, "truth", None)
+            if callable(truth):  # a simulated camera knows where it was: the evaluation's reference
+                writer.set_metadata("truth", truth())
+            self.dropped += int(getattr(writer, "dropped", 0))
+        state.done.append(sp.name)
+        state.phase = "done"
+        self._emit(state)
+        return StandpointOutcome(sp.name, "complete", measured, n)
+
+    def _moved(self, centres: list[np.ndarray]) -> str | None:
+        """Why the take is not still (the newest sampled view of the board left the stillness
+        tolerances against any earlier one of this take), or None. Judged as the stillness before
+        recording is (centre and outer corners in the camera frame): the take's spread stays within
+        the tolerances."""
+        tol = self.protocol.tolerances
+        c = centres[-1]
+        for i, c_i in enumerate(centres[:-1]):
+            if not points_agree(c_i, c, tol.still_translation_m, tol.still_rotation_deg):
+                shift = float(np.linalg.norm(c - c_i, axis=1).max())
+                cos = float(np.dot(c[0], c_i[0]) / (np.linalg.norm(c[0]) * np.linalg.norm(c_i[0])))
+                turn = float(np.degrees(np.arccos(min(1.0, max(-1.0, cos)))))
+                return (f"camera moved {100 * shift:.1f} cm / {turn:.2f}° between sampled frames {i + 1} "
+                        f"and {len(centres)} (tolerance {100 * tol.still_translation_m:.1f} cm / "
+                        f"{tol.still_rotation_deg:g}°)")
+        return None
+
+    def _measured(self, poses: list[np.ndarray], n: int) -> dict[str, Any]:
+        """The averaged board pose of the recorded frames (as the paper averages 150 EPnP poses)."""
+
+        if not poses:
+            return {"frames_with_board": 0}
+        avg = average_poses(poses)
+        d, inc, az = pose_metrics(self.protocol.board, avg[:3, :3], avg[:3, 3])
+        dists = [pose_metrics(self.protocol.board, p[:3, :3], p[:3, 3])[0] for p in poses]
+        return {"distance_m": d, "inclination_deg": inc, "azimuth_deg": az,
+                "distance_std_m": float(np.std(dists)), "frames_with_board": len(poses), "frames": n,
+                "board_to_depth": avg.tolist()}

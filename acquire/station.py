@@ -1,0 +1,224 @@
+"""The acquisition's workflows: the station (protocol, camera, session) and its warm-up, calibration
+and guided-capture runs, with their progress bars and rerun views.
+
+The `acquire` commands and the demo both call these; the commands only parse options and print.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from depthstation.acquire.calibrate import run_calibration
+from depthstation.acquire.camera_select import open_camera, parse_camera
+from depthstation.acquire.guidance import Guidance
+from depthstation.acquire.guided_capture import (
+    MOVED_MESSAGE,
+    CaptureInterrupted,
+    GuidedCapture,
+    LiveState,
+    StandpointOutcome,
+)
+from depthstation.acquire.views import BOARD_HELP, RerunView, TerminalPanel, blueprint
+from depthstation.acquire.warmup import WarmupDecision, WarmupSample, run_warmup
+from depthstation.core.capture.session import SESSION_FILE, Session
+from depthstation.core.errors import InputError
+from depthstation.core.frames import FrameSet
+from depthstation.core.progress import progress, stderr_console
+from depthstation.core.protocol import load_protocol, protocol_from_dict
+from depthstation.core.rerun_bridge import RerunTarget, recording
+from depthstation.simulate.operator import SimulatedOperator, Stance
+
+
+def drop_none(d: dict[str, Any]) -> dict[str, Any]:
+    """A stored protocol without its unset (null) keys, which the TOML form leaves out."""
+    return {k: drop_none(v) if isinstance(v, dict) else v for k, v in d.items() if v is not None}
+
+
+GuidanceHook = Callable[[Guidance, FrameSet, float], None]
+
+
+class Station:
+    """The objects one command works on: protocol, camera spec, camera, session."""
+
+    def __init__(self, camera: str, protocol: str, session: Path, resume: bool, seed: int,
+                 real_time: bool) -> None:
+        self.spec = parse_camera(camera)
+        if resume:
+            self.session = Session.open(session)
+            stored = self.session.data.get("protocol")
+            self.protocol = (protocol_from_dict(drop_none(stored), session / SESSION_FILE)
+                             if isinstance(stored, dict) else load_protocol(protocol))
+        else:
+            if (session / SESSION_FILE).exists():
+                raise InputError(session, "holds a session already: add --resume to continue it")
+            self.protocol = load_protocol(protocol)
+            self.session = Session.create(session, protocol=self.protocol,
+                                          camera=self.spec.describe())
+        self.operator: SimulatedOperator | None = None
+        options: dict[str, Any] = {}
+        if self.spec.kind == "sim":
+            options = {"seed": seed, "real_time": real_time}
+        self.camera = open_camera(self.spec, **options)
+        if self.spec.kind == "file" and real_time:
+            self.camera.real_time = True
+        self.seed = seed
+
+    def attach_operator(self) -> GuidanceHook | None:
+        """With a simulated camera nobody holds it: a simulated operator follows the guidance."""
+        if self.spec.kind != "sim":
+            return None
+        op = SimulatedOperator(self.protocol.board, Stance(range_m=self.protocol.plan.start_distance_m + 0.3,
+                                                           azimuth_deg=-4.0, yaw_deg=3.0), seed=self.seed)
+        fps = float(self.protocol.streams.fps)
+        camera = self.camera
+        camera.set_pose(op.pose(0.0))
+
+        def on_guidance(g: Guidance, fs: FrameSet, t_s: float) -> None:
+            op.step(g, t_s)
+            camera.set_pose(op.pose(t_s + 1.0 / fps))
+
+        self.operator = op
+        return on_guidance
+
+
+def say(text: str) -> None:
+    """One line to the operator, on stderr."""
+    stderr_console.print(text)
+
+
+def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTarget) -> dict[str, Any]:
+    """Stream until the protocol's warm-up rule holds; the curve goes into the session and rerun."""
+    rule = st.protocol.warmup
+    info = st.camera.start(st.protocol.streams)
+    clock: Callable[[], float] = time.monotonic
+    sleep: Callable[[float], None] = time.sleep
+    if accelerate > 1.0:
+        # An accelerated, simulated clock: device time advances by exactly what the loop sleeps,
+        # and the loop sleeps that much / `accelerate` of wall time. The wall time spent fetching
+        # a frame does not count, so the warm-up curve is sampled every interval whatever the load
+        # of the machine (a wall-clock multiple would turn 0.3 s of rendering into 2 min).
+        virtual = [0.0]
+
+        def fast_clock() -> float:
+            return virtual[0]
+
+        def fast_sleep(s: float) -> None:
+            virtual[0] += s
+            time.sleep(s / accelerate)
+        clock, sleep = fast_clock, fast_sleep
+        if hasattr(st.camera, "set_clock"):
+            st.camera.set_clock(clock)
+    try:
+        with recording("depthstation-warmup", target, description="Warm-up: device temperatures "
+                       "(degrees C) and the centre depth (m) over time (s).") as rec, \
+                progress() as bar:
+            task = bar.add_task("warm-up", total=rule.max_minutes * 60.0, status="")
+            said_no_temp = [False]
+
+            def on_sample(s: WarmupSample, d: WarmupDecision) -> None:
+                if not d.has_temperature and not said_no_temp[0]:
+                    said_no_temp[0] = True
+                    say("this camera reports no temperature: warm-up falls back to the minimum time")
+                temp = s.temperature_c
+                slope = "" if d.slope_c_per_min is None else f" slope {d.slope_c_per_min:+.3f} °C/min"
+                bar.update(task, completed=s.t_s,
+                           status=("" if temp is None else f"{temp:.1f} °C") + slope + f"  {d.reason}")
+                if rec is not None:
+                    import rerun as rr
+
+                    rec.set_time("warmup_s", duration=s.t_s)
+                    for k, v in s.temperatures_c.items():
+                        rec.log(f"warmup/temperature_c/{k}", rr.Scalars([v]))
+                    if s.depth_m is not None:
+                        rec.log("warmup/centre_depth_m", rr.Scalars([s.depth_m]))
+
+            result = run_warmup(st.camera, rule, info.depth_units_m, interval_s=interval_s, clock=clock,
+                                sleep=sleep, on_sample=on_sample)
+    finally:
+        st.camera.stop()
+        if accelerate > 1.0 and hasattr(st.camera, "set_clock"):
+            st.camera.set_clock(None)  # back to frame time for what follows
+    summary = result.summary()
+    summary["interval_s"] = interval_s
+    summary["accelerated"] = accelerate > 1.0
+    st.session.set("warmup", summary)
+    say(f"warm-up done: {summary['reason']}")
+    return summary
+
+
+def do_calibrate(st: Station, yes: bool, write: bool,
+                 ask: Callable[[str], bool] | None = None) -> dict[str, Any]:
+    """On-chip / tare as the protocol asks; a new table is applied only when the operator agrees
+    (`yes`: always, for scripts; else `ask(question)`; without `ask`, never)."""
+
+    def confirm(question: str) -> bool:
+        if yes:
+            say(f"{question} yes (--yes)")
+            return True
+        return ask(question) if ask is not None else False
+
+    st.camera.start(st.protocol.streams)
+    try:
+        record = run_calibration(st.camera, st.protocol.calibration, confirm=confirm, say=say,
+                                 write=write)
+    finally:
+        st.camera.stop()
+    st.session.set("calibration", record)
+    return record
+
+
+def do_capture(st: Station, target: RerunTarget, max_guidance_s: float | None) -> list[StandpointOutcome]:
+    """The guided loop with the panel and rerun; a recording's end stops it cleanly."""
+    on_guidance = st.attach_operator()
+    outcomes: list[StandpointOutcome] = []
+    with recording("depthstation-acquire", target, blueprint(), description=BOARD_HELP) as rec:
+        views: list[Any] = []
+        panel = TerminalPanel() if sys.stderr.isatty() else None
+        if panel is not None:
+            views.append(panel)
+        rerun_view: list[RerunView] = []
+
+        def on_state(state: LiveState) -> None:
+            if rec is not None and cap.info is not None:
+                if not rerun_view:
+                    rerun_view.append(RerunView(rec, cap.info.depth_units_m))
+                rerun_view[0](state)
+            for v in views:
+                v(state)
+            if panel is None and state.phase == "done":
+                say(f"{state.standpoint.name}: recorded {state.recorded} frames")
+            if panel is None and state.message == MOVED_MESSAGE:
+                say(f"{state.standpoint.name}: {MOVED_MESSAGE}")
+
+        cap = GuidedCapture(st.camera, st.protocol, st.session, on_guidance=on_guidance, on_state=on_state,
+                            max_guidance_s=max_guidance_s)
+        try:
+            if panel is not None:
+                panel.__enter__()
+            outcomes = cap.run()
+        except EOFError:
+            say("the recording ended: the standpoints done so far are in the session; "
+                 "the rest stay open for --resume with another recording or a camera")
+        except KeyboardInterrupt as exc:
+            open_ = [e["name"] for e in st.session.standpoints if e.get("status") == "partial"]
+            msg = (f"interrupted: finished standpoints are safe in {st.session.dir}"
+                   + (f"; {', '.join(open_)} kept as partial" if open_ else "")
+                   + "; --resume continues")
+            raise CaptureInterrupted(msg) from exc
+        finally:
+            if panel is not None:
+                panel.__exit__(None, None, None)
+            if cap.events or cap.skipped:
+                st.session.set("capture", {"skipped": dict(cap.skipped), "events": list(cap.events)})
+    done = [e["name"] for e in st.session.standpoints if e.get("status") == "complete"]
+    plan = [sp.name for sp in st.protocol.plan.standpoints()]
+    open_ = [n for n in plan if n not in done and n not in cap.skipped]
+    say(f"session {st.session.dir}: {len(done)} standpoints complete, {len(cap.skipped)} skipped "
+         f"(end of range), {len(open_)} open" + (f": {', '.join(open_)}" if open_ else ""))
+    if cap.dropped:
+        say(f"warning: {cap.dropped} frames dropped by the writer")
+    return outcomes

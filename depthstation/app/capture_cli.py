@@ -1,0 +1,139 @@
+"""Commands of this stage (thin: load, call the pure functions, write results)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from depthstation.core.capture.importer import import_recordings
+from depthstation.core.capture.mcap_reader import McapRecording
+from depthstation.core.capture.mcap_writer import write_mcap
+from depthstation.core.capture.recording import Recording
+from depthstation.core.capture.registry import open_inputs, open_recording
+from depthstation.core.errors import InputError
+from depthstation.core.progress import progress
+from depthstation.core.results import _jsonable
+
+app = typer.Typer(no_args_is_help=True)
+
+
+@app.command("import")
+def import_cmd(
+    sources: Annotated[
+        list[Path], typer.Argument(help=".bag, .db3, .mcap files, PNG folders or dataset roots")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="new session directory")],
+    compression: Annotated[str, typer.Option(help="none (default, fastest to read), lz4 or zstd")] = "none",
+) -> None:
+    """Import recordings into a capture session (one MCAP per standpoint)."""
+
+    with progress() as bar:
+        tasks: dict[str, Any] = {}
+
+        def on_frame(rec: Recording, i: int) -> None:
+            if rec.name not in tasks:
+                tasks[rec.name] = bar.add_task(rec.name, total=rec.frame_count, status="")
+            bar.update(tasks[rec.name], completed=i + 1)
+
+        session = import_recordings(sources, out, compression=compression, on_frame=on_frame)
+    frames = sum(int(e.get("frames", 0)) for e in session.standpoints)
+    typer.echo(f"{out}: {len(session.standpoints)} standpoints, {frames} frames")
+
+
+def _describe(path: Path) -> list[dict[str, Any]]:
+
+    out = []
+    for rec in open_inputs([path]):
+        d = rec.summary()
+        first = last = None
+        n = 0
+        if rec.frame_count is None or rec.frame_count <= 1000:
+            times = [fs.timestamp_ns for fs in rec.frames()]  # also counts a cut-off MCAP
+            n = len(times)
+            if times:
+                first, last = min(times), max(times)
+        d["frames_read"] = n if rec.frame_count is None or rec.frame_count <= 1000 else None
+        d["duration_s"] = None if first is None or last is None else (last - first) / 1e9
+        out.append(d)
+    return out
+
+
+def _fmt_intr(d: dict[str, Any] | None) -> str:
+    if d is None:
+        return "-"
+    return (
+        f"{d['width']}x{d['height']} fx={d['fx']:.3f} fy={d['fy']:.3f} "
+        f"ppx={d['ppx']:.3f} ppy={d['ppy']:.3f} {d['model']}"
+    )
+
+
+@app.command("info")
+def info_cmd(
+    path: Annotated[Path, typer.Argument(help="a recording, session directory or PNG dataset")],
+    as_json: Annotated[bool, typer.Option("--json", help="print JSON instead of a table")] = False,
+) -> None:
+    """Streams, resolutions, frame counts, intrinsics, extrinsics, device and duration."""
+
+    items = _describe(path)
+    if as_json:
+        typer.echo(json.dumps(_jsonable(items), indent=2))
+        return
+
+    console = Console()
+    for d in items:
+        info = d["info"]
+        t = Table(title=f"{d['name']}  ({d['path']})", show_header=False)
+        t.add_column("key", style="bold")
+        t.add_column("value")
+        counts = d["stream_counts"]
+        t.add_row("frames", str(d["frame_count"] if d["frame_count"] is not None else d["frames_read"]))
+        t.add_row("streams", ", ".join(f"{k}: {v}" for k, v in counts.items()) or "-")
+        t.add_row("duration", "-" if d["duration_s"] is None else f"{d['duration_s']:.3f} s")
+        t.add_row("fps", str(info.get("fps")))
+        t.add_row("depth", _fmt_intr(info["depth_intrinsics"]))
+        t.add_row("colour", _fmt_intr(info["color_intrinsics"]))
+        if info.get("infrared_intrinsics"):
+            t.add_row("infrared", _fmt_intr(info["infrared_intrinsics"]))
+        e = info["depth_to_color"]
+        t.add_row("depth->colour t (m)", " ".join(f"{x:+.6f}" for x in e["translation"]))
+        t.add_row("depth->colour R", " ".join(f"{x:+.6f}" for x in e["rotation"]))
+        t.add_row("aligned to colour", str(info["depth_aligned_to_color"]))
+        t.add_row("depth units", f"{info['depth_units_m']:g} m")
+        t.add_row("baseline", "-" if info["baseline_m"] is None else f"{info['baseline_m'] * 1000:.3f} mm")
+        dev = d["metadata"].get("device") or info.get("device") or {}
+        t.add_row(
+            "device",
+            " ".join(f"{k}={dev[k]}" for k in ("name", "serial_number", "firmware_version") if k in dev)
+            or "-",
+        )
+        console.print(t)
+
+
+@app.command("compact")
+def compact_cmd(
+    src: Annotated[Path, typer.Argument(help="an MCAP recording (ours)")],
+    out: Annotated[Path, typer.Argument(help="new MCAP file")],
+    compression: Annotated[str, typer.Option(help="zstd (default), lz4 or none")] = "zstd",
+) -> None:
+    """Rewrite a capture with stronger compression (zstd) for archiving; the source is kept."""
+
+    rec = open_recording(src)
+    if not isinstance(rec, McapRecording):
+        raise InputError(src, "compact takes our MCAP recordings; use `capture import` for others")
+    temps = [(t, {k: v}) for k, (ts, vs) in rec.temperatures().items() for t, v in zip(ts, vs, strict=True)]
+    n = write_mcap(
+        out,
+        rec.info,
+        rec.frames(),
+        {k: v for k, v in rec.metadata.items() if k != "format"},
+        compression=compression,
+        temperatures=temps,
+    )
+    typer.echo(
+        f"{out}: {n} frames, {out.stat().st_size / 1e6:.1f} MB (from {src.stat().st_size / 1e6:.1f} MB)"
+    )

@@ -1,0 +1,72 @@
+"""The `depthstation` console script: one typer app, a sub-app per stage, errors to exit codes."""
+
+from __future__ import annotations
+
+import sys
+
+import click
+import typer
+
+from depthstation.acquire.cli import app as acquire_app
+from depthstation.app.capture_cli import app as capture_app
+from depthstation.app.station_cli import register as register_station
+from depthstation.core.errors import DepthstationError
+from depthstation.evaluate.cli import app as evaluate_app
+from depthstation.evaluate.explain.cli import register as register_explain
+from depthstation.simulate.cli import app as simulate_app
+
+app = typer.Typer(
+    name="depthstation",
+    help="Measure how well a depth camera measures depth over distance x inclination.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+
+
+def _register() -> None:
+    """Attach the stage sub-apps; each stage module keeps its heavy imports inside its commands."""
+
+    app.add_typer(capture_app, name="capture", help="Import, inspect and convert captures.")
+    app.add_typer(simulate_app, name="simulate", help="Render captures with the simulated D455.")
+    app.add_typer(evaluate_app, name="evaluate", help="The checkerboard and reference-scan studies.")
+    app.add_typer(acquire_app, name="acquire", help="Warm-up, on-device calibration and guided capture.")
+
+    register_explain(app)
+    register_station(app)
+
+
+_register()
+
+
+def main() -> None:
+    """Entry point: one-line errors on stderr, exit 2 for bad input, 1 for other failures."""
+    try:
+        rc = app(standalone_mode=False)
+    except DepthstationError as exc:
+        typer.echo(f"depthstation: error: {exc}", err=True)
+        sys.exit(exc.exit_code)
+    except KeyboardInterrupt:
+        typer.echo("depthstation: interrupted", err=True)
+        sys.exit(130)
+    except Exception as exc:  # click usage errors and anything unexpected
+
+        if isinstance(exc, click.exceptions.Exit):
+            sys.exit(exc.exit_code)
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            sys.exit(2)
+        if isinstance(exc, click.exceptions.Abort):
+            typer.echo("depthstation: aborted", err=True)
+            sys.exit(1)
+        typer.echo(f"depthstation: internal error: {type(exc).__name__}: {exc}", err=True)
+        sys.exit(1)
+    if isinstance(rc, int) and rc:
+        # click returns the code of an Abort (130 on Ctrl-C) or ctx.exit(n) instead of raising
+        if rc == 130:
+            typer.echo("depthstation: interrupted", err=True)
+        sys.exit(rc)
+
+
+if __name__ == "__main__":
+    main()

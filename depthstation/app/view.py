@@ -1,0 +1,126 @@
+"""`depthstation view`: a result folder becomes a recording (heatmaps, series, figures, description);
+an `.rrd` opens as is, in the native viewer or a web viewer bound to localhost."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from depthstation.core import rerun_bridge as viz
+from depthstation.core.errors import InputError
+from depthstation.core.grid import GRID_FILE, Grid
+from depthstation.core.progress import stderr_console
+from depthstation.core.results import EXPLAIN_FILE, STANDPOINTS_FILE, read_standpoints
+
+MIN_COUNT_VIEW = 10
+SERIES_COLUMNS = ("noise_m", "accuracy_m", "accuracy_rms_m", "fill_rate")
+
+
+def _describe(folder: Path, info: dict[str, Any], parts: list[str]) -> str:
+    lines = [f"# {folder.name}", "", f"Result folder `{folder}`"]
+    if info:
+        lines += [f"- kind: **{info.get('kind', '?')}**, created {info.get('created', '?')}",
+                  f"- inputs: {', '.join(map(str, info.get('inputs', []))) or '-'}",
+                  f"- device: `{json.dumps(info.get('device', {}))[:300]}`",
+                  f"- parameters: `{json.dumps(info.get('parameters', {}))[:300]}`"]
+    lines += ["", "## What is shown", *[f"- {p}" for p in parts], "",
+              "Conventions: distance = reference z-depth (m); inclination = angle between viewing ray and "
+              "surface normal (deg, 0 = head-on); errors = measured - reference (+ = too far)."]
+    return "\n".join(lines)
+
+
+def folder_to_rrd(folder: Path, rrd: Path) -> Path:
+    """Convert what a result folder holds into an `.rrd` with a blueprint and a description."""
+    import rerun as rr
+
+    folder = Path(folder)
+    info: dict[str, Any] = {}
+    if (folder / "result.json").is_file():
+        info = json.loads((folder / "result.json").read_text())
+    pngs = sorted(folder.glob("*.png"))
+    has = {n: (folder / n).is_file() for n in (STANDPOINTS_FILE, GRID_FILE, EXPLAIN_FILE)}
+    if not (any(has.values()) or pngs or info):
+        raise InputError(folder, "nothing to show (no result.json, tables, grids or figures)")
+    parts: list[str] = []
+    views: list[Any] = []
+    with viz.recording(f"depthstation-view-{folder.name}", viz.RerunTarget(rrd=rrd)) as rec:
+        if has[GRID_FILE]:
+            g = Grid.load(folder / GRID_FILE)
+            enough = g.count >= MIN_COUNT_VIEW
+            viz.send_heatmap(rec, "grid/count", g.count.astype(np.float32), g.distance_edges_m,
+                             g.inclination_edges_deg, quantity="samples per cell", unit="1")
+            viz.send_heatmap(rec, "grid/mean", np.where(enough, g.mean_m, np.nan), g.distance_edges_m,
+                             g.inclination_edges_deg, quantity="mean depth error", unit="m")
+            viz.send_heatmap(rec, "grid/std", np.where(enough, g.std_m, np.nan), g.distance_edges_m,
+                             g.inclination_edges_deg, quantity="std of depth error", unit="m")
+            views += [viz.heatmap_view("grid/count", "samples per cell"),
+                      viz.heatmap_view("grid/mean", "mean depth error [m]"),
+                      viz.heatmap_view("grid/std", "std of depth error [m]")]
+            parts.append(f"`grid/*`: tensors over distance [m] (rows) x inclination [deg] (columns): "
+                         f"count, mean and std of the depth error in metres, cells below "
+                         f"{MIN_COUNT_VIEW} samples empty")
+        if has[STANDPOINTS_FILE]:
+            rows = read_standpoints(folder / STANDPOINTS_FILE)
+            idx = np.arange(len(rows))
+            for col in SERIES_COLUMNS:
+                if rows and col in rows[0]:
+                    unit = "1" if col == "fill_rate" else "m"
+                    viz.send_series(rec, f"standpoints/{col}", idx, [r[col] for r in rows], name=col,
+                                    unit=unit, timeline="standpoint")
+                    views.append(viz.series_view(f"standpoints/{col}", f"{col} per standpoint"))
+            viz.send_table(rec, "standpoints/table", rows)
+            parts.append("`standpoints/*`: per standpoint (timeline `standpoint`, table order) noise, "
+                         "accuracy, fill rate; the full table as a document")
+        if has[EXPLAIN_FILE]:
+            explain = json.loads((folder / EXPLAIN_FILE).read_text())
+            viz.send_text(rec, "explain/json", "```json\n" + json.dumps(explain, indent=2)[:20000] + "\n```")
+            views.append(viz.text_view("explain/json", "explain.json"))
+            parts.append("`explain/json`: the mismatch found, candidates and selected effects")
+        if (folder / "report.md").is_file():
+            viz.send_text(rec, "explain/report", (folder / "report.md").read_text())
+            views.append(viz.text_view("explain/report", "report"))
+        for png in pngs:
+            rec.log(f"figures/{png.stem}", rr.EncodedImage(path=png), static=True)
+        if pngs:
+            views.append(viz.image_view("figures", "figures"))
+            parts.append("`figures/*`: the PNG figures of the folder")
+        viz.send_text(rec, viz.DESCRIPTION_PATH, _describe(folder, info, parts))
+        rr.send_blueprint(viz.blueprint(*views), recording=rec)
+    return rrd
+
+
+def open_rrd(rrd: Path, *, spawn: bool, serve: bool) -> None:
+    """Open an `.rrd`: the native viewer (detached) and/or a localhost web viewer."""
+
+    if serve:
+        _, proc, url = viz.start_web_server([rrd])
+        stderr_console.print(f"web viewer: {url}\n"
+                             f"(server pid {proc.pid}; stop it with `kill -- -{proc.pid}`)")
+    if spawn and not viz.has_display():
+        stderr_console.print(f"no display found, so no viewer window can open; the recording is {rrd}\n"
+                             f"serve it with `depthstation view {rrd} --serve` (web viewer on localhost)")
+    elif spawn:
+        subprocess.Popen([viz.rerun_executable(), str(rrd)], start_new_session=True,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        stderr_console.print(f"opened {rrd} in the rerun viewer")
+
+
+def view_path(path: Path, *, spawn: bool = True, serve: bool = False, rrd: Path | None = None) -> Path:
+    """Open a result folder or an `.rrd`; returns the `.rrd` shown."""
+
+    path = Path(path)
+    if path.is_file() and path.suffix == ".rrd":
+        target = path
+    elif path.is_dir():
+        target = Path(rrd) if rrd is not None else path / "view.rrd"
+        folder_to_rrd(path, target)
+        stderr_console.print(f"recording of {path} written to {target}")
+    else:
+        raise InputError(path, "expected a result folder or an .rrd file")
+    if spawn or serve:
+        open_rrd(target, spawn=spawn, serve=serve)
+    return target

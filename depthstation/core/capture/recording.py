@@ -1,0 +1,74 @@
+"""The recording model every reader yields: stream geometry, metadata and frame sets in order.
+
+Every format (our MCAP, RealSense and ROS bags, PNG standpoint folders, TUM RGB-D folders) maps its
+source into a `Recording`, so later stages never special-case a file format.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from depthstation.core.camera_model import StreamInfo
+from depthstation.core.frames import FrameSet
+
+log = logging.getLogger("depthstation.core.capture")
+
+
+class Recording:
+    """One standpoint or sequence: stream geometry, metadata and an iterator over its frame sets."""
+
+    name: str
+    path: Path
+    info: StreamInfo
+    metadata: dict[str, Any]
+    frame_count: int | None
+    stream_counts: dict[str, int]
+
+    def __init__(
+        self,
+        name: str,
+        path: Path,
+        info: StreamInfo,
+        metadata: dict[str, Any],
+        frame_count: int | None,
+        stream_counts: dict[str, int] | None = None,
+    ) -> None:
+        self.name = name
+        self.path = Path(path)
+        self.info = info
+        self.metadata = metadata
+        self.frame_count = frame_count
+        self.stream_counts = dict(stream_counts or {})
+
+    def _iter(self, start: int) -> Iterator[FrameSet]:
+        raise NotImplementedError
+
+    def frames(self, limit: int | None = None, start: int = 0) -> Iterator[FrameSet]:
+        """Frame sets in recording order, skipping `start` of them and yielding at most `limit`."""
+        if limit is not None and limit <= 0:
+            return
+        for n, fs in enumerate(self._iter(start), start=1):
+            yield fs
+            if limit is not None and n >= limit:
+                return
+
+    def temperatures(self) -> dict[str, tuple[list[int], list[float]]]:
+        """Device temperatures over time per sensor: name -> (timestamps ns, degrees C)."""
+        return {}
+
+    def summary(self) -> dict[str, Any]:
+        """What `capture info` shows: streams, sizes, counts, geometry, device."""
+        return {
+            "name": self.name,
+            "path": str(self.path),
+            "frame_count": self.frame_count,
+            "stream_counts": self.stream_counts,
+            "info": self.info.to_dict(),
+            "metadata": self.metadata,
+        }
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.name!r}, {str(self.path)!r}, frames={self.frame_count})"

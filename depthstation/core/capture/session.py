@@ -1,0 +1,380 @@
+"""A capture session directory: `session.json` plus one MCAP per standpoint.
+
+Each standpoint is written to `<name>.mcap.partial` by a background thread and renamed to
+`<name>.mcap` only after a clean close, so a crash loses at most the standpoint in progress and the
+camera loop never waits on the disk. `session.json` is replaced atomically on every change.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import logging
+import os
+import queue
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from depthstation.core.camera_model import StreamInfo
+from depthstation.core.capture.mcap_reader import McapRecording, open_mcap
+from depthstation.core.capture.mcap_writer import McapFileWriter
+from depthstation.core.errors import CaptureError, InputError
+from depthstation.core.frames import FrameSet
+from depthstation.core.results import _jsonable
+
+log = logging.getLogger("depthstation.core.capture")
+
+SESSION_FILE = "session.json"
+SESSION_FORMAT = "depthstation-session"
+SESSION_VERSION = 1
+STATUSES = ("recording", "complete", "partial", "discarded")
+
+
+def _now() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+
+def _to_dict(obj: Any) -> Any:
+    if obj is None or isinstance(obj, dict):
+        return obj
+    to_dict = getattr(obj, "to_dict", None)
+    if callable(to_dict):
+        return to_dict()
+    raise TypeError(f"cannot store {type(obj).__name__} in session.json")
+
+
+def _atomic_json(path: Path, data: dict[str, Any]) -> None:
+    """Write, fsync, rename: a reader sees the old or the new file, never a torn one."""
+
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w") as f:
+        f.write(json.dumps(_jsonable(data), indent=2) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+    tmp.replace(path)
+
+
+class Session:
+    """A session directory; create it once, open it again to resume or read."""
+
+    def __init__(self, directory: Path, data: dict[str, Any], read_only: bool = False) -> None:
+        self.dir = Path(directory)
+        self.data = data
+        self.read_only = read_only
+        self._lock = threading.Lock()
+
+    # -- life cycle ----------------------------------------------------------------------------
+    @classmethod
+    def create(
+        cls, directory: Path, *, protocol: Any = None, device: dict[str, Any] | None = None, **extra: Any
+    ) -> Session:
+        """New session; refuses a directory that already holds a session or any other file."""
+        d = Path(directory)
+        if (d / SESSION_FILE).exists():
+            raise InputError(d, "holds a session already; open it to resume, captures are never overwritten")
+        if d.exists() and any(d.iterdir()):
+            raise InputError(d, "is not empty; a new session needs an empty or new directory")
+        d.mkdir(parents=True, exist_ok=True)
+        data: dict[str, Any] = {
+            "format": SESSION_FORMAT,
+            "version": SESSION_VERSION,
+            "created": _now(),
+            "protocol": _to_dict(protocol),
+            "device": dict(device or {}),
+            "warmup": None,
+            "calibration": None,
+            "standpoints": [],
+        }
+        data.update(extra)
+        s = cls(d, data)
+        s._save()
+        return s
+
+    @classmethod
+    def open(cls, directory: Path, *, read_only: bool = False) -> Session:
+        """Open for resume; a stale `.mcap.partial` (a crash) is marked 'partial'."""
+        d = Path(directory)
+        path = d / SESSION_FILE
+        if not path.is_file():
+            raise InputError(d, "is no capture session (no session.json)")
+        try:
+            data = json.loads(path.read_text())
+        except ValueError as exc:
+            raise InputError(path, f"is not valid JSON ({exc})") from exc
+        if data.get("format") != SESSION_FORMAT:
+            raise InputError(path, "is no depthstation session file")
+        s = cls(d, data, read_only=read_only)
+        changed = False
+        known = {e["file"]: e for e in data.get("standpoints", [])}
+        for e in data.get("standpoints", []):
+            if e.get("status") == "recording":
+                e["status"] = "partial"
+                e["note"] = "interrupted while recording"
+                changed = True
+        for p in sorted(d.glob("*.mcap.partial")):
+            if p.name not in known:
+                data.setdefault("standpoints", []).append(
+                    {
+                        "name": p.name.split(".")[0],
+                        "file": p.name,
+                        "status": "partial",
+                        "note": "found without an entry (crash)",
+                    }
+                )
+                changed = True
+        if changed and not read_only:
+            s._save()
+        return s
+
+    def _save(self) -> None:
+        if self.read_only:
+            raise CaptureError(f"{self.dir}: session opened read-only")
+        with self._lock:
+            _atomic_json(self.dir / SESSION_FILE, self.data)
+
+    # -- contents ------------------------------------------------------------------------------
+    @property
+    def standpoints(self) -> list[dict[str, Any]]:
+        """Entries with name, file, status (recording/complete/partial/discarded), frames, dropped."""
+        return list(self.data.get("standpoints", []))
+
+    def status(self, name: str) -> str | None:
+        entries = [e for e in self.data.get("standpoints", []) if e["name"] == name]
+        return entries[-1]["status"] if entries else None
+
+    def set(self, key: str, value: Any) -> None:
+        """Store a session-level document ('warmup', 'calibration', ...) atomically."""
+        self.data[key] = _to_dict(value) if not isinstance(value, (str, int, float, list)) else value
+        self._save()
+
+    def recordings(self, statuses: tuple[str, ...] = ("complete",)) -> list[McapRecording]:
+        """Readers for the standpoints of the given statuses, in capture order."""
+        out = []
+        for e in self.data.get("standpoints", []):
+            if e.get("status") in statuses and (self.dir / e["file"]).is_file():
+                out.append(open_mcap(self.dir / e["file"]))
+        return out
+
+    def discard(self, name: str, reason: str = "") -> None:
+        """Mark a standpoint discarded; its file is renamed aside, never deleted."""
+        for e in self.data.get("standpoints", []):
+            if e["name"] == name and e["status"] in ("complete", "partial"):
+                src = self.dir / e["file"]
+                n = sum(1 for x in self.data["standpoints"] if x["status"] == "discarded") + 1
+                dst = self.dir / f"{name}.discarded-{n}.mcap"
+                if src.exists():
+                    src.rename(dst)
+                e.update(status="discarded", file=dst.name, reason=reason, discarded=_now())
+        self._save()
+
+    def _entry(self, name: str, file: str) -> dict[str, Any]:
+        e = {"name": name, "file": file, "status": "recording", "started": _now()}
+        self.data.setdefault("standpoints", []).append(e)
+        return e
+
+    def standpoint_writer(
+        self,
+        name: str,
+        info: StreamInfo,
+        standpoint: dict[str, Any] | None = None,
+        *,
+        compression: str = "none",
+        queue_frames: int = 64,
+        metadata: dict[str, Any] | None = None,
+        blocking: bool = False,
+    ) -> StandpointWriter:
+        """A background writer for one standpoint; refuses a name that is complete already."""
+        if self.read_only:
+            raise CaptureError(f"{self.dir}: session opened read-only")
+        final = self.dir / f"{name}.mcap"
+        if final.exists() or self.status(name) == "complete":
+            raise InputError(final, "exists already; captures are never overwritten (discard it first)")
+        partial = self.dir / f"{name}.mcap.partial"
+        if partial.exists():  # an earlier attempt that crashed: keep it aside
+            n = 1
+            while (self.dir / f"{name}.attempt-{n}.mcap.partial").exists():
+                n += 1
+            aside = self.dir / f"{name}.attempt-{n}.mcap.partial"
+            partial.rename(aside)
+            for e in self.data.get("standpoints", []):
+                if e["file"] == partial.name:
+                    e["file"] = aside.name
+        meta: dict[str, Any] = {
+            "device": self.data.get("device") or {},
+            "protocol": self.data.get("protocol"),
+            "standpoint": dict(standpoint or {}, name=name),
+            "calibration": self.data.get("calibration"),
+        }
+        meta.update(metadata or {})
+        entry = self._entry(name, partial.name)
+        entry["standpoint"] = dict(standpoint or {})
+        self._save()
+        return StandpointWriter(self, entry, partial, final, info, meta, compression, queue_frames, blocking)
+
+
+_STOP = object()
+
+
+@contextlib.contextmanager
+def _sigint_deferred() -> Iterator[None]:
+    """Hold SIGINT back while the block runs (main thread only) and raise it afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+
+    def hold(signum: int, frame: Any) -> None:
+        caught.append(signum)
+
+    previous = signal.signal(signal.SIGINT, hold)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
+
+
+class StandpointWriter:
+    """Context manager: `write()` only enqueues (never blocks); a thread serialises to MCAP.
+
+    When the bounded queue is full the frame set is dropped and counted (`dropped`), since blocking
+    the camera loop would drop frames in the driver instead, silently.
+    """
+
+    def __init__(
+        self,
+        session: Session,
+        entry: dict[str, Any],
+        partial: Path,
+        final: Path,
+        info: StreamInfo,
+        metadata: dict[str, Any],
+        compression: str,
+        queue_frames: int,
+        blocking: bool = False,
+    ) -> None:
+
+        self.session = session
+        self.entry = entry
+        self.partial = partial
+        self.final = final
+        self.dropped = 0
+        self.blocking = blocking  # imports wait instead of dropping; a live camera must not
+        self.max_queue = 0
+        self.max_put_s = 0.0
+        self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_frames)
+        self._error: BaseException | None = None
+        self._writer = McapFileWriter(partial, info, metadata, compression=compression)
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name=f"mcap-writer-{final.stem}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            if self._error is not None:
+                continue  # drain so producers never block
+            try:
+                kind, payload = item
+                if kind == "frame":
+                    self._writer.write(payload)
+                elif kind == "temp":
+                    self._writer.write_temperature(*payload)
+                else:
+                    self._writer.add_metadata(*payload)
+            except BaseException as exc:  # surfaced on the next write() / close()
+                self._error = exc
+
+    def _put(self, item: Any) -> bool:
+        if self._closed:
+            raise CaptureError(f"{self.final}: writer is closed")
+        if self._error is not None:
+            raise CaptureError(f"{self.partial}: writing failed: {self._error}") from self._error
+        t0 = time.perf_counter()
+        try:
+            if self.blocking:
+                self._queue.put(item)
+            else:
+                self._queue.put_nowait(item)
+            ok = True
+        except queue.Full:
+            ok = False
+        self.max_put_s = max(self.max_put_s, time.perf_counter() - t0)
+        self.max_queue = max(self.max_queue, self._queue.qsize())
+        return ok
+
+    def write(self, fs: FrameSet) -> bool:
+        """Enqueue a frame set; False (and `dropped` + 1) when the queue is full. Arrays must not be
+        mutated by the caller afterwards."""
+        ok = self._put(("frame", fs))
+        if not ok:
+            self.dropped += 1
+            log.warning("%s: writer queue full, frame %d dropped", self.final.name, fs.index)
+        return ok
+
+    def write_temperature(self, t_ns: int, temperatures: dict[str, float]) -> None:
+        if not self._put(("temp", (int(t_ns), dict(temperatures)))):
+            self.dropped += 0  # temperatures are best effort
+            log.warning("%s: writer queue full, temperature sample dropped", self.final.name)
+
+    def set_metadata(self, name: str, value: Any) -> None:
+        """Add/replace a metadata record (e.g. the measured standpoint); the last one wins."""
+        self._queue.put(("meta", (name, value)))  # blocking: rare and must not be lost
+
+    def update_standpoint(self, **values: Any) -> None:
+        """Record measured values (distance_m, inclination_deg, ...) in the MCAP and session.json."""
+        self.entry.setdefault("standpoint", {}).update(values)
+        self.set_metadata("standpoint", dict(self.entry["standpoint"], name=self.final.name.split(".")[0]))
+
+    def close(self, ok: bool = True) -> None:
+        """Drain the queue, finish the MCAP, rename it into place, mark the standpoint complete.
+
+        Ctrl-C during the close is held back until the file is finished (a half-written summary
+        would make the whole standpoint unreadable), then raised.
+        """
+        if self._closed:
+            return
+        with _sigint_deferred():
+            self._close(ok)
+
+    def _close(self, ok: bool) -> None:
+        self._closed = True
+        self._queue.put(_STOP)
+        self._thread.join()
+        w = self._writer
+        self.entry.update(
+            frames=w.frames_written,
+            dropped_frames=self.dropped,
+            finished=_now(),
+            first_index=w.first_index,
+            last_index=w.last_index,
+        )
+        if self._error is not None or not ok:
+            w.abort() if self._error is not None else w.close()
+            self.entry["status"] = "partial"
+            if self._error is not None:
+                self.entry["note"] = f"writer failed: {self._error}"
+            self.session._save()
+            if self._error is not None:
+                raise CaptureError(f"{self.partial}: writing failed: {self._error}") from self._error
+            return
+        w.close()
+        if self.final.exists():
+            raise CaptureError(f"{self.final}: appeared while recording; left as {self.partial.name}")
+        self.partial.replace(self.final)
+        self.entry.update(status="complete", file=self.final.name)
+        self.session._save()
+
+    def __enter__(self) -> StandpointWriter:
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        self.close(ok=exc_type is None)

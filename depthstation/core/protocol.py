@@ -1,0 +1,199 @@
+"""Capture protocols (TOML): board, streams, standpoint plan, tolerances, warm-up and calibration."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomllib
+
+from depthstation.core.board import Board
+from depthstation.core.errors import ProtocolError
+
+PROTOCOL_DIR = Path(__file__).resolve().parent.parent / "protocols"
+
+
+@dataclass(frozen=True)
+class Streams:
+    width: int = 1280
+    height: int = 720
+    fps: int = 30
+    depth: bool = True
+    color: bool = True
+    infrared: bool = False
+    preset: str = "Default"
+    emitter: bool = True
+
+
+@dataclass(frozen=True)
+class Standpoint:
+    """One target of the plan: a distance (board centre z-depth) at an inclination."""
+
+    name: str
+    trajectory: int
+    distance_m: float
+    inclination_deg: float
+    side: str = "left"  # which way the operator has walked round the board's normal
+
+
+@dataclass(frozen=True)
+class Plan:
+    frames_per_standpoint: int = 150
+    start_distance_m: float = 1.0
+    step_m: float = 0.4
+    max_distance_m: float = 6.0
+    inclinations_deg: tuple[float, ...] = (0.0, 15.0, 30.0, 45.0, 60.0)
+    side: str = "left"
+
+    def standpoints(self) -> list[Standpoint]:
+        """Every target in capture order: trajectory by trajectory, distance growing."""
+        out: list[Standpoint] = []
+        n = 0
+        for t, inc in enumerate(self.inclinations_deg):
+            d = self.start_distance_m
+            while d <= self.max_distance_m + 1e-9:
+                n += 1
+                out.append(Standpoint(f"standpoint_{n:02d}", t, round(d, 4), float(inc), self.side))
+                d += self.step_m
+        return out
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    distance_m: float = 0.05
+    inclination_deg: float = 3.0
+    still_seconds: float = 1.0
+    still_translation_m: float = 0.01
+    still_rotation_deg: float = 0.5
+    end_fill_rate: float = 0.2
+
+
+@dataclass(frozen=True)
+class Warmup:
+    min_minutes: float = 60.0
+    max_slope_c_per_min: float = 0.05
+    window_minutes: float = 5.0
+    max_minutes: float = 180.0
+
+
+@dataclass(frozen=True)
+class Calibration:
+    on_chip: bool = True
+    tare: bool = False
+    tare_distance_m: float | None = None
+    min_health: float = 0.25  # |health| above this suggests applying the new table
+
+
+@dataclass(frozen=True)
+class Protocol:
+    name: str
+    description: str = ""
+    board: Board = field(default_factory=Board)
+    streams: Streams = field(default_factory=Streams)
+    plan: Plan = field(default_factory=Plan)
+    tolerances: Tolerances = field(default_factory=Tolerances)
+    warmup: Warmup = field(default_factory=Warmup)
+    calibration: Calibration = field(default_factory=Calibration)
+    source: str | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["board"] = self.board.to_dict()
+        d.pop("source", None)
+        return d
+
+
+def _table(cls: type, data: Any, key: str, source: Path | None) -> Any:
+    """Build one dataclass from a TOML table, naming the offending key on error."""
+    if data is None:
+        return cls()
+    if not isinstance(data, dict):
+        raise ProtocolError(source, f"[{key}] must be a table")
+    fields = dataclasses.fields(cls)
+    names = {f.name for f in fields}
+    kwargs: dict[str, Any] = {}
+    for k, v in data.items():
+        if k not in names:
+            raise ProtocolError(source, f"unknown key '{key}.{k}'")
+        default = getattr(cls(), k)
+        try:
+            if isinstance(default, bool):
+                if not isinstance(v, bool):
+                    raise TypeError("expected true or false")
+                kwargs[k] = v
+            elif isinstance(default, int):
+                if isinstance(v, bool) or not isinstance(v, int):
+                    raise TypeError("expected an integer")
+                kwargs[k] = v
+            elif isinstance(default, float) or (default is None and k.endswith("_m")):
+                if isinstance(v, bool) or not isinstance(v, (int, float)):
+                    raise TypeError("expected a number")
+                kwargs[k] = float(v)
+            elif isinstance(default, tuple):
+                if not isinstance(v, list) or not all(isinstance(x, (int, float)) for x in v):
+                    raise TypeError("expected a list of numbers")
+                kwargs[k] = tuple(float(x) for x in v)
+            else:
+                if not isinstance(v, str):
+                    raise TypeError("expected a string")
+                kwargs[k] = v
+        except TypeError as exc:
+            raise ProtocolError(source, f"'{key}.{k}': {exc}, got {v!r}") from exc
+    return cls(**kwargs)
+
+
+def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Protocol:
+    """Validate a parsed protocol; every error names the key."""
+    known = {"name", "description", "board", "streams", "plan", "tolerances", "warmup", "calibration"}
+    for k in data:
+        if k not in known:
+            raise ProtocolError(source, f"unknown key '{k}'")
+    if "name" not in data or not isinstance(data["name"], str):
+        raise ProtocolError(source, "missing key 'name' (a string)")
+    board_data = data.get("board", {})
+    if not isinstance(board_data, dict):
+        raise ProtocolError(source, "[board] must be a table")
+    board = Board.from_dict(board_data, source)
+    proto = Protocol(
+        name=data["name"],
+        description=str(data.get("description", "")),
+        board=board,
+        streams=_table(Streams, data.get("streams"), "streams", source),
+        plan=_table(Plan, data.get("plan"), "plan", source),
+        tolerances=_table(Tolerances, data.get("tolerances"), "tolerances", source),
+        warmup=_table(Warmup, data.get("warmup"), "warmup", source),
+        calibration=_table(Calibration, data.get("calibration"), "calibration", source),
+        source=None if source is None else str(source),
+    )
+    p = proto.plan
+    if p.frames_per_standpoint < 1:
+        raise ProtocolError(source, "'plan.frames_per_standpoint' must be at least 1")
+    if p.step_m <= 0:
+        raise ProtocolError(source, "'plan.step_m' must be positive")
+    if not 0 < p.start_distance_m <= p.max_distance_m:
+        raise ProtocolError(source, "'plan.start_distance_m' must be positive and <= plan.max_distance_m")
+    if any(not 0 <= a < 90 for a in p.inclinations_deg) or not p.inclinations_deg:
+        raise ProtocolError(source, "'plan.inclinations_deg' must list angles in [0, 90)")
+    if p.side not in ("left", "right"):
+        raise ProtocolError(source, "'plan.side' must be 'left' or 'right'")
+    if proto.streams.width <= 0 or proto.streams.height <= 0 or proto.streams.fps <= 0:
+        raise ProtocolError(source, "'streams.width', 'streams.height' and 'streams.fps' must be positive")
+    return proto
+
+
+def load_protocol(path_or_name: str | Path) -> Protocol:
+    """A protocol from a TOML path or the name of one in `protocols/` (e.g. 'checkerboard-d455')."""
+    p = Path(path_or_name)
+    if not p.exists() and not p.suffix:
+        candidate = PROTOCOL_DIR / f"{path_or_name}.toml"
+        if candidate.exists():
+            p = candidate
+    if not p.is_file():
+        raise ProtocolError(p, "protocol file not found")
+    try:
+        data = tomllib.loads(p.read_text())
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ProtocolError(p, f"not valid TOML ({exc})") from exc
+    return protocol_from_dict(data, p)

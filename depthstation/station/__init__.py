@@ -1,1 +1,0 @@
-"""The station as a whole: demo, viewer, comparison of result folders."""

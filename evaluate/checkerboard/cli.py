@@ -1,0 +1,32 @@
+"""`depthstation evaluate checkerboard`: a thin typer command over `run.run_checkerboard`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from depthstation.core.rerun_bridge import RerunTarget
+from depthstation.evaluate.checkerboard.run import run_checkerboard
+
+
+def checkerboard(
+    inputs: list[Path] = typer.Argument(..., help="Session dirs, .mcap/.bag/.db3 files, PNG folders."),
+    board: Path = typer.Option(..., "--board", help="Board JSON or protocol TOML."),
+    out: Path = typer.Option(..., "--out", help="Result folder (created)."),
+    frames: int = typer.Option(150, "--frames", min=1, help="First N frames per standpoint."),
+    reference: str = typer.Option("auto", "--reference",
+                                  help="Accuracy against the 'average' pose, each 'frame' pose, or "
+                                       "'auto' (average unless the camera moved)."),
+    rrd: Path | None = typer.Option(None, "--rrd", help="Write a rerun recording."),
+    spawn: bool = typer.Option(False, "--spawn", help="Stream to a rerun viewer."),
+    serve: bool = typer.Option(False, "--serve", help="Serve a local rerun web viewer."),
+    workers: int = typer.Option(1, "--workers", min=1,
+                                help="Local worker processes (standpoints in parallel)."),
+    cluster: str | None = typer.Option(None, "--cluster",
+                                       help="Address of a Dask distributed scheduler (tcp://host:8786)."),
+) -> None:
+    """The checkerboard study (paper Section 3.1): noise and accuracy per standpoint."""
+    rows = run_checkerboard(inputs, board, out, frames=frames, reference=reference,
+                            target=RerunTarget(rrd, spawn, serve), workers=workers, cluster=cluster)
+    typer.echo(f"{len(rows)} standpoints -> {out / 'standpoints.csv'}")

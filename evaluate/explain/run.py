@@ -1,0 +1,259 @@
+"""Explain end to end: evaluate real, simulate the same standpoints, locate, attribute, refit, check.
+
+The simulation re-renders every real standpoint at the pose the real evaluation estimated, frame
+for frame with the real frames' time stamps and temperatures, and is evaluated by the same
+checkerboard study (contract 3), so both sides share every step but the sensor.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from depthstation.core.board import Board, load_board
+from depthstation.core.camera_model import StreamInfo
+from depthstation.core.errors import EvaluationError
+from depthstation.core.frames import FrameSet
+from depthstation.core.parallel import ChunkRunner
+from depthstation.core.rerun_bridge import RerunTarget
+from depthstation.evaluate.checkerboard.chunks import StandpointOptions, run_standpoints
+from depthstation.evaluate.checkerboard.run import prepare_checkerboard
+from depthstation.evaluate.checkerboard.study import evaluate_frames
+from depthstation.evaluate.explain.attribute import Attribution, attribute
+from depthstation.evaluate.explain.basis import Candidate, module_candidates
+from depthstation.evaluate.explain.locate import LocateResult, locate
+from depthstation.evaluate.explain.report import write_outputs
+from depthstation.evaluate.explain.rerun_log import log_explanation
+from depthstation.evaluate.explain.samples import Samples, concat, thin
+from depthstation.simulate.effects import PixelContext
+from depthstation.simulate.model import SensorModel
+from depthstation.simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO, board_scene
+from depthstation.simulate.view_renderer import ViewRenderer
+
+MAX_SAMPLES_PER_FRAME = 20_000
+# Each frame against its own board pose: the reference-plane error then varies from frame to frame
+# and the frame-level standard errors include it (an averaged pose would carry one error per
+# standpoint that no frame statistic can see, and real and sim would differ by it).
+REFERENCE = "frame"
+Progress = Callable[[str], None]
+
+
+@dataclass
+class FrameClock:
+    """Per frame of a standpoint: index, timestamp and temperature the simulation copies."""
+
+    index: list[int]
+    timestamp_ns: list[int]
+    temperature_c: list[float]
+
+
+@dataclass
+class Side:
+    """One evaluated session (real or simulated): samples plus what the simulation needs."""
+
+    samples: Samples
+    poses: dict[str, Any]               # standpoint -> board-to-depth-camera 4x4 (averaged)
+    clocks: dict[str, FrameClock]
+    info: StreamInfo
+    figures: dict[str, dict[str, float]]
+
+
+def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: float,
+                         t0_ns: int | None = None, true_poses: dict[str, Any] | None = None) -> Samples:
+    """Contract-3 `PixelSamples` of several standpoints into one `Samples` (z-depth errors).
+
+    Pixels that are neither black nor white (square edges, ChArUco markers) are left out, so the
+    albedo axis stays two clean classes. Each class carries the reflectance the simulator gives that
+    print (`simulate.scene` BLACK_ALBEDO / WHITE_ALBEDO), not 0/1: the effects' signatures must be
+    evaluated on the same `PixelContext.albedo` the simulator feeds them, or an albedo effect fitted
+    on a 0/1 axis reaches the white squares (albedo 0.85, not 1) when the new model is simulated.
+    """
+
+    names = [r.name for r in results if r.samples is not None and len(r.samples)]
+    if not names:
+        raise EvaluationError("no standpoint gave board pixels to compare")
+    if t0_ns is None:
+        t0_ns = min(int(r.samples.timestamp_ns.min()) for r in results if r.samples is not None
+                    and len(r.samples))
+    stereo = info.stereo
+    parts = []
+    for r in results:
+        ps = r.samples
+        if ps is None or not len(ps):
+            continue
+        keep = ps.is_black | ps.is_white
+        z_ref = ps.z_ref_m[keep].astype(np.float64)
+        ref_err = np.zeros_like(z_ref)
+        if true_poses is not None and r.name in true_poses:
+            # simulated: both sides are measured against their estimated board pose (so systematic
+            # errors of the pose estimate cancel); how far the estimate is from the rendered board
+            # is kept as the size of the reference error
+            ref_err = z_ref - _plane_z(true_poses[r.name], info, ps.u[keep], ps.v[keep])
+        us, vs = info.to_stereo_pixels(ps.u[keep], ps.v[keep])  # disparity lives in the imager's pixels
+        parts.append(Samples.build(
+            names=names, fx=stereo.fx, ppx=stereo.ppx, ppy=stereo.ppy, baseline_m=baseline_m,
+            standpoint=names.index(r.name), frame=ps.frame[keep], u=us, v=vs,
+            z_ref_m=z_ref, err_m=ps.z_meas_m[keep].astype(np.float64) - z_ref,
+            inclination_deg=ps.inclination_deg[keep],
+            albedo=np.where(ps.is_white[keep], WHITE_ALBEDO, BLACK_ALBEDO),
+            time_s=(ps.timestamp_ns[keep] - t0_ns) / 1e9, temperature_c=ps.temperature_c[keep],
+            ref_err_m=ref_err))
+    return thin(concat(parts), MAX_SAMPLES_PER_FRAME)
+
+
+def _plane_z(board_to_cam: Any, info: StreamInfo, u: Any, v: Any) -> Any:
+    """z-depth of the board plane along the rays of pixels (u, v)."""
+    intr = info.depth_intrinsics
+    p = np.asarray(board_to_cam, dtype=np.float64)
+    n, t = p[:3, 2], p[:3, 3]
+    dot = n[0] * (np.asarray(u) - intr.ppx) / intr.fx + n[1] * (np.asarray(v) - intr.ppy) / intr.fy + n[2]
+    return float(n @ t) / dot
+
+
+def _side(results: Sequence[Any], info: StreamInfo, baseline_m: float, t0_ns: int | None = None,
+          true_poses: dict[str, Any] | None = None) -> Side:
+    ok = [r for r in results if r.usable and r.samples is not None]
+    poses = {r.name: r.pose_depth for r in ok if r.pose_depth is not None}
+    clocks = {r.name: FrameClock([f.index for f in r.frames if f.ok],
+                                 [int(f.timestamp_ns) for f in r.frames if f.ok],
+                                 [float(f.temperature_c) for f in r.frames if f.ok]) for r in ok}
+    figures = {r.name: dict(r.figures) for r in ok}
+    return Side(samples_from_results(ok, info, baseline_m, t0_ns, true_poses), poses, clocks, info, figures)
+
+
+def _stride(info: StreamInfo) -> int:
+    return max(1, round(info.depth_intrinsics.width / 320))
+
+
+def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, baseline_m: float,
+                  tick: Progress | None = None, workers: int = 1, cluster: str | None = None) -> Side:
+    """The checkerboard study of the real inputs (its one prepare/run path), with per-pixel samples.
+
+    Standpoints go out as tasks on a ChunkRunner: each is read and evaluated by the worker that
+    gets it, local processes (`workers`) or a Dask scheduler (`cluster`).
+    """
+    probe = prepare_checkerboard(list(paths), board, StandpointOptions(frames=frames))
+    info = probe.recordings[0].info
+    options = StandpointOptions(frames=frames, collect_samples=True, sample_stride=_stride(info),
+                                reference=REFERENCE)
+    job = replace(probe, options=options)
+
+    def progress(done: int, total: int) -> None:
+        if tick:
+            tick(f"evaluated {done}/{total} standpoints")
+
+    with ChunkRunner(workers, cluster) as runner:
+        results = run_standpoints(job.recordings, job.board, job.options, runner, progress=progress)
+    return _side(results, info, info.baseline_m or baseline_m)
+
+
+def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0,
+                  tick: Progress | None = None) -> Side:
+    """Render and evaluate every real standpoint with `model` at the real pose, time and temperature."""
+
+    info = replace(real.info, baseline_m=real.info.baseline_m or model.camera.baseline_m)
+    renderer = ViewRenderer(board_scene(board), model, info, seed=seed, color=True)
+    results = []
+    for k, (name, pose) in enumerate(real.poses.items()):
+        if tick:
+            tick(f"simulate {name}")
+        renderer.set_pose(np.linalg.inv(pose))
+        clock = real.clocks[name]
+        t0 = clock.timestamp_ns[0] if clock.timestamp_ns else 0
+
+        def frames(clock: FrameClock = clock, t0: int = t0, k: int = k) -> Any:
+            for i, (idx, ts, temp) in enumerate(zip(clock.index, clock.timestamp_ns, clock.temperature_c,
+                                                    strict=True)):
+                rng = np.random.default_rng([seed, k, i])
+                t = temp if np.isfinite(temp) else 40.0
+                fs: FrameSet = renderer.frame(idx, ts, (ts - t0) / 1e9, t, rng=rng)
+                if not np.isfinite(temp):
+                    fs.metadata.pop("temperature_c", None)
+                yield fs
+
+        results.append(evaluate_frames(name, frames(), info, board, frames_requested=len(clock.index),
+                                       collect_samples=True, sample_stride=_stride(info),
+                                       reference=REFERENCE))
+    t0_ns = min((c.timestamp_ns[0] for c in real.clocks.values() if c.timestamp_ns), default=0)
+    return _side(results, info, info.baseline_m or model.camera.baseline_m, t0_ns, true_poses=real.poses)
+
+
+def present_effects(model: SensorModel) -> dict[str, dict[str, float]]:
+    """The model's effects and their parameters: refitting one of these is calibration."""
+    return {e.name: dict(e.params) for e in model.effects}
+
+
+def noise_variance(model: SensorModel) -> Callable[[Samples], Any]:
+    """The noise model's per-pixel z variance (weights of the bias fit)."""
+
+    def var(s: Samples) -> Any:
+        v = np.asarray(model.variance_m2(PixelContext(**s.context())), dtype=np.float64)
+        v = np.broadcast_to(v, (len(s),))
+        return np.where(np.isfinite(v) & (v > 0), v, np.nanmedian(v[v > 0]) if (v > 0).any() else 1e-6)
+    return var
+
+
+def improved_model(model: SensorModel, attribution: Attribution) -> SensorModel:
+    """The base model with every selected effect added or its parameters replaced by the fit."""
+    new = model
+    for c in attribution.selected:
+        params = {k: v for k, v in c.params.items() if np.isfinite(v)}
+        if c.kind == "variance":
+            params = {k: abs(v) for k, v in params.items()}
+        new = new.with_effect(c.effect, **params)
+    return new
+
+
+@dataclass
+class Explanation:
+    real: Side
+    sim: Side
+    before: LocateResult
+    attribution: Attribution
+    model: SensorModel
+    new_model: SensorModel
+    resim: Side | None
+    after: LocateResult | None
+    candidates: list[Candidate]
+
+
+def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, seed: int = 0,
+                  resimulate: bool = True, tick: Progress | None = None) -> Explanation:
+    """Locate, attribute, build the improved model and (optionally) check it by simulating again."""
+    present = present_effects(model)
+    cands = module_candidates(present)
+    if tick:
+        tick("locate")
+    before = locate(real.samples, sim.samples)
+    if tick:
+        tick("attribute")
+    attr = attribute(real.samples, sim.samples, cands, present, noise_var=noise_variance(model))
+    new_model = improved_model(model, attr)
+    resim = after = None
+    if resimulate:
+        resim = simulate_like(real, board, new_model, seed=seed + 1, tick=tick)
+        if tick:
+            tick("locate after")
+        after = locate(real.samples, resim.samples)
+    return Explanation(real, sim, before, attr, model, new_model, resim, after, cands)
+
+
+def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, *, frames: int,
+                seed: int = 0, resimulate: bool = True, workers: int = 1, cluster: str | None = None,
+                parameters: dict[str, Any] | None = None, target: RerunTarget | None = None,
+                tick: Progress | None = None) -> dict[str, Any]:
+    """`depthstation explain` of checkerboard captures: evaluate the real standpoints, simulate them
+    with `model`, locate, attribute, refit, check, and write the result folder; its explain.json."""
+    brd = board if isinstance(board, Board) else load_board(board)
+    real_side = evaluate_real(real, brd, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
+                              workers=workers, cluster=cluster)
+    sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
+    ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, tick=tick)
+    data = write_outputs(ex, out, [str(p) for p in real], dict(parameters or {}))
+    if target is not None and target.enabled:
+        log_explanation(ex, target)
+    return data

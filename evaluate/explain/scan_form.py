@@ -1,0 +1,467 @@
+"""Explain for the reference-scan study: a real sequence against a simulation of the same trajectory.
+
+Both sides go through the scan study (`evaluate.scan.study.evaluate_chunk`: every depth pixel ray
+cast against the reference mesh, errors binned over distance x inclination). The simulation renders
+the reference mesh with the current model at the registered pose of every real frame, with the real
+frame's intrinsics, time stamp and temperature. Frames of one sequence are not independent (one
+pose error, one registration, the same surfaces seen again), so the unit of independence is a frame
+block: each side gives one Grid per block, and standard errors come from the scatter of the
+block-wise real-minus-sim differences. Attribution fits the catalogue's bias signatures (the
+derivative of each `simulate.effects` module's `bias_m`, evaluated at the cell centres: the grid only
+knows distance and inclination) by weighted least squares with forward selection by BIC, validated
+leaving one frame block out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from depthstation.core.camera_model import StreamInfo
+from depthstation.core.errors import EvaluationError
+from depthstation.core.frames import FrameSet, FrameSource
+from depthstation.core.grid import Grid
+from depthstation.core.results import write_json, write_result_info
+from depthstation.evaluate.explain.basis import module_candidates
+from depthstation.evaluate.explain.figures import residual_grid_figure
+from depthstation.evaluate.explain.run import present_effects
+from depthstation.evaluate.explain.samples import FloatArray, Samples
+from depthstation.evaluate.scan.chunks import chunk_ranges
+from depthstation.evaluate.scan.raycast import MeshCaster
+from depthstation.evaluate.scan.run import ScanOptions, prepare_scan
+from depthstation.evaluate.scan.study import StudyConfig, evaluate_chunk
+from depthstation.evaluate.scan.trajectory import Trajectory
+from depthstation.simulate.model import SensorModel
+from depthstation.simulate.scene import mesh_scene
+from depthstation.simulate.view_renderer import ViewRenderer
+
+DISTANCE_BIN_M = 0.1
+INCLINATION_BIN_DEG = 10.0
+MIN_CELL_COUNT = 30          # pixels of one block in one cell before its mean is used
+MIN_BLOCKS = 3               # blocks a cell needs for a standard error
+ALPHA = 0.05
+BIC_THRESHOLD = -10.0
+WALD_P = 1e-3
+MAX_SELECTED = 3
+# effects whose signature the distance x inclination grid can carry; the others depend on pixel
+# position, albedo, time or edges, which the grid averages away (said in the report)
+GRID_EFFECTS = ("disparity_offset", "depth_scale", "slant_bias", "pixel_locking")
+Progress = Callable[[str], None]
+
+
+@dataclass
+class Clock:
+    """The real frames the simulation copies: index, time stamp, temperature (degC)."""
+
+    index: list[int] = field(default_factory=list)
+    timestamp_ns: list[int] = field(default_factory=list)
+    temperature_c: list[float] = field(default_factory=list)
+
+
+class SimulatedSequence:
+    """A frame source rendering the reference mesh with a model at the real frames' poses and times.
+
+    Frames whose time stamp has no pose are left out (the study would skip them on the real side too).
+    """
+
+    def __init__(self, mesh_path: Path, model: SensorModel, info: StreamInfo, trajectory: Trajectory,
+                 clock: Clock, *,
+                 seed: int = 0, tolerance_s: float = 0.01) -> None:
+
+        self.name = "simulated"
+        self.info = info
+        self.clock = clock
+        self.trajectory = trajectory
+        self.tolerance_s = tolerance_s
+        self.seed = seed
+        self.renderer = ViewRenderer(mesh_scene(Path(mesh_path)), model, info, seed=seed, color=False)
+
+    @property
+    def frame_count(self) -> int | None:
+        return len(self.clock.index)
+
+    def frames(self, limit: int | None = None, start: int = 0) -> Iterator[FrameSet]:
+        stop = len(self.clock.index) if limit is None else min(len(self.clock.index), start + limit)
+        t0 = self.clock.timestamp_ns[0] if self.clock.timestamp_ns else 0
+        for i in range(start, stop):
+            idx, ts, temp = self.clock.index[i], self.clock.timestamp_ns[i], self.clock.temperature_c[i]
+            pose = self.trajectory.match(ts * 1e-9, self.tolerance_s)
+            if pose is None:
+                continue
+            self.renderer.set_pose(pose)
+            t = temp if np.isfinite(temp) else 40.0
+            rng = np.random.default_rng([self.seed, idx])
+            yield self.renderer.frame(idx, ts, (ts - t0) / 1e9, t, rng=rng)
+
+
+def read_clock(source: FrameSource) -> Clock:
+    """Index, time stamp and temperature of every frame of a sequence (one pass over it)."""
+    c = Clock()
+    for fs in source.frames():
+        c.index.append(int(fs.index))
+        c.timestamp_ns.append(int(fs.timestamp_ns))
+        c.temperature_c.append(float(fs.metadata.get("temperature_c", np.nan)))
+    return c
+
+
+def block_grids(source: FrameSource, mesh_path: Path, trajectory: Trajectory, block_frames: int,
+                tolerance_s: float = 0.01) -> list[Grid]:
+    """One coarse distance x inclination Grid per block of `block_frames` consecutive frames."""
+
+    config = StudyConfig(DISTANCE_BIN_M, INCLINATION_BIN_DEG, 6.0, 90.0, tolerance_s=tolerance_s)
+    caster = MeshCaster(mesh_path, source.info.depth_intrinsics)
+    n = source.frame_count
+    if n is None:
+        raise EvaluationError("the sequence does not say how many frames it has")
+    return [evaluate_chunk(caster, source, trajectory, config, s, lim).grid
+            for s, lim in chunk_ranges(n, block_frames)]
+
+
+@dataclass
+class BlockCells:
+    """Real-minus-sim differences per (frame block, grid cell) where both sides have enough pixels."""
+
+    block: np.ndarray[Any, Any]
+    cell: np.ndarray[Any, Any]           # flat index into the grid
+    z_m: FloatArray                      # cell centre distance (z-depth)
+    inclination_deg: FloatArray
+    bias_m: FloatArray                   # real mean - sim mean
+    std_m: FloatArray                    # real std - sim std (noise difference)
+    count: FloatArray                    # min of the two pixel counts
+
+
+def block_cells(real: list[Grid], sim: list[Grid], min_count: int = MIN_CELL_COUNT) -> BlockCells:
+    """Pair the block grids of both sides cell by cell."""
+    if len(real) != len(sim):
+        raise EvaluationError("real and simulated sides have different numbers of frame blocks")
+    rows: list[tuple[Any, ...]] = []
+    for b, (r, s) in enumerate(zip(real, sim, strict=True)):
+        ok = (r.count >= min_count) & (s.count >= min_count)
+        i, j = np.nonzero(ok)
+        rs, ss = np.sqrt(r.var), np.sqrt(s.var)
+        for a, c in zip(i, j, strict=True):
+            rows.append((b, a * r.shape[1] + c, r.distance_centers_m[a], r.inclination_centers_deg[c],
+                         r.mean[a, c] - s.mean[a, c], rs[a, c] - ss[a, c], min(r.count[a, c], s.count[a, c])))
+    if not rows:
+        raise EvaluationError("no grid cell has enough pixels on both sides to compare")
+    cols = list(zip(*rows, strict=True))
+    return BlockCells(np.asarray(cols[0], np.int64), np.asarray(cols[1], np.int64),
+                      np.asarray(cols[2], float), np.asarray(cols[3], float), np.asarray(cols[4], float),
+                      np.asarray(cols[5], float), np.asarray(cols[6], float))
+
+
+def _holm(p: FloatArray) -> FloatArray:
+    """Holm-adjusted p-values (family-wise error over all tests together)."""
+    order = np.argsort(p)
+    m = len(p)
+    adj = np.empty(m)
+    run = 0.0
+    for k, i in enumerate(order):
+        run = max(run, min(1.0, (m - k) * p[i]))
+        adj[i] = run
+    return adj
+
+
+def locate_cells(bc: BlockCells, shape: tuple[int, int]) -> dict[str, Any]:
+    """Cell-wise and block-wise tests of the bias and noise differences (SE from the block scatter)."""
+    tests: list[dict[str, Any]] = []
+    for kind, y in (("bias", bc.bias_m), ("noise", bc.std_m)):
+        for cell in np.unique(bc.cell):
+            m = bc.cell == cell
+            if m.sum() < MIN_BLOCKS:
+                continue
+            vals = y[m]
+            sd = float(np.std(vals, ddof=1))
+            se = sd / np.sqrt(m.sum())
+            t = float(np.mean(vals) / se) if se > 0 else 0.0
+            p = float(2 * stats.t.sf(abs(t), m.sum() - 1))
+            a, c = divmod(int(cell), shape[1])
+            tests.append({"family": "grid", "kind": kind, "distance_m": round(float(bc.z_m[m][0]), 3),
+                          "inclination_deg": round(float(bc.inclination_deg[m][0]), 1),
+                          "difference_m": float(np.mean(vals)), "stderr_m": float(se), "blocks": int(m.sum()),
+                          "p": p, "cell": [a, c]})
+    # frame blocks: a block's mean difference over the compared cells (cells weighted by pixels)
+    # against the scatter of the OTHER blocks' means (t with B - 2 dof: exact for independent blocks;
+    # the cells of one block share frames, so they are not independent of each other)
+    ub = np.unique(bc.block)
+    d_b = np.array([np.average(bc.bias_m[bc.block == b], weights=bc.count[bc.block == b]) for b in ub])
+    if len(ub) >= 4:
+        for i, b in enumerate(ub):
+            others = np.delete(d_b, i)
+            sd = float(np.std(others, ddof=1))
+            t = float(d_b[i] / sd) if sd > 0 else 0.0
+            tests.append({"family": "block", "kind": "bias", "block": int(b), "t": t,
+                          "difference_m": float(d_b[i]), "stderr_m": sd,
+                          "p": float(2 * stats.t.sf(abs(t), len(ub) - 2))})
+    if tests:
+        adj = _holm(np.array([t["p"] for t in tests]))
+        for test, pa in zip(tests, adj, strict=True):
+            test["p_adj"] = float(pa)
+    regions = [t for t in tests if t["p_adj"] < ALPHA and t["family"] == "grid"]
+    blocks = [t["block"] for t in tests if t["p_adj"] < ALPHA and t["family"] == "block"]
+    return {"significant": bool(regions or blocks), "standpoints": [f"block_{b:02d}" for b in blocks],
+            "regions": sorted(regions, key=lambda t: t["p_adj"]), "tests": len(tests)}
+
+
+# -- attribution -------------------------------------------------------------------------------------
+
+def _pseudo_samples(bc: BlockCells, info: StreamInfo, albedo: float) -> Samples:
+    """Block-cells as samples at the cell centres (principal point: the grid has no pixel position)."""
+    intr = info.stereo
+    return Samples.build(names=["sequence"], fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy,
+                         baseline_m=float(info.baseline_m or 0.095), standpoint=0, frame=bc.block,
+                         u=intr.ppx, v=intr.ppy, z_ref_m=bc.z_m, err_m=bc.bias_m,
+                         inclination_deg=bc.inclination_deg, albedo=albedo, temperature_c=40.0)
+
+
+def _cell_weights(bc: BlockCells) -> FloatArray:
+    """1/variance of a block-cell difference: each cell's block scatter, floored at a quarter of the
+    median (a cell seen in few blocks would otherwise get an arbitrarily small variance)."""
+    var = np.full(len(bc.bias_m), np.nan)
+    for cell in np.unique(bc.cell):
+        m = bc.cell == cell
+        if m.sum() >= 2:
+            var[m] = np.var(bc.bias_m[m], ddof=1)
+    med = float(np.nanmedian(var)) if np.isfinite(var).any() else float(np.var(bc.bias_m))
+    var = np.where(np.isfinite(var), np.maximum(var, 0.25 * med), med)
+    return 1.0 / np.maximum(var, 1e-12)
+
+
+def _wls(X: FloatArray, y: FloatArray, w: FloatArray) -> tuple[FloatArray, float]:
+    sw = np.sqrt(w)
+    b, *_ = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)
+    r = y - X @ b
+    return np.asarray(b, dtype=np.float64), float(np.sum(w * r * r))
+
+
+def _heldout_rmse(X: FloatArray, y: FloatArray, w: FloatArray, block: np.ndarray[Any, Any]) -> float:
+    """RMSE of the residual on each frame block when fitted on the others (X empty: no fit)."""
+    err = np.empty_like(y)
+    for b in np.unique(block):
+        test = block == b
+        if X.shape[1] == 0 or (~test).sum() <= X.shape[1]:
+            err[test] = y[test]
+            continue
+        coef, _ = _wls(X[~test], y[~test], w[~test])
+        err[test] = y[test] - X[test] @ coef
+    return float(np.sqrt(np.mean(err ** 2)))
+
+
+def _cluster_p(X: FloatArray, y: FloatArray, w: FloatArray, block: np.ndarray[Any, Any],
+               j: int) -> tuple[float, float]:
+    """Block-cluster-robust standard error and Wald p of coefficient j."""
+    sw = np.sqrt(w)
+    Xw = X * sw[:, None]
+    b, _ = _wls(X, y, w)
+    r = (y - X @ b) * sw
+    bread = np.linalg.pinv(Xw.T @ Xw)
+    meat = np.zeros_like(bread)
+    for g in np.unique(block):
+        m = block == g
+        s = Xw[m].T @ r[m]
+        meat += np.outer(s, s)
+    G = len(np.unique(block))
+    cov = bread @ meat @ bread * G / max(G - 1, 1)
+    se = float(np.sqrt(max(cov[j, j], 0.0)))
+    p = float(2 * stats.t.sf(abs(b[j]) / se, max(G - 1, 1))) if se > 0 else 1.0
+    return se, p
+
+
+def attribute_cells(bc: BlockCells, info: StreamInfo, present: dict[str, dict[str, float]],
+                    albedo: float = 0.6) -> tuple[list[dict[str, Any]], list[str]]:
+    """Rank the grid-visible bias candidates; forward selection by BIC, held-out blocks, Wald test."""
+
+    s = _pseudo_samples(bc, info, albedo)
+    cands = {c.name: c for c in module_candidates(present) if c.kind == "bias" and c.name in GRID_EFFECTS}
+    cols = {n: c.columns(s) for n, c in cands.items()}
+    cols = {n: x for n, x in cols.items() if np.ptp(x, axis=0).max() > 0 or np.abs(x).max() > 0}
+    y, w, block = bc.bias_m, _cell_weights(bc), bc.block
+    n = len(y)
+    selected: list[str] = []
+    records: dict[str, dict[str, Any]] = {}
+
+    def design(names: list[str]) -> FloatArray:
+        return np.concatenate([cols[k] for k in names], axis=1) if names else np.zeros((n, 0))
+
+    for step in range(MAX_SELECTED):
+        X0 = design(selected)
+        chi0 = _wls(X0, y, w)[1] if selected else float(np.sum(w * y * y))
+        rmse0 = _heldout_rmse(X0, y, w, block)
+        best: tuple[str, dict[str, Any]] | None = None
+        for name in cols:
+            if name in selected:
+                continue
+            X = np.concatenate([X0, cols[name]], axis=1)
+            b, chi = _wls(X, y, w)
+            k = cols[name].shape[1]
+            dbic = chi - chi0 + k * np.log(n)
+            rmse = _heldout_rmse(X, y, w, block)
+            ses, ps = zip(*[_cluster_p(X, y, w, block, X0.shape[1] + i) for i in range(k)], strict=True)
+            c = cands[name]
+            coef = b[X0.shape[1]:]
+            old = present.get(name, {})
+            role = "calibration" if name in present else "missing_physics"
+            rec: dict[str, Any] = {"effect": name, "kind": "bias", "role": role,
+                   "meaning": c.meaning,
+                   "params": {p: {"value": float(old.get(p, 0.0)) + float(v), "unit": u, "stderr": float(e)}
+                              for p, u, v, e in zip(c.params, c.units, coef, ses, strict=True)},
+                   "delta_bic": float(dbic), "heldout_rmse_before_m": rmse0, "heldout_rmse_after_m": rmse,
+                   "wald_p": float(min(ps)), "selected": False, "step": None}
+            if step == 0 or name not in records:
+                records[name] = rec
+            if best is None or dbic < best[1]["delta_bic"]:
+                best = (name, rec)
+        if best is None:
+            break
+        name, rec = best
+        if not (rec["delta_bic"] < BIC_THRESHOLD and rec["wald_p"] < WALD_P
+                and rec["heldout_rmse_after_m"] < rec["heldout_rmse_before_m"]):
+            break
+        rec.update(selected=True, step=step)
+        records[name] = rec
+        selected.append(name)
+    ranked = sorted(records.values(), key=lambda r: (not r["selected"], r["step"] if r["selected"] else 0,
+                                                     r["delta_bic"]))
+    return ranked, selected
+
+
+# -- the whole thing ---------------------------------------------------------------------------------
+
+@dataclass
+class ScanExplanation:
+    data: dict[str, Any]
+    new_model: SensorModel
+    before: BlockCells
+    after: BlockCells | None
+    shape: tuple[int, int]
+
+
+def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorModel, out: Path, *,
+                 frames: int | None = None, block_frames: int = 8, seed: int = 0, icp: bool = True,
+                 similarity: Path | None = None, resimulate: bool = True, tolerance_s: float = 0.01,
+                 tick: Progress | None = None) -> ScanExplanation:
+    """Evaluate the real sequence and its simulation in frame blocks, locate, attribute, re-simulate."""
+
+    if tick:
+        tick("prepare: reference mesh and registration")
+    job = prepare_scan(sequence, poses, reference, out,
+                       ScanOptions(similarity=similarity, icp=icp, tolerance_s=tolerance_s))
+    source, mesh_path, posed = job.source, job.mesh_path, job.posed
+    reg_info: dict[str, Any] = job.registration.to_dict()
+    clock = read_clock(source)
+    if frames is not None:
+        clock = Clock(clock.index[:frames], clock.timestamp_ns[:frames], clock.temperature_c[:frames])
+    if len(clock.index) < MIN_BLOCKS * 2:
+        raise EvaluationError(f"{len(clock.index)} frames: too few for frame blocks (need {MIN_BLOCKS * 2})")
+    block = max(1, min(block_frames, len(clock.index) // MIN_BLOCKS))
+    n_frames = len(clock.index)
+
+    class _Limited:
+        """The real source cut to the frames used."""
+
+        name = source.name
+        info = source.info
+        frame_count = n_frames
+
+        def frames(self, limit: int | None = None, start: int = 0) -> Iterator[FrameSet]:
+            lim = n_frames - start if limit is None else min(limit, n_frames - start)
+            return source.frames(limit=lim, start=start)
+
+    if tick:
+        tick(f"evaluate real ({n_frames} frames, blocks of {block})")
+    real = block_grids(_Limited(), mesh_path, posed, block, tolerance_s)
+    info = source.info
+
+    def side(mdl: SensorModel, s: int) -> list[Grid]:
+        seq = SimulatedSequence(mesh_path, mdl, info, posed, clock, seed=s, tolerance_s=tolerance_s)
+        return block_grids(seq, mesh_path, posed, block, tolerance_s)
+
+    if tick:
+        tick("simulate and evaluate")
+    sim = side(model, seed)
+    shape = real[0].shape
+    bc = block_cells(real, sim)
+    before = locate_cells(bc, shape)
+    present = present_effects(model)
+    if tick:
+        tick("attribute")
+    candidates, selected = attribute_cells(bc, info, present)
+    new_model = model
+    for rec in candidates:
+        if rec["selected"]:
+            params = {k: v["value"] for k, v in rec["params"].items()}
+            new_model = new_model.with_effect(rec["effect"], **params)
+    after = None
+    after_bc = None
+    if resimulate:
+        if tick:
+            tick("simulate again with the new model")
+        after_bc = block_cells(real, side(new_model, seed + 1))
+        after = locate_cells(after_bc, shape)
+    calibrated = [{"effect": r["effect"],
+                   "params": {k: {"old": present[r["effect"]].get(k), "new": v["value"]}
+                              for k, v in r["params"].items()}}
+                  for r in candidates if r["selected"] and r["role"] == "calibration"]
+    data = {
+        "kind": "scan",
+        "inputs": {"sequence": str(sequence), "poses": str(poses), "reference": str(reference)},
+        "registration": reg_info, "frames": n_frames, "block_frames": block, "blocks": len(real),
+        "grid": {"distance_bin_m": DISTANCE_BIN_M, "inclination_bin_deg": INCLINATION_BIN_DEG,
+                 "min_cell_count": MIN_CELL_COUNT},
+        "mismatch": before, "mismatch_after": after, "candidates": candidates, "selected": selected,
+        "missing_physics": [r["effect"] for r in candidates
+                            if r["selected"] and r["role"] == "missing_physics"],
+        "calibrated": calibrated,
+        "not_testable": "effects that depend on pixel position, albedo, time or depth edges are averaged "
+                        "away by the distance x inclination grid: " + ", ".join(
+                            sorted({"lr_focal_mismatch", "distortion_residual", "albedo_bias",
+                                    "thermal_drift", "flying_pixels"})),
+    }
+    return ScanExplanation(data, new_model, bc, after_bc, shape)
+
+
+def residual_map(bc: BlockCells, shape: tuple[int, int]) -> FloatArray:
+    """Mean real-minus-sim bias per grid cell over blocks (NaN where not compared)."""
+    out = np.full(shape[0] * shape[1], np.nan)
+    for cell in np.unique(bc.cell):
+        out[cell] = float(np.mean(bc.bias_m[bc.cell == cell]))
+    return out.reshape(shape)
+
+
+def write_scan_outputs(ex: ScanExplanation, out: Path, inputs: list[str],
+                       options: dict[str, Any]) -> dict[str, Any]:
+    """explain.json, model.toml, residual_grid.png, report.md, result.json."""
+    out.mkdir(parents=True, exist_ok=True)
+    data = ex.data
+    write_json(out / "explain.json", data)
+    (out / "model.toml").write_text(ex.new_model.to_toml())
+    maps = [("before", ex.before)] + ([("after", ex.after)] if ex.after is not None else [])
+    de = np.arange(ex.shape[0] + 1, dtype=np.float64) * DISTANCE_BIN_M
+    ie = np.arange(ex.shape[1] + 1, dtype=np.float64) * INCLINATION_BIN_DEG
+    residual_grid_figure(out / "residual_grid.png", [(label, de, ie, residual_map(b, ex.shape))
+                                                     for label, b in maps])
+    lines = ["# Explain (reference scan)", "",
+             f"{data['frames']} frames in {data['blocks']} blocks of {data['block_frames']}; registration: "
+             f"{data['registration'].get('method')}.", "",
+             f"Mismatch before: {'significant' if data['mismatch']['significant'] else 'none'} "
+             f"({len(data['mismatch']['regions'])} cells, blocks: "
+             f"{', '.join(data['mismatch']['standpoints']) or 'none'}).",
+             "", "| effect | role | delta BIC | held-out RMSE before (mm) | after (mm) | selected |",
+             "|---|---|---|---|---|---|"]
+    for r in data["candidates"]:
+        lines.append(f"| {r['effect']} | {r['role']} | {r['delta_bic']:.1f} | "
+                     f"{r['heldout_rmse_before_m'] * 1e3:.3f}"
+                     f" | {r['heldout_rmse_after_m'] * 1e3:.3f} | {'yes' if r['selected'] else ''} |")
+    if data["mismatch_after"] is not None:
+        lines += ["", f"Mismatch after re-simulating with model.toml: "
+                  f"{'significant' if data['mismatch_after']['significant'] else 'none'}."]
+    lines += ["", f"Not testable on this grid: {data['not_testable']}.", "",
+              "![residual grid](residual_grid.png)", ""]
+    (out / "report.md").write_text("\n".join(lines))
+    write_result_info(out, "explain-scan", inputs, options, extra={"explain": "explain.json"})
+    return data

@@ -1,0 +1,185 @@
+"""The reference-scan study in chunks of frames on a ChunkRunner: what travels, what comes back.
+
+Why chunks: a sequence is read and ray cast where it is evaluated, frames [start, start + limit)
+per task; only paths, poses and options travel, and a partial grid comes back as its non-empty
+cells. Chunks merge (Chan) in frame order, so one process, local processes and a Dask cluster give
+the same grid. In one process the chunks run on the recording that is already open, with a
+callback per frame (progress, the live rerun view).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from depthstation.core.capture.registry import open_recording
+from depthstation.core.errors import InputError
+from depthstation.core.frames import FrameSource
+from depthstation.core.grid import PackedGrid, pack_grid, unpack_grid
+from depthstation.core.parallel import ChunkRunner, ProgressFn
+from depthstation.evaluate.scan.raycast import MeshCaster
+from depthstation.evaluate.scan.study import ChunkResult, FrameCallback, StudyConfig, evaluate_chunk
+from depthstation.evaluate.scan.trajectory import Trajectory
+
+
+@dataclass(frozen=True)
+class ScanChunk:
+    """Frames [start, start+limit) of a sequence: a path (or a small picklable source) and the
+    camera-to-reference poses travel; the pixels are read by the worker."""
+
+    sequence: str | FrameSource
+    mesh: str
+    trajectory: Trajectory  # camera-to-reference (registration applied)
+    config: StudyConfig
+    start: int
+    limit: int | None  # None: to the end (a sequence that does not say its length)
+    intrinsics: str | None = None
+
+
+@dataclass
+class _WorkerCache:
+    """One open sequence and one mesh scene per worker process, reused by its following chunks:
+    the mesh is loaded once per worker, not per chunk; only one of each is kept (bounded memory)."""
+
+    source_key: object = None
+    source: FrameSource | None = None
+    mesh_key: object = None
+    caster: MeshCaster | None = None
+
+
+_CACHE = _WorkerCache()
+
+
+def _context(chunk: ScanChunk) -> tuple[MeshCaster, FrameSource]:
+    source: FrameSource
+    if isinstance(chunk.sequence, str):
+        key: object = (chunk.sequence, chunk.intrinsics)
+        if _CACHE.source is None or _CACHE.source_key != key:
+            intr = Path(chunk.intrinsics) if chunk.intrinsics else None
+            _CACHE.source = open_recording(Path(chunk.sequence), intrinsics=intr)
+            _CACHE.source_key = key
+        source = _CACHE.source
+    else:
+        source = chunk.sequence
+    key_mesh = (chunk.mesh, source.info.depth_intrinsics, chunk.config.nthreads)
+    if _CACHE.caster is None or _CACHE.mesh_key != key_mesh:
+        _CACHE.caster = None
+        _CACHE.caster = MeshCaster(Path(chunk.mesh), source.info.depth_intrinsics, chunk.config.nthreads)
+        _CACHE.mesh_key = key_mesh
+    return _CACHE.caster, source
+
+
+def scan_chunk(chunk: ScanChunk) -> ChunkResult:
+    """Partial scan result (grid + pixel counts + frames used) of one chunk, on the worker."""
+    caster, source = _context(chunk)
+    return evaluate_chunk(caster, source, chunk.trajectory, chunk.config, chunk.start, chunk.limit)
+
+
+@dataclass
+class PackedScanResult:
+    grid: PackedGrid
+    stats: NDArray[np.int64]
+    used: list[int]
+    no_pose: list[int]
+    no_depth: list[int]
+
+
+def pack_scan_result(res: ChunkResult) -> PackedScanResult:
+    return PackedScanResult(pack_grid(res.grid), res.stats, res.used, res.no_pose, res.no_depth)
+
+
+def unpack_scan_result(p: PackedScanResult) -> ChunkResult:
+    return ChunkResult(unpack_grid(p.grid), p.stats, p.used, p.no_pose, p.no_depth)
+
+
+def merge_scan_results(a: ChunkResult, b: ChunkResult) -> ChunkResult:
+    return a.merge(b)
+
+
+def chunk_ranges(frame_count: int, chunk_frames: int) -> list[tuple[int, int]]:
+    """(start, limit) of consecutive chunks of `chunk_frames` frames."""
+    if chunk_frames < 1:
+        raise InputError(None, f"chunk size must be at least 1 frame, got {chunk_frames}")
+    return [(s, min(chunk_frames, frame_count - s)) for s in range(0, frame_count, chunk_frames)]
+
+
+def frames_to_read(source: FrameSource, config: StudyConfig) -> int | None:
+    """How many frames of the source the study reads (None when the source does not say)."""
+    n = source.frame_count
+    if config.max_frames is not None:
+        cap = config.max_frames * config.every
+        n = cap if n is None else min(n, cap)
+    return n
+
+
+def scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajectory, config: StudyConfig, *,
+                chunk_frames: int = 64, intrinsics: Path | None = None,
+                source: FrameSource | None = None) -> list[ScanChunk]:
+    """The chunks of a scan evaluation (the frame count comes from the sequence's index only).
+
+    `source`: the sequence already opened (so it is not opened again here).
+    """
+    if source is None:
+        source = open_recording(sequence, intrinsics=intrinsics) if isinstance(sequence, Path) else sequence
+    n = frames_to_read(source, config)
+    ranges: list[tuple[int, int | None]] = [(0, None)] if n is None else list(chunk_ranges(n, chunk_frames))
+    spec: str | FrameSource = str(sequence) if isinstance(sequence, Path) else sequence
+    return [ScanChunk(spec, str(mesh), trajectory, config, s, lim,
+                      None if intrinsics is None else str(intrinsics)) for s, lim in ranges]
+
+
+ChunkCallback = Callable[[int, int, ChunkResult], None]
+
+
+def run_scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajectory, config: StudyConfig,
+                    runner: ChunkRunner, *, chunk_frames: int = 64, intrinsics: Path | None = None,
+                    source: FrameSource | None = None, on_frame: FrameCallback | None = None,
+                    on_chunk: ChunkCallback | None = None, progress: ProgressFn | None = None) -> ChunkResult:
+    """The study over the whole sequence, chunk by chunk on `runner`, merged in frame order.
+
+    In one process the chunks read the open `source` (or `sequence` when it is a frame source)
+    and call `on_frame` after every frame; on workers each chunk is read where it runs and only
+    `progress(done, total)` reports. `on_chunk(k, n, merged so far)` follows every merge.
+    """
+    if config.per_frame_dir is not None:
+        Path(config.per_frame_dir).mkdir(parents=True, exist_ok=True)
+    chunks = scan_chunks(sequence, mesh, trajectory, config, chunk_frames=chunk_frames,
+                         intrinsics=intrinsics, source=source)
+    merges = [0]
+
+    def merge(a: ChunkResult, b: ChunkResult) -> ChunkResult:
+        if merges[0] == 0 and on_chunk is not None:
+            on_chunk(0, len(chunks), a)
+        merges[0] += 1
+        out = a.merge(b)
+        if on_chunk is not None:
+            on_chunk(merges[0], len(chunks), out)
+        return out
+
+    if runner.in_process:
+        open_source = source if source is not None else (
+            sequence if not isinstance(sequence, Path) else open_recording(sequence, intrinsics=intrinsics))
+        caster = MeshCaster(Path(mesh), open_source.info.depth_intrinsics, config.nthreads)
+
+        def here(c: ScanChunk) -> ChunkResult:
+            return evaluate_chunk(caster, open_source, c.trajectory, c.config, c.start, c.limit, on_frame)
+
+        result = runner.reduce(here, chunks, merge, progress=progress or _quiet)
+    else:
+        if chunks[0].limit is None:
+            raise InputError(sequence if isinstance(sequence, Path) else None,
+                             "the sequence does not say how many frames it holds (cut short?); "
+                             "cannot split it for workers: evaluate it with one worker")
+        result = runner.reduce(scan_chunk, chunks, merge, progress=progress or _quiet,
+                               encode=pack_scan_result, decode=unpack_scan_result)
+    if merges[0] == 0 and on_chunk is not None:  # one chunk: nothing was merged
+        on_chunk(0, len(chunks), result)
+    return result
+
+
+def _quiet(done: int, total: int) -> None:
+    return None

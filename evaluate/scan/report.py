@@ -1,0 +1,71 @@
+"""The scan study's result folder: grid.npz, summary.json, the paper's figures, result.json.
+
+The command and a batch item both end here, so they write the same files.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from depthstation.core.grid import GRID_FILE
+from depthstation.core.results import SUMMARY_FILE, write_json, write_result_info
+from depthstation.evaluate.scan.figures import frame_figure, grid_figure
+from depthstation.evaluate.scan.raycast import MeshCaster
+from depthstation.evaluate.scan.study import ChunkResult, StudyConfig, evaluate_chunk, frame_images
+
+if TYPE_CHECKING:
+    from depthstation.evaluate.scan.run import ScanJob
+
+
+def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
+    """Grid, figures (Fig. 8, 9, 10), summary.json and result.json of a finished study; the summary."""
+    opt, out, source = job.options, job.out, job.source
+    t0 = time.perf_counter()
+    grid = result.grid
+    grid.save(out / GRID_FILE)
+    figures: dict[str, str] = {}
+    fig_index = (opt.figure_frame if opt.figure_frame is not None
+                 else sorted(result.used)[len(result.used) // 2])
+    caster = MeshCaster(job.mesh_path, source.info.depth_intrinsics)
+    images = frame_images(caster, source, job.posed, fig_index, opt.tolerance_s)
+    if images is not None:
+        frame_cfg = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
+                                tolerance_s=opt.tolerance_s)
+        one = evaluate_chunk(caster, source, job.posed, frame_cfg, fig_index, 1)
+        figures["frame"] = str(frame_figure(images, out / "fig8_frame.png",
+                                            f"frame {fig_index}: measured vs reference"))
+        figures["frame_grid"] = str(grid_figure(one.grid, out / "fig9_frame_grid.png", opt.min_count_frame,
+                                                f"frame {fig_index}"))
+    figures["sequence_grid"] = str(grid_figure(grid, out / "fig10_sequence_grid.png",
+                                               opt.min_count_sequence, f"{source.name}: all frames"))
+    job.seconds["figures"] = time.perf_counter() - t0
+    reg = job.registration
+    summary = {
+        "inputs": {"sequence": str(job.sequence), "poses": str(job.poses), "reference": str(job.reference),
+                   "similarity": opt.similarity, "pass_points": opt.pass_points},
+        "sequence": {"name": source.name, "frame_count": source.frame_count,
+                     "intrinsics": source.info.depth_intrinsics.to_dict(),
+                     "depth_units_m": source.info.depth_units_m},
+        "trajectory": {"poses": len(job.trajectory), "tolerance_s": opt.tolerance_s},
+        "reference_mesh": {"path": str(job.mesh_path), **job.mesh_info},
+        "registration": reg.to_dict(),
+        "frames": {"used": len(result.used), "skipped_no_pose": len(result.no_pose),
+                   "skipped_no_depth": len(result.no_depth), "every": opt.every,
+                   "figure_frame": fig_index, "no_pose_indices": result.no_pose[:1000]},
+        "pixels": result.summary()["pixels"],
+        "grid": {**grid.summary(), "file": GRID_FILE, "shape": list(grid.shape),
+                 "distance_bin_m": opt.distance_bin_m, "inclination_bin_deg": opt.inclination_bin_deg,
+                 "min_count_frame": opt.min_count_frame, "min_count_sequence": opt.min_count_sequence},
+        "figures": figures,
+        "chunks": {"count": len(job.chunks), "frames_each": opt.chunk_frames},
+        "timing_s": {**job.seconds, "total": sum(job.seconds.values())},
+    }
+    write_json(out / SUMMARY_FILE, summary)
+    write_result_info(out, "scan", [str(job.sequence), str(job.poses), str(job.reference)], opt.to_dict(),
+                      device=dict(source.info.device),
+                      extra={"summary": SUMMARY_FILE, "grid": GRID_FILE,
+                             "files": [GRID_FILE, SUMMARY_FILE, *(Path(f).name for f in figures.values())],
+                             "registration": {"scale": reg.scale, "mean_c2c_m": reg.mean_c2c_m}})
+    return summary

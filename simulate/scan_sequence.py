@@ -1,0 +1,108 @@
+"""Simulate the reference-scan study: a camera walking round a table in a room, recorded as one sequence."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from depthstation.core.capture.session import Session
+from depthstation.core.errors import InputError
+from depthstation.core.frames import FrameSet
+from depthstation.core.progress import progress as make_progress
+from depthstation.core.protocol import Streams
+from depthstation.core.results import write_json
+from depthstation.simulate.checkerboard_session import START_NS, TRUTH_FILE, WARM_TEMPERATURE_C
+from depthstation.simulate.model import SensorModel, load_model
+from depthstation.simulate.poses import read_tum, walk_around, write_tum
+from depthstation.simulate.scene import Scene, load_scene
+from depthstation.simulate.view_renderer import ViewRenderer
+
+SEQUENCE_NAME = "sequence"
+TRAJECTORY_FILE = "trajectory.txt"
+MESH_FILE = "scene.ply"
+
+
+def scan_trajectory(trajectory: str | Path, scene: Scene, fps: float,
+                    frames: int | None = None) -> tuple[NDArray[np.float64], list[NDArray[np.float64]]]:
+    """(time stamps s, depth-camera-to-world poses): 'walk' round the room's table or a TUM file."""
+    if str(trajectory) == "walk":
+        th = float(scene.meta.get("table_height_m", 0.75))
+        poses = walk_around(np.array([0.0, -th, 0.0]), fps=fps, frames=frames)
+        return np.arange(len(poses)) / fps, poses
+    stamps, poses = read_tum(Path(trajectory))
+    if frames is not None:
+        stamps, poses = stamps[:frames], poses[:frames]
+    return stamps - stamps[0], poses
+
+
+def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: SensorModel | str | Path,
+                  out_dir: Path, *, seed: int = 0, frames: int | None = None, width: int = 640,
+                  height: int = 480, fps: float = 30.0, color: bool = True, progress: bool = False,
+                  compression: str = "lz4") -> Path:
+    """Render a sequence along a trajectory into a capture session; returns out_dir.
+
+    out_dir gets session.json + sequence.mcap (our format), trajectory.txt (true depth-camera
+    poses, TUM, what ORB-SLAM3 would estimate), scene.ply (the reference mesh) and truth.json.
+    """
+
+    mdl = load_model(model)
+    sc = scene if isinstance(scene, Scene) else load_scene(scene)
+    out = Path(out_dir)
+    if out.exists() and any(out.iterdir()):
+        raise InputError(out, "is not empty; simulations never overwrite captures")
+    if frames is not None and frames < 1:
+        raise InputError(None, "--frames must be at least 1")
+    stamps, poses = scan_trajectory(trajectory, sc, fps, frames)
+    info = mdl.camera.stream_info(width, height, fps)
+    if not color:
+
+        info = replace(info, color_intrinsics=None)
+    session = Session.create(out, protocol=None, device=info.device, simulated=True,
+                             scan={"scene": sc.meta, "trajectory": str(trajectory)})
+    write_tum(out / TRAJECTORY_FILE, START_NS / 1e9 + stamps, poses)  # the frames' epoch time stamps
+    sc.save_mesh(out / MESH_FILE)
+    renderer = ViewRenderer(sc, mdl, info, seed=seed, color=color)
+
+    def gen() -> Iterator[FrameSet]:
+        bar = None
+        if progress:
+
+            bar = make_progress()
+            bar.start()
+            task = bar.add_task("simulate scan", total=len(poses), status="")
+        try:
+            for i, (t, pose) in enumerate(zip(stamps, poses, strict=True)):
+                renderer.set_pose(pose)
+                rng = np.random.default_rng([seed, i])
+                stamp = START_NS + round(float(t) * 1e9)
+                yield renderer.frame(i, stamp, float(t), WARM_TEMPERATURE_C, rng=rng)
+                if bar is not None:
+                    bar.advance(task)
+        finally:
+            if bar is not None:
+                bar.stop()
+
+    meta: dict[str, Any] = {"name": SEQUENCE_NAME, "kind": "scan", "trajectory_file": TRAJECTORY_FILE,
+                            "mesh_file": MESH_FILE}
+    with session.standpoint_writer(SEQUENCE_NAME, info, meta, blocking=True, compression=compression,
+                                   metadata={"simulation": {"seed": seed, "model": mdl.name}}) as w:
+        w.write_temperature(START_NS, {"asic": WARM_TEMPERATURE_C, "projector": WARM_TEMPERATURE_C})
+        for fs in gen():
+            w.write(fs)
+    write_json(out / TRUTH_FILE, {
+        "kind": "simulated-scan", "seed": seed, "frames": len(poses), "stream_info": info.to_dict(),
+        "model_name": mdl.name, "model": mdl.to_toml(), "scene": sc.meta, "mesh_file": MESH_FILE,
+        "trajectory_file": TRAJECTORY_FILE, "trajectory_source": str(trajectory),
+        "pose_convention": "depth camera to world (scene mesh frame), OpenCV axes",
+        "start_ns": START_NS})
+    return out
+
+
+def default_streams() -> Streams:
+    """The paper's scan mode: 640x480 at 30 fps."""
+    return Streams(width=640, height=480, fps=30)

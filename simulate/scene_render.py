@@ -1,0 +1,437 @@
+"""Ray casting of a scene into per-pixel truth: z-depth, normal, inclination, albedo, edges; colour and IR.
+
+Rays go through pixel centres at integer (u, v) (librealsense convention; Open3D's own
+create_rays_pinhole adds 0.5, so the rays are built here). Directions have z = 1 in the camera
+frame, so the hit parameter t of RaycastingScene is the z-depth itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+from depthstation.core.camera_model import Intrinsics, pixel_rays
+from depthstation.simulate.effects.base import PixelContext
+from depthstation.simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO, Scene
+
+F32 = NDArray[np.float32]
+AMBIENT = 0.3  # share of diffuse room light, independent of the surface orientation
+DIFFUSE = 0.6  # light from near the camera (the operator's side), Lambertian
+EXPOSURE = 1.15
+EDGE_JUMP = 0.03  # relative z jump between neighbours that counts as a depth edge
+
+
+@dataclass
+class GeometryMaps:
+    """Ground truth of one view. NaN / -1 where a ray hits nothing."""
+
+    z_m: F32  # HxW z-depth
+    normal: F32  # HxWx3 unit normal in the camera frame, facing the camera
+    inclination_deg: F32  # HxW angle between ray and normal, [0, 90]
+    albedo: F32  # HxW reflectance 0..1
+    surface: NDArray[np.int32]  # HxW index into scene.surfaces, -1 = no hit
+    points_world: F32  # HxWx3 hit points in the world (= board) frame
+    edge_distance_px: F32  # HxW distance to the nearest depth edge (0.5 next to it; inf if none)
+    intrinsics: Intrinsics
+    cam_to_world: NDArray[np.float64]
+
+    def context(self, baseline_m: float, time_s: float = 0.0, temperature_c: float = 40.0,
+                stereo: Intrinsics | None = None) -> PixelContext:
+        """Effect context of this view (depth camera).
+
+        `stereo`: the stereo imager's own intrinsics when the rendered depth is aligned to another
+        camera; pixel positions and the focal length then go to the effects in its pixels.
+        """
+        h, w = self.z_m.shape
+        v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+        i = self.intrinsics
+        edge = self.edge_distance_px
+        if stereo is not None:
+            u = (stereo.ppx + (u - i.ppx) * (stereo.fx / i.fx)).astype(np.float32)
+            v = (stereo.ppy + (v - i.ppy) * (stereo.fy / i.fy)).astype(np.float32)
+            edge = (edge * (stereo.fx / i.fx)).astype(np.float32)
+            i = stereo
+        return PixelContext(z_m=self.z_m, inclination_deg=self.inclination_deg, u=u, v=v,
+                            albedo=self.albedo, time_s=time_s, temperature_c=temperature_c,
+                            edge_distance_px=edge, fx=i.fx, ppx=i.ppx, ppy=i.ppy,
+                            baseline_m=baseline_m)
+
+
+def camera_rays(intr: Intrinsics, cam_to_world: NDArray[Any]) -> F32:
+    """HxWx6 world rays (origin, direction with camera-frame z = 1) through the pixel centres."""
+    pose = np.asarray(cam_to_world, dtype=np.float64)
+    d = pixel_rays(intr)
+    r = pose[:3, :3].astype(np.float32)
+    rays = np.empty((intr.height, intr.width, 6), dtype=np.float32)
+    rays[..., :3] = pose[:3, 3]
+    rays[..., 3:] = d @ r.T
+    return rays
+
+
+def _cast(rc: Any, rays: F32) -> dict[str, NDArray[Any]]:
+    import open3d
+
+    o3d: Any = open3d
+    res = rc.cast_rays(o3d.core.Tensor(rays))
+    return {k: res[k].numpy() for k in ("t_hit", "geometry_ids", "primitive_normals")}
+
+
+def edge_distance(z: F32, jump: float = EDGE_JUMP) -> F32:
+    """Distance (px) of every pixel to the nearest depth discontinuity (0.5 for pixels touching one)."""
+
+    zz = np.where(np.isfinite(z), z, np.float32(1e6))
+    edge = np.zeros(z.shape, dtype=bool)
+    dx = np.abs(np.diff(zz, axis=1)) > jump * np.minimum(zz[:, 1:], zz[:, :-1])
+    dy = np.abs(np.diff(zz, axis=0)) > jump * np.minimum(zz[1:, :], zz[:-1, :])
+    edge[:, 1:] |= dx
+    edge[:, :-1] |= dx
+    edge[1:, :] |= dy
+    edge[:-1, :] |= dy
+    if not edge.any():
+        return np.full(z.shape, np.inf, dtype=np.float32)
+    dist = cv2.distanceTransform(np.where(edge, 0, 255).astype(np.uint8), cv2.DIST_L2, 5)
+    return (dist + 0.5).astype(np.float32)
+
+
+def render_geometry(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any],
+                    rc: Any = None, edges: bool = True) -> GeometryMaps:
+    """Cast one ray per pixel centre and return the per-pixel truth of the view."""
+    rc = rc if rc is not None else scene.raycasting_scene()
+    pose = np.asarray(cam_to_world, dtype=np.float64)
+    rays = camera_rays(intr, pose)
+    res = _cast(rc, rays)
+    t = res["t_hit"]
+    hit = np.isfinite(t)
+    gid = np.where(hit, res["geometry_ids"].astype(np.int32), np.int32(-1))
+    z = np.where(hit, t, np.float32(np.nan)).astype(np.float32)
+    # normals into the camera frame: n_c = R^T n_w
+    n_c = res["primitive_normals"] @ pose[:3, :3].astype(np.float32)
+    d = pixel_rays(intr)
+    x, y = d[..., 0], d[..., 1]
+    dot = n_c[..., 0] * x + n_c[..., 1] * y + n_c[..., 2]
+    flip = dot > 0  # face the camera
+    n_c[flip] *= -1
+    ray_len = np.sqrt(x ** 2 + y ** 2 + 1.0)
+    cos = np.abs(dot) / ray_len
+    inc = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))).astype(np.float32)
+    inc[~hit] = np.nan
+    zt = np.where(hit, t, np.float32(0.0))
+    pts = rays[..., :3] + rays[..., 3:] * zt[..., None]
+    pts[~hit] = np.nan
+    albedo = np.full(z.shape, np.nan, dtype=np.float32)
+    for i, s in enumerate(scene.surfaces):
+        m = gid == i
+        if not m.any():
+            continue
+        albedo[m] = scene.board_albedo(pts[m, 0], pts[m, 1]) if s.board_face else s.albedo
+    edist = edge_distance(z) if edges else np.full(z.shape, np.inf, dtype=np.float32)
+    return GeometryMaps(z, n_c, inc, albedo, gid, pts, edist, intr, pose)
+
+
+def _shade(albedo: NDArray[Any], tint: NDArray[Any], cos_inc: NDArray[Any]) -> F32:
+    """Linear radiance (0..1) of Lambertian surfaces lit by room light and a light near the camera."""
+    return np.asarray((albedo * (AMBIENT + DIFFUSE * cos_inc))[..., None] * tint * EXPOSURE, dtype=np.float32)
+
+
+def render_color_linear(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any], rc: Any = None,
+                        psf_sigma_px: float = 0.0) -> F32:
+    """HxWx3 linear radiance of a view; the board print carries its exact pixel-area coverage.
+
+    Every pixel integrates the image over its footprint (a box filter, as a sensor pixel does):
+    the plate face and each dark region of the print (black squares, ChArUco marker cells) are
+    projected as polygons (a plane maps to the image by a homography, so straight edges stay
+    straight) and their exact area inside each pixel square is rasterised (`polygon_coverage`).
+    Sub-pixel samples would instead put every edge on a 1/S px grid, a static corner bias that
+    tilts the board's PnP pose by up to a degree. Off the plate the pixel keeps its centre ray;
+    along the plate outline the uncovered part takes the colour of a neighbour off the plate.
+    `psf_sigma_px` > 0 adds a Gaussian optical blur (lens + demosaicing PSF) in linear light.
+    """
+    if intr.has_distortion:
+        # the print's exact coverage is a pinhole construction: render the ideal image, then let
+        # the lens bend it (each distorted pixel samples the pinhole image along its own ray)
+        ideal = render_color_linear(scene, intr.pinhole(), cam_to_world, rc, psf_sigma_px)
+        d = pixel_rays(intr)
+        map_u = (d[..., 0] * intr.fx + intr.ppx).astype(np.float32)
+        map_v = (d[..., 1] * intr.fy + intr.ppy).astype(np.float32)
+        return np.asarray(cv2.remap(ideal, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
+                          dtype=np.float32)
+    g = render_geometry(scene, intr, cam_to_world, rc, edges=False)
+    tints = np.array([s.tint for s in scene.surfaces] + [(0.0, 0.0, 0.0)], dtype=np.float32)
+    cos = np.cos(np.radians(np.nan_to_num(g.inclination_deg, nan=90.0)))
+    alb = np.nan_to_num(g.albedo, nan=0.0)
+    img = _shade(alb, tints[g.surface], cos)
+    board_ids = [i for i, s in enumerate(scene.surfaces) if s.board_face]
+    if board_ids and scene.board is not None:
+        img = _board_print(scene, intr, g, board_ids, img)
+    if psf_sigma_px > 0:
+
+        k = 2 * int(np.ceil(3.5 * psf_sigma_px)) + 1
+        img = np.asarray(cv2.GaussianBlur(img, (k, k), psf_sigma_px, borderType=cv2.BORDER_REPLICATE),
+                         dtype=np.float32)
+    return np.asarray(img, dtype=np.float32)
+
+
+def _board_print(scene: Scene, intr: Intrinsics, g: GeometryMaps, board_ids: list[int], img: F32) -> F32:
+    """Replace the board face's pixels by their area-exact mix of plate white and print black."""
+
+    board = scene.board
+    assert board is not None
+    pose = g.cam_to_world
+    world_to_cam = np.asarray(np.linalg.inv(pose), dtype=np.float64)
+    w, h = board.size_m
+    m = board.plate_margin_m
+    plate = np.array([[-m, -m, w + m, h + m]])
+    dark = dark_rectangles(scene)
+    cov_plate = polygon_coverage(_rect_quads(plate, world_to_cam), intr)
+    if not cov_plate.any():
+        return img
+    cov_dark = polygon_coverage(_rect_quads(dark, world_to_cam), intr) if len(dark) else 0.0 * cov_plate
+    cov_dark = np.minimum(cov_dark, cov_plate)
+    # shading of the face depends on the ray only (room light + light at the camera), at the centre
+    x = (np.arange(intr.width) - intr.ppx) / intr.fx
+    y = (np.arange(intr.height) - intr.ppy) / intr.fy
+    r = pose[:3, :3]
+    dz = y[:, None] * r[2, 1] + (x[None, :] * r[2, 0] + r[2, 2])
+    cos_face = np.abs(dz) / np.sqrt(x[None, :] ** 2 + y[:, None] ** 2 + 1.0)
+    k = EXPOSURE * (AMBIENT + DIFFUSE * cos_face)
+    albedo = WHITE_ALBEDO * (cov_plate - cov_dark) + BLACK_ALBEDO * cov_dark
+    tint = np.asarray(scene.surfaces[board_ids[0]].tint, dtype=np.float64)
+    face = (albedo * k)[..., None] * tint
+    # what lies beyond the plate's outline: the centre colour of a neighbour that misses the face
+    on_face = np.isin(g.surface, board_ids)
+    bg = img.copy()
+    todo = on_face & (cov_plate < 1.0)
+    for dv, du in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (-1, -1), (1, -1), (-1, 1)):
+        if not todo.any():
+            break
+        src_off = ~np.roll(on_face, (dv, du), axis=(0, 1))
+        take = todo & src_off
+        bg[take] = np.roll(img, (dv, du), axis=(0, 1))[take]
+        todo &= ~take
+    out = face + (1.0 - cov_plate)[..., None] * bg
+    return out.astype(np.float32)
+
+
+def dark_rectangles(scene: Scene) -> NDArray[np.float64]:
+    """Kx4 (x0, y0, x1, y1) board-frame rectangles that make up the print's dark regions.
+
+    Plain board: its black squares. ChArUco: the texture's dark texels merged into rectangles
+    (runs per row, stacked while the next row repeats them), the same print the depth albedo uses.
+    """
+    board = scene.board
+    assert board is not None
+    s = board.square_length_m
+    if scene.texture is None:
+        cols, rows = np.meshgrid(np.arange(board.squares_x), np.arange(board.squares_y))
+        c, r = cols.ravel(), rows.ravel()
+        black = board.is_black((c + 0.5) * s, (r + 0.5) * s)
+        c, r = c[black], r[black]
+        return np.stack([c * s, r * s, (c + 1) * s, (r + 1) * s], axis=1).astype(np.float64)
+
+    mask = scene.texture < 0.5 * (BLACK_ALBEDO + WHITE_ALBEDO)
+    ty, tx = mask.shape
+    w, h = board.size_m
+    rects: list[tuple[int, int, int, int]] = []
+    open_: dict[tuple[int, int], int] = {}  # run (c0, c1) -> first row
+    for row in range(ty + 1):
+        runs: set[tuple[int, int]] = set()
+        if row < ty:
+            line = np.concatenate([[False], mask[row], [False]])
+            d = np.flatnonzero(np.diff(line.astype(np.int8)))
+            runs = {(int(a), int(b)) for a, b in zip(d[::2], d[1::2], strict=True)}
+        for run in [k for k in open_ if k not in runs]:
+            rects.append((run[0], open_.pop(run), run[1], row))
+        for run in runs:
+            open_.setdefault(run, row)
+    a = np.asarray(rects, dtype=np.float64).reshape(-1, 4)
+    return a * np.array([w / tx, h / ty, w / tx, h / ty])
+
+
+def _rect_quads(rects: NDArray[np.float64], world_to_cam: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Kx4x3 camera-frame corners of board-plane (z = 0) rectangles, in one winding order."""
+    x0, y0, x1, y1 = rects.T
+    xs = np.stack([x0, x1, x1, x0], axis=1)
+    ys = np.stack([y0, y0, y1, y1], axis=1)
+    pts = np.stack([xs, ys, np.zeros_like(xs)], axis=2)
+    return np.ascontiguousarray(pts @ world_to_cam[:3, :3].T + world_to_cam[:3, 3])
+
+
+def polygon_coverage(quads_cam: NDArray[np.float64], intr: Intrinsics,
+                     near_m: float = 1e-3) -> NDArray[np.float64]:
+    """HxW exact area fraction of each pixel square [u +- 0.5] x [v +- 0.5] covered by the quads.
+
+    Quads are planar (camera frame), disjoint and of one winding; each is clipped to z >= near,
+    projected (pinhole, no distortion), clipped to the image and rasterised by signed-area
+    accumulation (the box-filter rasteriser of font renderers): exact up to float rounding.
+    """
+    acc = _rasterize_quads(np.ascontiguousarray(quads_cam, dtype=np.float64), float(intr.fx), float(intr.fy),
+                          float(intr.ppx), float(intr.ppy), int(intr.width), int(intr.height), float(near_m))
+    cov = np.abs(np.cumsum(acc[:, :intr.width], axis=1))
+    return np.minimum(cov, 1.0)
+
+
+def encode_srgb(linear: F32) -> NDArray[np.uint8]:
+    """Camera response: gamma 1/2.2 to 8 bit (no noise)."""
+    return np.clip(255.0 * np.power(np.clip(linear, 0, 1), 1 / 2.2) + 0.5, 0, 255).astype(np.uint8)
+
+
+class NoiseBank:
+    """Sensor noise for 8-bit images: a few Gaussian fields a bit larger than a frame, read at random offsets.
+
+    Drawing 2.7 M normals per 1280x720x3 frame costs ~30 ms; a bank of fields read at random
+    (row, column) offsets gives per-frame noise with the same statistics at copy speed.
+    """
+
+    def __init__(self, shape: tuple[int, ...], sigma: float, rng: np.random.Generator,
+                 fields: int = 4, pad: int = 64) -> None:
+        self.shape = shape
+        self.pad = pad
+        big = (shape[0] + pad, shape[1] + pad, *shape[2:])
+        self.fields = [np.clip(np.rint(sigma * rng.standard_normal(big, dtype=np.float32)), -127, 127)
+                       .astype(np.int8) for _ in range(fields)]
+        self.rng = rng
+
+    def apply(self, img: NDArray[np.uint8], rng: np.random.Generator | None = None) -> NDArray[np.uint8]:
+        g = rng or self.rng
+        f = self.fields[int(g.integers(len(self.fields)))]
+        r = int(g.integers(self.pad))
+        c = int(g.integers(self.pad))
+        out = img.astype(np.int16)
+        out += f[r:r + self.shape[0], c:c + self.shape[1]]
+        np.clip(out, 0, 255, out=out)
+        return out.astype(np.uint8)
+
+
+# ---- exact box-filter rasteriser (numba) -------------------------------------------------------
+
+@njit(cache=True, nogil=True)
+def _line(acc: NDArray[np.float64], h: int, x0: float, y0: float, x1: float,
+          y1: float) -> None:  # pragma: no cover
+    """Add a directed edge's signed area to the accumulation buffer (cells [x, x+1) x [y, y+1)).
+
+    After a prefix sum along each row, the buffer holds the signed area of the polygon inside
+    every cell (font-rs' accumulation rasteriser). Coordinates lie in [0, W] x [0, H].
+    """
+    if y0 == y1:
+        return
+    d_sign = 1.0
+    if y0 > y1:
+        d_sign = -1.0
+        x0, y0, x1, y1 = x1, y1, x0, y0
+    dxdy = (x1 - x0) / (y1 - y0)
+    x = x0
+    ys = int(np.floor(y0))
+    ye = min(h, int(np.ceil(y1)))
+    for y in range(ys, ye):
+        dy = min(y + 1.0, y1) - max(float(y), y0)
+        xnext = x + dxdy * dy
+        d = dy * d_sign
+        xa, xb = (x, xnext) if x < xnext else (xnext, x)
+        xaf0 = np.floor(xa)
+        xai = int(xaf0)
+        xbc = np.ceil(xb)
+        xbi = int(xbc)
+        if xbi <= xai + 1:
+            xmf = 0.5 * (x + xnext) - xaf0
+            acc[y, xai] += d - d * xmf
+            acc[y, xai + 1] += d * xmf
+        else:
+            s = 1.0 / (xb - xa)
+            xaf = xa - xaf0
+            a0 = 0.5 * s * (1.0 - xaf) * (1.0 - xaf)
+            xbf = xb - xbc + 1.0
+            am = 0.5 * s * xbf * xbf
+            acc[y, xai] += d * a0
+            if xbi == xai + 2:
+                acc[y, xai + 1] += d * (1.0 - a0 - am)
+            else:
+                a1 = s * (1.5 - xaf)
+                acc[y, xai + 1] += d * (a1 - a0)
+                for xi in range(xai + 2, xbi - 1):
+                    acc[y, xi] += d * s
+                a2 = a1 + (xbi - xai - 3) * s
+                acc[y, xbi - 1] += d * (1.0 - a2 - am)
+            acc[y, xbi] += d * am
+        x = xnext
+
+
+@njit(cache=True, nogil=True)
+def _clip(px: NDArray[np.float64], py: NDArray[np.float64], n: int, axis: int, bound: float,
+          keep_above: bool) -> int:  # pragma: no cover
+    """Sutherland-Hodgman: clip the polygon (px, py)[:n] in place to x or y >= / <= bound."""
+    ox = np.empty(n * 2 + 2)
+    oy = np.empty(n * 2 + 2)
+    m = 0
+    for i in range(n):
+        j = (i + 1) % n
+        ai = px[i] if axis == 0 else py[i]
+        aj = px[j] if axis == 0 else py[j]
+        ini = ai >= bound if keep_above else ai <= bound
+        inj = aj >= bound if keep_above else aj <= bound
+        if ini:
+            ox[m] = px[i]
+            oy[m] = py[i]
+            m += 1
+        if ini != inj:
+            t = (bound - ai) / (aj - ai)
+            ox[m] = px[i] + t * (px[j] - px[i])
+            oy[m] = py[i] + t * (py[j] - py[i])
+            if axis == 0:
+                ox[m] = bound
+            else:
+                oy[m] = bound
+            m += 1
+    px[:m] = ox[:m]
+    py[:m] = oy[:m]
+    return m
+
+
+@njit(cache=True, nogil=True)
+def _rasterize_quads(quads: NDArray[np.float64], fx: float, fy: float, ppx: float, ppy: float,
+                     w: int, h: int, near: float) -> NDArray[np.float64]:  # pragma: no cover
+    """Accumulation buffer (H x W+2) of camera-frame quads: near-clip, project, clip, rasterise."""
+    acc = np.zeros((h, w + 2))
+    cx = np.empty(16)
+    cy = np.empty(16)
+    cz = np.empty(16)
+    px = np.empty(32)
+    py = np.empty(32)
+    for q in range(quads.shape[0]):
+        # clip to z >= near in 3-D (a homography is only a polygon map in front of the camera)
+        n = 0
+        for i in range(4):
+            j = (i + 1) % 4
+            zi, zj = quads[q, i, 2], quads[q, j, 2]
+            if zi >= near:
+                cx[n], cy[n], cz[n] = quads[q, i, 0], quads[q, i, 1], zi
+                n += 1
+            if (zi >= near) != (zj >= near):
+                t = (near - zi) / (zj - zi)
+                cx[n] = quads[q, i, 0] + t * (quads[q, j, 0] - quads[q, i, 0])
+                cy[n] = quads[q, i, 1] + t * (quads[q, j, 1] - quads[q, i, 1])
+                cz[n] = near
+                n += 1
+        if n < 3:
+            continue
+        # pixel u covers [u - 0.5, u + 0.5): shift by 0.5 so cells start at integers
+        for i in range(n):
+            px[i] = fx * cx[i] / cz[i] + ppx + 0.5
+            py[i] = fy * cy[i] / cz[i] + ppy + 0.5
+        n = _clip(px, py, n, 0, 0.0, True)
+        if n >= 3:
+            n = _clip(px, py, n, 0, float(w), False)
+        if n >= 3:
+            n = _clip(px, py, n, 1, 0.0, True)
+        if n >= 3:
+            n = _clip(px, py, n, 1, float(h), False)
+        if n < 3:
+            continue
+        for i in range(n):
+            j = (i + 1) % n
+            _line(acc, h, px[i], py[i], px[j], py[j])
+    return acc
