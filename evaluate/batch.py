@@ -26,7 +26,7 @@ import csv
 import hashlib
 import json
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +35,7 @@ import tomllib
 from depthstation.core.errors import DepthstationError, EvaluationError, InputError
 from depthstation.core.grid import GRID_FILE, Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn, progress_bar
-from depthstation.core.results import RESULT_FILE, write_json, write_result_info
+from depthstation.core.results import RESULT_FILE, result_folder, write_json, write_result_info
 from depthstation.evaluate.checkerboard.chunks import StandpointOptions, checkerboard_chunk
 from depthstation.evaluate.checkerboard.run import finish_checkerboard, prepare_checkerboard
 from depthstation.evaluate.checkerboard.study import StandpointResult
@@ -83,13 +83,13 @@ class ItemJob:
     """How an item runs: chunk descriptors and their function; then ``finish`` writes the folder.
 
     ``merge`` given: chunk results are folded in chunk order and ``finish`` gets the merged one;
-    else it gets the list. ``finish`` writes ``result.json`` and returns the item's grid file or
-    None (then the item does not enter the combined grid).
+    else it gets the list. ``finish`` writes ``result.json`` and returns the name of the item's
+    grid file in its folder, or None (then the item does not enter the combined grid).
     """
 
     fn: Callable[[Any], Any]
     chunks: Sequence[Any]
-    finish: Callable[[Any], Path | None]
+    finish: Callable[[Any], str | Path | None]
     merge: Callable[[Any, Any], Any] | None = None
     encode: Callable[[Any], Any] | None = None
     decode: Callable[[Any], Any] | None = None
@@ -160,6 +160,10 @@ def load_manifest(path: Path) -> Manifest:
         first = first[0] if isinstance(first, list) else first
         name = str(raw.get("name", raw.get("out", Path(str(first)).stem)))
         item_out = out / str(raw.get("out", name))
+        if not item_out.resolve().is_relative_to(out.resolve()) or item_out.resolve() == out.resolve():
+            key = "out" if "out" in raw else "name"
+            raise InputError(path, f"{where}.{key}: {raw.get(key)!r} would write outside the batch's "
+                                   f"result folder {out}")
         if item_out in seen:
             raise InputError(path, f"{where}: out folder {item_out} is used by another item")
         seen.add(item_out)
@@ -183,18 +187,21 @@ def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None =
     """Evaluate one item through the runner and write its folder; the done marker comes last."""
     marker = item.out / DONE_MARKER
     marker.unlink(missing_ok=True)
-    job = KINDS[item.kind](item)
-    prog = progress or (lambda d, t: None)
-    if job.merge is not None:
-        if not job.chunks:
-            raise EvaluationError(f"{item.name}: nothing to evaluate")
-        result: Any = runner.reduce(job.fn, job.chunks, job.merge, progress=prog, encode=job.encode,
-                                    decode=job.decode)
-    else:
-        result = runner.map(job.fn, job.chunks, progress=prog, encode=job.encode, decode=job.decode)
-    grid_path = job.finish(result)
-    if not (item.out / RESULT_FILE).is_file():
-        raise EvaluationError(f"{item.name}: the {item.kind} evaluation wrote no {RESULT_FILE}")
+    # the item's folder is written under a temporary name and replaces an unfinished one whole
+    with result_folder(item.out, force=True) as tmp:
+        job = KINDS[item.kind](replace(item, out=tmp))
+        prog = progress or (lambda d, t: None)
+        if job.merge is not None:
+            if not job.chunks:
+                raise EvaluationError(f"{item.name}: nothing to evaluate")
+            result: Any = runner.reduce(job.fn, job.chunks, job.merge, progress=prog, encode=job.encode,
+                                        decode=job.decode)
+        else:
+            result = runner.map(job.fn, job.chunks, progress=prog, encode=job.encode, decode=job.decode)
+        grid_name = job.finish(result)
+        if not (tmp / RESULT_FILE).is_file():
+            raise EvaluationError(f"{item.name}: the {item.kind} evaluation wrote no {RESULT_FILE}")
+    grid_path = None if grid_name is None else item.out / Path(grid_name).name
     write_json(marker, {"fingerprint": item.fingerprint(), "grid": grid_path})
     return grid_path
 
@@ -329,7 +336,7 @@ def _prepare_checkerboard(item: BatchItem) -> ItemJob:
                                 reference=str(item.options.get("reference", "auto")))
     job = prepare_checkerboard(paths, Path(item.inputs["board"]), options)
 
-    def finish(results: list[StandpointResult]) -> Path | None:
+    def finish(results: list[StandpointResult]) -> str | None:
         finish_checkerboard(job, results, item.out)
         return None
 
@@ -348,9 +355,9 @@ def _prepare_scan(item: BatchItem) -> ItemJob:
     job = prepare_scan(Path(item.inputs["sequence"]), Path(item.inputs["poses"]),
                        Path(item.inputs["reference"]), item.out, options, in_process=False)
 
-    def finish(res: ChunkResult) -> Path:
+    def finish(res: ChunkResult) -> str:
         write_scan(job, res)
-        return item.out / GRID_FILE
+        return GRID_FILE
 
     return ItemJob(scan_chunk, job.chunks, finish, merge=merge_scan_results, encode=pack_scan_result,
                    decode=unpack_scan_result, description="frames")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from depthstation.core.results import write_result_info
+from depthstation.core.results import result_folder, write_result_info
 from depthstation.simulate.checkerboard_session import load_truth, simulate_checkerboard
 from depthstation.simulate.model import load_model
 from depthstation.simulate.scan_sequence import simulate_scan
@@ -26,18 +26,22 @@ def checkerboard_cmd(
                                       help="frames per standpoint (default: the protocol's)"),
     standpoint: list[str] | None = typer.Option(None, "--standpoint",
                                                 help="only these standpoints (repeatable)"),
+    force: bool = typer.Option(False, "--force", help="Replace a non-empty --out (only once the new "
+                                                      "simulation is complete)."),
 ) -> None:
     """Simulate every standpoint of a checkerboard protocol, with truth.json beside the captures."""
 
-    path = simulate_checkerboard(protocol, model, out, fmt=fmt, seed=seed, frames=frames,
-                                 standpoints=standpoint or None, progress=True)
-    truth = load_truth(path)
-    write_result_info(path, "simulate-checkerboard", [protocol, model],
-                      {"protocol": protocol, "model": model, "format": fmt, "seed": seed, "frames": frames},
-                      device=truth["stream_info"]["device"],
-                      extra={"standpoints": [s["name"] for s in truth["standpoints"]]})
+    with result_folder(out, force=force) as tmp:
+        simulate_checkerboard(protocol, model, tmp, fmt=fmt, seed=seed, frames=frames,
+                              standpoints=standpoint or None, progress=True)
+        truth = load_truth(tmp)
+        write_result_info(tmp, "simulate-checkerboard", [protocol, model],
+                          {"protocol": protocol, "model": model, "format": fmt, "seed": seed,
+                           "frames": frames},
+                          device=truth["stream_info"]["device"],
+                          extra={"standpoints": [s["name"] for s in truth["standpoints"]]})
     n = len(truth["standpoints"])
-    typer.echo(f"{n} standpoints simulated into {path} (truth in {path / 'truth.json'})")
+    typer.echo(f"{n} standpoints simulated into {out} (truth in {out / 'truth.json'})")
 
 
 @app.command("scan")
@@ -52,17 +56,20 @@ def scan_cmd(
     width: int = typer.Option(640, "--width"),
     height: int = typer.Option(480, "--height"),
     fps: float = typer.Option(30.0, "--fps"),
+    force: bool = typer.Option(False, "--force", help="Replace a non-empty --out (only once the new "
+                                                      "simulation is complete)."),
 ) -> None:
     """Simulate a scan sequence: sequence.mcap, trajectory.txt (TUM), scene.ply, truth.json."""
 
-    path = simulate_scan(scene, trajectory, model, out, seed=seed, frames=frames, width=width,
-                         height=height, fps=fps, progress=True)
-    truth = load_truth(path)
-    write_result_info(path, "simulate-scan", [scene, trajectory, model],
-                      {"scene": scene, "trajectory": trajectory, "model": model, "seed": seed,
-                       "frames": frames, "width": width, "height": height, "fps": fps},
-                      device=truth["stream_info"]["device"])
-    typer.echo(f"{truth['frames']} frames simulated into {path}")
+    with result_folder(out, force=force) as tmp:
+        simulate_scan(scene, trajectory, model, tmp, seed=seed, frames=frames, width=width,
+                      height=height, fps=fps, progress=True)
+        truth = load_truth(tmp)
+        write_result_info(tmp, "simulate-scan", [scene, trajectory, model],
+                          {"scene": scene, "trajectory": trajectory, "model": model, "seed": seed,
+                           "frames": frames, "width": width, "height": height, "fps": fps},
+                          device=truth["stream_info"]["device"])
+    typer.echo(f"{truth['frames']} frames simulated into {out}")
 
 
 @app.command("model")

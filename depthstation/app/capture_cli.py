@@ -17,7 +17,7 @@ from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs, open_recording
 from depthstation.core.errors import InputError
 from depthstation.core.progress import progress
-from depthstation.core.results import _jsonable
+from depthstation.core.results import _jsonable, result_folder
 
 app = typer.Typer(no_args_is_help=True)
 
@@ -29,6 +29,8 @@ def import_cmd(
     ],
     out: Annotated[Path, typer.Option("--out", "-o", help="new session directory")],
     compression: Annotated[str, typer.Option(help="none (default, fastest to read), lz4 or zstd")] = "none",
+    force: Annotated[bool, typer.Option("--force", help="Replace a non-empty --out once the import "
+                                                         "is complete.")] = False,
 ) -> None:
     """Import recordings into a capture session (one MCAP per standpoint)."""
 
@@ -40,7 +42,8 @@ def import_cmd(
                 tasks[rec.name] = bar.add_task(rec.name, total=rec.frame_count, status="")
             bar.update(tasks[rec.name], completed=i + 1)
 
-        session = import_recordings(sources, out, compression=compression, on_frame=on_frame)
+        with result_folder(out, force=force) as tmp:
+            session = import_recordings(sources, tmp, compression=compression, on_frame=on_frame)
     frames = sum(int(e.get("frames", 0)) for e in session.standpoints)
     typer.echo(f"{out}: {len(session.standpoints)} standpoints, {frames} frames")
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import click
 import typer
@@ -11,6 +12,8 @@ from depthstation.acquire.cli import app as acquire_app
 from depthstation.app.capture_cli import app as capture_app
 from depthstation.app.station_cli import register as register_station
 from depthstation.core.errors import DepthstationError
+from depthstation.core.results import COMMAND_LINE, disk_error
+from depthstation.core.run_warnings import RunWarning, collecting
 from depthstation.evaluate.cli import app as evaluate_app
 from depthstation.evaluate.explain.cli import register as register_explain
 from depthstation.simulate.cli import app as simulate_app
@@ -39,33 +42,75 @@ def _register() -> None:
 _register()
 
 
+STRICT_FLAG = "--strict"
+STRICT_EXIT = 3
+
+
+@app.callback()
+def _root(strict: bool = typer.Option(False, STRICT_FLAG, help="Exit with code 3 when the run gave any "
+                                      "warning (the flag may stand anywhere on the command line).")
+          ) -> None:
+    """Measure how well a depth camera measures depth over distance x inclination."""
+
+
+def _say_warnings(found: list[RunWarning]) -> None:
+    if not found:
+        return
+    typer.echo(f"depthstation: {len(found)} warning{'s' if len(found) > 1 else ''}:", err=True)
+    for w in found:
+        typer.echo(f"depthstation: warning: {w.line()}", err=True)
+
+
 def main() -> None:
-    """Entry point: one-line errors on stderr, exit 2 for bad input, 1 for other failures."""
+    """Entry point: one-line errors on stderr, exit 2 for bad input, 1 for other failures, 3 for
+    warnings under --strict; every warning of the run is printed at the end, one line each."""
+    argv = sys.argv[1:]
+    strict = STRICT_FLAG in argv
+    args = [a for a in argv if a != STRICT_FLAG]
+    COMMAND_LINE.set(["depthstation", *argv])
+    with collecting() as found:
+        code = _run(args)
+    _say_warnings(found)
+    if code == 0 and strict and found:
+        typer.echo(f"depthstation: {len(found)} warning(s) and --strict: exit {STRICT_EXIT}", err=True)
+        code = STRICT_EXIT
+    sys.exit(code)
+
+
+def _run(args: list[str]) -> int:
+    """Run the command; its exit code (errors said in one line)."""
     try:
-        rc = app(standalone_mode=False)
+        rc = app(args=args, standalone_mode=False)
     except DepthstationError as exc:
         typer.echo(f"depthstation: error: {exc}", err=True)
-        sys.exit(exc.exit_code)
+        return exc.exit_code
     except KeyboardInterrupt:
         typer.echo("depthstation: interrupted", err=True)
-        sys.exit(130)
+        return 130
+    except OSError as exc:
+        err = disk_error(exc, Path(exc.filename or "."))
+        if isinstance(err, DepthstationError):
+            typer.echo(f"depthstation: error: {err}", err=True)
+            return 1
+        typer.echo(f"depthstation: error: {exc.filename or ''}: {exc.strerror or exc}", err=True)
+        return 1
     except Exception as exc:  # click usage errors and anything unexpected
-
         if isinstance(exc, click.exceptions.Exit):
-            sys.exit(exc.exit_code)
+            return int(exc.exit_code)
         if isinstance(exc, click.ClickException):
             exc.show()
-            sys.exit(2)
+            return 2
         if isinstance(exc, click.exceptions.Abort):
             typer.echo("depthstation: aborted", err=True)
-            sys.exit(1)
+            return 1
         typer.echo(f"depthstation: internal error: {type(exc).__name__}: {exc}", err=True)
-        sys.exit(1)
+        return 1
     if isinstance(rc, int) and rc:
         # click returns the code of an Abort (130 on Ctrl-C) or ctx.exit(n) instead of raising
         if rc == 130:
             typer.echo("depthstation: interrupted", err=True)
-        sys.exit(rc)
+        return rc
+    return 0
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from depthstation.core.results import (
     STANDPOINTS_FILE,
     open_result,
     read_standpoints,
+    result_folder,
     unique_labels,
     write_json,
     write_result_info,
@@ -155,8 +156,16 @@ def _print_grids(ref: str, diffs: dict[str, GridDifference]) -> None:
 
 def run_compare(dirs: list[Path], out: Path, *, min_count: int = 2000, match: str = "auto",
                 max_offset: float = 1.0, target: RerunTarget | None = None,
-                quiet: bool = False) -> dict[str, Any]:
-    """Compare result folders of one kind (the first is the reference); returns the summary."""
+                quiet: bool = False, force: bool = False) -> dict[str, Any]:
+    """Compare result folders of one kind (the first is the reference) into `out` (written whole or
+    not at all; a non-empty `out` only with `force`); returns the summary."""
+    with result_folder(out, force=force) as tmp:
+        return _compare(dirs, tmp, min_count=min_count, match=match, max_offset=max_offset,
+                        target=None if target is None else target.within(out, tmp), quiet=quiet)
+
+
+def _compare(dirs: list[Path], out: Path, *, min_count: int, match: str, max_offset: float,
+             target: RerunTarget | None, quiet: bool) -> dict[str, Any]:
     if len(dirs) < 2:
         raise InputError(None, "compare needs at least two result folders")
     folders = [open_result(d) for d in dirs]
@@ -168,8 +177,6 @@ def run_compare(dirs: list[Path], out: Path, *, min_count: int = 2000, match: st
     if kind not in ("checkerboard", "scan"):
         raise InputError(folders[0].path, f"compare reads checkerboard and scan results, not {kind}")
     labels = unique_labels(folders)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     pairs = list(zip(labels, folders, strict=True))
     summary: dict[str, Any] = {"kind": kind, "reference": labels[0], "labels": labels,
                                "inputs": {lab: str(f.path) for lab, f in pairs},

@@ -16,6 +16,7 @@ from depthstation.core.rerun_bridge import RerunTarget
 RRD_HELP = "Write a rerun recording to this .rrd file."
 SPAWN_HELP = "Open a rerun viewer and stream to it."
 SERVE_HELP = "Serve a rerun web viewer on localhost and stream to it."
+FORCE_HELP = "Replace what exists (--out, --rrd) once the new result is complete."
 
 
 def demo(
@@ -40,10 +41,11 @@ def view(
     serve: bool = typer.Option(False, "--serve", help=SERVE_HELP),
     rrd: Path | None = typer.Option(None, "--rrd", help="For a result folder: write the recording here "
                                                           "(default: <folder>/view.rrd)."),
+    force: bool = typer.Option(False, "--force", help="Rebuild a result folder's recording made before."),
 ) -> None:
     """Open a result in the rerun viewer; a result folder is first turned into a recording."""
 
-    view_path(path, spawn=spawn or not serve, serve=serve, rrd=rrd)
+    view_path(path, spawn=spawn or not serve, serve=serve, rrd=rrd, force=force)
 
 
 def compare(
@@ -57,11 +59,12 @@ def compare(
     rrd: Path | None = typer.Option(None, "--rrd", help=RRD_HELP),
     spawn: bool = typer.Option(False, "--spawn", help=SPAWN_HELP),
     serve: bool = typer.Option(False, "--serve", help=SERVE_HELP),
+    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
 ) -> None:
     """Put evaluations side by side: tables (CSV, printed) and difference heatmaps (PNG)."""
 
     run_compare(dirs, out, min_count=min_count, match=match, max_offset=max_offset,
-                target=RerunTarget(rrd, spawn, serve))
+                target=RerunTarget(rrd, spawn, serve, force), force=force)
     stderr_console.print(f"comparison written to {out}")
 
 

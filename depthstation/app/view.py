@@ -14,7 +14,7 @@ from depthstation.core import rerun_bridge as viz
 from depthstation.core.errors import InputError
 from depthstation.core.grid import GRID_FILE, Grid
 from depthstation.core.progress import stderr_console
-from depthstation.core.results import EXPLAIN_FILE, STANDPOINTS_FILE, read_standpoints
+from depthstation.core.results import EXPLAIN_FILE, STANDPOINTS_FILE, finish_file, new_file, read_standpoints
 
 MIN_COUNT_VIEW = 10
 SERIES_COLUMNS = ("noise_m", "accuracy_m", "accuracy_rms_m", "fill_rate")
@@ -109,16 +109,25 @@ def open_rrd(rrd: Path, *, spawn: bool, serve: bool) -> None:
         stderr_console.print(f"opened {rrd} in the rerun viewer")
 
 
-def view_path(path: Path, *, spawn: bool = True, serve: bool = False, rrd: Path | None = None) -> Path:
-    """Open a result folder or an `.rrd`; returns the `.rrd` shown."""
+def view_path(path: Path, *, spawn: bool = True, serve: bool = False, rrd: Path | None = None,
+              force: bool = False) -> Path:
+    """Open a result folder or an `.rrd`; returns the `.rrd` shown.
 
+    A result folder's recording (`view.rrd` in it, or `rrd`) is made once: an existing one is
+    opened as it is, and rebuilt only with `force` (written beside, then renamed over it).
+    """
     path = Path(path)
     if path.is_file() and path.suffix == ".rrd":
         target = path
     elif path.is_dir():
         target = Path(rrd) if rrd is not None else path / "view.rrd"
-        folder_to_rrd(path, target)
-        stderr_console.print(f"recording of {path} written to {target}")
+        if target.exists() and not force and rrd is None:
+            stderr_console.print(f"opening the recording made before, {target} (--force rebuilds it)")
+        else:
+            tmp = new_file(target, force=force)
+            folder_to_rrd(path, tmp)
+            finish_file(tmp, target)
+            stderr_console.print(f"recording of {path} written to {target}")
     else:
         raise InputError(path, "expected a result folder or an .rrd file")
     if spawn or serve:

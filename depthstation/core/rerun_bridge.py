@@ -13,7 +13,7 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +22,7 @@ import numpy as np
 from depthstation.core.errors import DepthstationError
 from depthstation.core.heatmaps import colorize
 from depthstation.core.progress import stderr_console
+from depthstation.core.results import finish_file, new_file
 
 DESCRIPTION_PATH = "description"
 DISTANCE_DIM = "distance [m]"
@@ -35,10 +36,22 @@ class RerunTarget:
     rrd: Path | None = None
     spawn: bool = False
     serve: bool = False
+    force: bool = False  # replace an existing .rrd (only once the new one is complete)
 
     @property
     def enabled(self) -> bool:
         return self.rrd is not None or self.spawn or self.serve
+
+    def within(self, out: Path, tmp: Path) -> RerunTarget:
+        """The same target with an .rrd inside the result folder `out` written into its temporary
+        folder `tmp` (the folder is renamed into place as a whole)."""
+        if self.rrd is None:
+            return self
+        try:
+            rel = Path(self.rrd).resolve().relative_to(Path(out).resolve())
+        except ValueError:
+            return self
+        return replace(self, rrd=Path(tmp) / rel, force=True)
 
 
 def _free_port() -> int:
@@ -123,9 +136,10 @@ def recording(app_id: str, target: RerunTarget, blueprint: Any = None,
 
     rec = rr.RecordingStream(app_id)
     sinks: list[Any] = []
-    if target.rrd is not None:
-        Path(target.rrd).parent.mkdir(parents=True, exist_ok=True)
-        sinks.append(rr.FileSink(str(target.rrd)))
+    partial: Path | None = None
+    if target.rrd is not None:  # written under a temporary name, renamed when complete
+        partial = new_file(Path(target.rrd), force=target.force)
+        sinks.append(rr.FileSink(str(partial)))
     if target.spawn and not has_display():
         _announce("no display found, so no viewer window can open: use --serve for a web viewer "
                   "or --rrd FILE and open it later")
@@ -145,9 +159,16 @@ def recording(app_id: str, target: RerunTarget, blueprint: Any = None,
         send_text(rec, DESCRIPTION_PATH, description)
     try:
         yield rec
-    finally:
+    except BaseException:
         rec.flush()
         rec.disconnect()
+        if partial is not None:
+            partial.unlink(missing_ok=True)
+        raise
+    rec.flush()
+    rec.disconnect()
+    if partial is not None and target.rrd is not None:
+        finish_file(partial, Path(target.rrd))
 
 
 # ---------------------------------------------------------------------------------------- send_*

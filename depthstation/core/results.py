@@ -8,9 +8,17 @@ any version of a stage (or by hand, in the documented formats) can be compared.
 from __future__ import annotations
 
 import csv
+import errno
+import fcntl
+import hashlib
 import json
+import os
 import platform
+import shutil
 import sys
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager, suppress
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from importlib import metadata
@@ -19,8 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from depthstation.core.errors import InputError
+from depthstation.core.errors import DepthstationError, InputError
 from depthstation.core.grid import GRID_FILE
+from depthstation.core.run_warnings import current as current_warnings
 
 RESULT_FILE = "result.json"
 # the files a result folder is recognised by (docs/results.md)
@@ -67,24 +76,177 @@ def write_json(path: Path, data: Any) -> None:
     tmp.replace(path)
 
 
-def write_result_info(out_dir: Path, kind: str, inputs: list[str], parameters: dict[str, Any],
+# the command line of this process when it is the console script (set by depthstation.app.cli)
+COMMAND_LINE: ContextVar[list[str] | None] = ContextVar("depthstation_command_line", default=None)
+_HEAD_TAIL = 1 << 20  # bytes of a file's head and tail that go into its fingerprint
+
+
+def fingerprint(path: str | Path) -> dict[str, Any]:
+    """Enough to tell later whether an input changed: size, modification time and a SHA-256 of
+    the file's first and last MiB (a folder: of its files' names, sizes and times, at most 10,000)."""
+    p = Path(path)
+    try:
+        st = p.stat()
+    except OSError:
+        return {"path": str(p), "exists": False}
+    h = hashlib.sha256()
+    if p.is_dir():
+        files = sorted(x for x in p.rglob("*") if x.is_file())[:10_000]
+        for f in files:
+            s = f.stat()
+            h.update(f"{f.relative_to(p)}|{s.st_size}|{s.st_mtime_ns}\n".encode())
+        return {"path": str(p), "files": len(files), "sha256_listing": h.hexdigest()}
+    with p.open("rb") as fh:
+        h.update(fh.read(_HEAD_TAIL))
+        if st.st_size > 2 * _HEAD_TAIL:
+            fh.seek(-_HEAD_TAIL, os.SEEK_END)
+            h.update(fh.read(_HEAD_TAIL))
+    return {"path": str(p), "bytes": st.st_size, "mtime_ns": st.st_mtime_ns,
+            "sha256_head_tail": h.hexdigest()}
+
+
+def write_result_info(out_dir: Path, kind: str, inputs: Sequence[str | Path], parameters: dict[str, Any],
                       device: dict[str, Any] | None = None, extra: dict[str, Any] | None = None) -> Path:
-    """`result.json`: what this folder holds, made from what, by which software, when."""
+    """`result.json`: what this folder holds, made from what (with fingerprints), by which software
+    and command line, when, and every warning of the run (truncated inputs among them)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    warnings = current_warnings()
     info = {
         "kind": kind,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "command_line": COMMAND_LINE.get(),
         "inputs": [str(i) for i in inputs],
+        "input_fingerprints": [fingerprint(i) for i in inputs],
         "parameters": parameters,
         "device": device or {},
         "software": software_versions(),
+        "warnings": [w.to_dict() for w in warnings],
+        "truncated_inputs": sorted({w.where for w in warnings if w.code == "truncated-input" and w.where}),
     }
     if extra:
         info.update(extra)
     path = out_dir / RESULT_FILE
     write_json(path, info)
     return path
+
+
+def inside(path: Path, folder: Path) -> str:
+    """`path` as a name relative to a result folder when it lies in it (folders move: they are
+    written under a temporary name), else as given."""
+    try:
+        return str(Path(path).resolve().relative_to(Path(folder).resolve()))
+    except ValueError:
+        return str(path)
+
+
+def _non_empty(path: Path) -> bool:
+    return path.is_dir() and any(path.iterdir())
+
+
+class _FolderLock:
+    """An exclusive, non-blocking lock on `.<name>.lock` beside a result folder (one run per folder)."""
+
+    def __init__(self, out: Path) -> None:
+        self.path = out.parent / f".{out.name}.lock"
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                os.close(fd)
+                holder = ""
+                with suppress(OSError):
+                    holder = f" (pid {self.path.read_text().strip()})"
+                raise InputError(out, f"another depthstation run is writing this folder{holder}; "
+                                      "wait for it or choose another --out") from exc
+            try:  # the file we locked must still be the one at the path (a finished run unlinks it)
+                same = os.fstat(fd).st_ino == self.path.stat().st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        self.fd = fd
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+
+    def release(self) -> None:
+        try:
+            self.path.unlink(missing_ok=True)
+        finally:
+            os.close(self.fd)
+
+
+DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
+
+
+@contextmanager
+def result_folder(out: Path, *, force: bool = False) -> Iterator[Path]:
+    """Write a result folder under a temporary name and rename it into place when complete.
+
+    Why: results are never overwritten or torn. A non-empty `out` is refused unless `force`
+    (then it is replaced only once the new folder is complete); a lock keeps a second run out of
+    the same folder; a kill, an error or a full disk leaves at most a hidden `.<name>.partial-PID`
+    folder, never one that `view` or `compare` would take for a finished result.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "exists and is not a folder")
+    if _non_empty(out) and not force:
+        raise InputError(out, "is not empty; depthstation never overwrites results (--force replaces "
+                              "it once the new result is complete)")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise disk_error(exc, out.parent) from exc
+    lock = _FolderLock(out)
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        yield tmp
+        if _non_empty(out) and not force:
+            raise InputError(out, f"appeared while this run was writing; the new result is left in {tmp}")
+        old = out.parent / f".{out.name}.replaced-{os.getpid()}"
+        if out.exists():
+            out.rename(old)
+        tmp.rename(out)
+        shutil.rmtree(old, ignore_errors=True)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise disk_error(exc, out) from exc
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    finally:
+        lock.release()
+
+
+def disk_error(exc: OSError, where: Path) -> DepthstationError | OSError:
+    """A full, read-only or forbidden disk as one line naming the path (exit 1); others unchanged."""
+    if exc.errno not in DISK_ERRORS:
+        return exc
+    path = exc.filename or where
+    what = {errno.ENOSPC: "no space left on the device", errno.EDQUOT: "disk quota exceeded",
+            errno.EROFS: "the file system is read-only"}.get(exc.errno, "permission denied")
+    return DepthstationError(f"{path}: cannot write ({what}); nothing was kept in {where}")
+
+
+def new_file(path: Path, *, force: bool = False) -> Path:
+    """The temporary name to write `path` under (rename it with `finish_file`); refuses an existing
+    `path` unless `force`."""
+    path = Path(path)
+    if path.exists() and not force:
+        raise InputError(path, "exists; depthstation never overwrites a file (--force replaces it)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path.with_name(f".{path.name}.partial-{os.getpid()}")
+
+
+def finish_file(tmp: Path, path: Path) -> Path:
+    """Move a completely written temporary file into place."""
+    Path(tmp).replace(path)
+    return Path(path)
 
 
 def read_result_info(out_dir: Path) -> dict[str, Any]:

@@ -25,8 +25,11 @@ def checkerboard(
                                 help="Local worker processes (standpoints in parallel)."),
     cluster: str | None = typer.Option(None, "--cluster",
                                        help="Address of a Dask distributed scheduler (tcp://host:8786)."),
+    force: bool = typer.Option(False, "--force", help="Replace a non-empty --out and an existing --rrd "
+                                                      "(only once the new result is complete)."),
 ) -> None:
     """The checkerboard study (paper Section 3.1): noise and accuracy per standpoint."""
     rows = run_checkerboard(inputs, board, out, frames=frames, reference=reference,
-                            target=RerunTarget(rrd, spawn, serve), workers=workers, cluster=cluster)
+                            target=RerunTarget(rrd, spawn, serve, force), workers=workers, cluster=cluster,
+                            force=force)
     typer.echo(f"{len(rows)} standpoints -> {out / 'standpoints.csv'}")

@@ -19,6 +19,8 @@ from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
 from depthstation.core.progress import progress
 from depthstation.core.rerun_bridge import RerunTarget, recording
+from depthstation.core.results import result_folder
+from depthstation.core.run_warnings import warn
 from depthstation.evaluate.checkerboard import rerun_log
 from depthstation.evaluate.checkerboard.chunks import (
     REFERENCES,
@@ -86,9 +88,21 @@ def check_usable(job: CheckerboardJob, results: list[StandpointResult]) -> None:
         raise EvaluationError(msg)
 
 
+def say_warnings(results: list[StandpointResult]) -> None:
+    """Every standpoint's warnings to the run (board not found, camera moved, board scale, ...)."""
+    for r in results:
+        for w in r.warnings:
+            warn(w.message, w.where, w.code)
+        if r.usable:  # some frames were rejected; the standpoint stands on the others
+            for status, n in sorted(r.rejected.items()):
+                code = "board-not-found" if status == "board not found" else "frames-rejected"
+                warn(f"{status} in {n} of {r.frames_read} frames", r.name, code)
+
+
 def finish_checkerboard(job: CheckerboardJob, results: list[StandpointResult],
                         out: Path) -> list[dict[str, Any]]:
     """Write the result folder of finished standpoints; the rows of standpoints.csv."""
+    say_warnings(results)
     check_usable(job, results)
     write_study(out, results, job.board, [str(p) for p in job.inputs], job.parameters, job.device)
     return [standpoint_row(x) for x in results]
@@ -97,8 +111,9 @@ def finish_checkerboard(job: CheckerboardJob, results: list[StandpointResult],
 def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames: int = 150,
                      reference: str = "auto", target: RerunTarget | None = None,
                      collect_samples: bool = False, workers: int = 1,
-                     cluster: str | None = None) -> list[dict[str, Any]]:
-    """The checkerboard study (paper Section 3.1) of every standpoint in `inputs` into `out`.
+                     cluster: str | None = None, force: bool = False) -> list[dict[str, Any]]:
+    """The checkerboard study (paper Section 3.1) of every standpoint in `inputs` into `out`
+    (written whole or not at all; a non-empty `out` only with `force`).
 
     With `workers > 1` or a Dask `cluster`, standpoints go out as tasks (each read by the worker
     that evaluates it); the per-frame rerun stream then shows standpoints, not frames.
@@ -106,7 +121,13 @@ def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames:
     job = prepare_checkerboard(inputs, board_path, replace(StandpointOptions(), frames=frames,
                                                            reference=reference,
                                                            collect_samples=collect_samples))
-    target = target or RerunTarget()
+    with result_folder(out, force=force) as tmp:
+        return _run(job, tmp, (target or RerunTarget()).within(out, tmp), workers, cluster)
+
+
+def _run(job: CheckerboardJob, out: Path, target: RerunTarget, workers: int,
+         cluster: str | None) -> list[dict[str, Any]]:
+    frames = job.options.frames
     recs = job.recordings
     with ChunkRunner(workers, cluster) as runner, \
             recording("depthstation_checkerboard", target, rerun_log.study_blueprint(),

@@ -16,12 +16,16 @@ from depthstation.core.capture.recording import Recording
 from depthstation.core.errors import EvaluationError
 from depthstation.core.frames import FrameSet
 from depthstation.core.geometry import average_poses, inclination_deg
+from depthstation.core.run_warnings import RunWarning
 from depthstation.evaluate.checkerboard.frame import FrameEvaluator, FramePixels, FrameResult
 from depthstation.evaluate.checkerboard.mask import BLACK, WHITE
 from depthstation.evaluate.checkerboard.metrics import plane_distance_stats
 from depthstation.evaluate.checkerboard.pose import normal_std_deg
 
 FrameCallback = Callable[[FrameSet, FrameResult], None]
+
+# |accuracy| above this share of the distance is a wrong board size or depth unit, not the camera
+BOARD_SCALE_TOLERANCE = 0.05
 
 
 @dataclass
@@ -69,6 +73,7 @@ class StandpointResult:
     frames: list[FrameResult]
     rejected: dict[str, int]
     notes: list[str] = field(default_factory=list)
+    warnings: list[RunWarning] = field(default_factory=list)  # the notes a user must see, with codes
     pose_depth: NDArray[np.float64] | None = None       # averaged board -> depth camera
     camera_in_board: NDArray[np.float64] | None = None  # averaged colour camera pose in the board frame
     figures: dict[str, float] = field(default_factory=dict)
@@ -76,6 +81,11 @@ class StandpointResult:
     example: ExampleFrame | None = None
     samples: PixelSamples | None = None
     truth: dict[str, Any] | None = None
+
+    def note(self, code: str, message: str) -> None:
+        """A note that is also a warning of the run (said on the console, listed in result.json)."""
+        self.notes.append(message)
+        self.warnings.append(RunWarning(message, self.name, code))
 
     @property
     def frames_used(self) -> int:
@@ -217,12 +227,12 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
     rejected = Counter(r.status for r in results if not r.ok)
     out = StandpointResult(name, path, frames_requested, len(results), results, dict(rejected))
     if len(results) < frames_requested:
-        out.notes.append(f"fewer frames than asked: {len(results)} of {frames_requested}")
+        out.note("fewer-frames", f"fewer frames than asked: {len(results)} of {frames_requested}")
     ok = [r for r in results if r.ok]
     posed = [r for r in results if r.pose_depth is not None]
     if not ok:
-        out.notes.append("no usable frame" + (f" ({', '.join(f'{k}: {v}' for k, v in rejected.items())})"
-                                              if rejected else ""))
+        out.note("no-usable-frame", "no usable frame" + (
+            f" ({', '.join(f'{k}: {v}' for k, v in rejected.items())})" if rejected else ""))
         out.figures = {"distance_m": float("nan"), "inclination_deg": float("nan")}
         return out
     pose = average_poses(np.stack([r.pose_depth for r in ok]))  # type: ignore[misc]
@@ -236,8 +246,9 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
     use_frame = reference == "frame" or (reference == "auto" and moved)
     out.reference_plane = "frame" if use_frame else "average"
     if moved:
-        out.notes.append(f"the camera moved during the standpoint (corners shifted up to {shift:.1f} px)"
-                         + ("; accuracy is taken against each frame's own pose" if use_frame else ""))
+        out.note("camera-moved",
+                 f"the camera moved during the standpoint (corners shifted up to {shift:.1f} px)"
+                 + ("; accuracy is taken against each frame's own pose" if use_frame else ""))
     for r in ok:
         assert r.pose_depth is not None
         n_own = r.pose_depth[:3, 2]
@@ -288,9 +299,15 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
     f["corner_shift_px"] = shift
     f["pixels_per_frame"] = _mean_std([float(r.valid_pixels) for r in ok])[0]
     out.figures = f
-    if abs(f["accuracy_m"]) > 0.05 * f["distance_m"]:
-        out.notes.append(f"mean accuracy {f['accuracy_m'] * 1000:.0f} mm is over 5% of the distance: "
-                         "check the board's square_length_m and the depth units")
+    if abs(f["accuracy_m"]) > BOARD_SCALE_TOLERANCE * f["distance_m"]:
+        # the pose's distance scales with the board's printed size: a wrong square length moves the
+        # reference plane by the same ratio, which the depth does not follow
+        ratio = (f["distance_m"] + f["accuracy_m"]) / f["distance_m"]
+        out.note("board-scale",
+                 f"the board's size does not fit the depth: mean accuracy {f['accuracy_m'] * 1000:.0f} mm is "
+                 f"{100 * abs(ratio - 1):.0f}% of the distance; the depth implies square_length_m "
+                 f"{board.square_length_m * ratio:.4f} m where the board file says {board.square_length_m} m "
+                 "(likely cause: a wrong square_length_m; else the depth units)")
     if example is not None:
         ex_pose = example[0].pose_depth if use_frame else pose
         assert ex_pose is not None

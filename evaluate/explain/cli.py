@@ -9,6 +9,7 @@ import typer
 from depthstation.core.errors import InputError
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
+from depthstation.core.results import result_folder
 from depthstation.evaluate.explain.run import run_explain
 from depthstation.evaluate.explain.scan_form import explain_scan, write_scan_outputs
 from depthstation.simulate.model import load_model
@@ -41,17 +42,19 @@ def explain(
     no_resimulate: bool = typer.Option(False, "--no-resimulate", help="Skip the check with the new model."),
     workers: int = typer.Option(1, "--workers", help="Local worker processes for the real-side evaluation."),
     cluster: str | None = typer.Option(None, "--cluster", help="Dask scheduler address (tcp://host:8786)."),
+    force: bool = typer.Option(False, "--force", help="Replace a non-empty --out and an existing --rrd "
+                                                      "(only once the new result is complete)."),
 ) -> None:
     """Locate where simulation and real data differ, name the missing physics, refit, show the gain."""
 
     for p in real:
         if not p.exists():
             raise InputError(p, "not found")
-    if out.exists() and any(out.iterdir()):
-        raise InputError(out, "is not empty; explain never overwrites results")
+    if out.exists() and any(out.iterdir()) and not force:
+        raise InputError(out, "is not empty; explain never overwrites results (--force replaces it)")
     if scan:
         _explain_scan(real, poses, reference, model, out, frames, seed, similarity, icp, block_frames,
-                      not no_resimulate)
+                      not no_resimulate, force)
         return
     if board is None:
         raise InputError(None, "--board is needed for checkerboard sessions")
@@ -68,7 +71,7 @@ def explain(
                        workers=workers, cluster=cluster,
                        parameters={"board": str(board), "model": model, "frames": frames, "seed": seed,
                                    "workers": workers, "cluster": cluster},
-                       target=RerunTarget(rrd, spawn, serve), tick=tick)
+                       target=RerunTarget(rrd, spawn, serve, force), tick=tick, force=force)
     verdict = ("significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch")
     typer.echo(f"{verdict}; selected: {', '.join(data['selected']) or 'nothing'}; "
                f"missing physics: {', '.join(data['missing_physics']) or 'none'}; results in {out}")
@@ -76,7 +79,7 @@ def explain(
 
 def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, model: str, out: Path,
                   frames: int, seed: int, similarity: Path | None, icp: bool, block_frames: int,
-                  resimulate: bool) -> None:
+                  resimulate: bool, force: bool) -> None:
     """`explain --scan`: a reference-scan sequence against its simulation along the same trajectory."""
 
     if len(real) != 1:
@@ -93,12 +96,13 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
     def tick(msg: str) -> None:
         stderr_console.print(f"[bold]explain --scan[/]: {msg}")
 
-    ex = explain_scan(real[0], poses, reference, mdl, out, frames=frames, block_frames=block_frames,
-                      seed=seed, icp=icp, similarity=similarity, resimulate=resimulate, tick=tick)
-    data = write_scan_outputs(ex, out, [str(real[0]), str(poses), str(reference)],
-                              {"model": model, "frames": frames, "seed": seed, "icp": icp,
-                               "block_frames": block_frames,
-                               "similarity": str(similarity) if similarity else None})
+    with result_folder(out, force=force) as tmp:
+        ex = explain_scan(real[0], poses, reference, mdl, tmp, frames=frames, block_frames=block_frames,
+                          seed=seed, icp=icp, similarity=similarity, resimulate=resimulate, tick=tick)
+        data = write_scan_outputs(ex, tmp, [str(real[0]), str(poses), str(reference)],
+                                  {"model": model, "frames": frames, "seed": seed, "icp": icp,
+                                   "block_frames": block_frames,
+                                   "similarity": str(similarity) if similarity else None})
     verdict = "significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch"
     typer.echo(f"{verdict}; selected: {', '.join(data['selected']) or 'nothing'}; "
                f"missing physics: {', '.join(data['missing_physics']) or 'none'}; results in {out}")

@@ -20,6 +20,7 @@ from depthstation.core.errors import EvaluationError
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
 from depthstation.core.rerun_bridge import RerunTarget
+from depthstation.core.results import result_folder
 from depthstation.evaluate.checkerboard.chunks import StandpointOptions, run_standpoints
 from depthstation.evaluate.checkerboard.run import prepare_checkerboard
 from depthstation.evaluate.checkerboard.study import evaluate_frames
@@ -245,9 +246,19 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
 def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, *, frames: int,
                 seed: int = 0, resimulate: bool = True, workers: int = 1, cluster: str | None = None,
                 parameters: dict[str, Any] | None = None, target: RerunTarget | None = None,
-                tick: Progress | None = None) -> dict[str, Any]:
+                tick: Progress | None = None, force: bool = False) -> dict[str, Any]:
     """`depthstation explain` of checkerboard captures: evaluate the real standpoints, simulate them
-    with `model`, locate, attribute, refit, check, and write the result folder; its explain.json."""
+    with `model`, locate, attribute, refit, check, and write the result folder (whole or not at
+    all; a non-empty `out` only with `force`); its explain.json."""
+    with result_folder(out, force=force) as tmp:
+        return _run_explain(real, board, model, tmp, frames, seed, resimulate, workers, cluster,
+                            parameters, None if target is None else target.within(out, tmp), tick)
+
+
+def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, frames: int,
+                 seed: int, resimulate: bool, workers: int, cluster: str | None,
+                 parameters: dict[str, Any] | None, target: RerunTarget | None,
+                 tick: Progress | None) -> dict[str, Any]:
     brd = board if isinstance(board, Board) else load_board(board)
     real_side = evaluate_real(real, brd, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
                               workers=workers, cluster=cluster)

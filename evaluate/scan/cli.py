@@ -43,6 +43,8 @@ def scan(
                                            help="Intrinsics file for a TUM folder (camera.json or "
                                                 "'fx fy cx cy [w h] [factor]')."),
     rrd: Path | None = typer.Option(None, "--rrd", help="Write a rerun recording."),
+    force: bool = typer.Option(False, "--force", help="Replace a non-empty --out and an existing --rrd "
+                                                      "(only once the new result is complete)."),
     spawn: bool = typer.Option(False, "--spawn", help="Stream to a rerun viewer."),
     serve: bool = typer.Option(False, "--serve", help="Serve a local rerun web viewer."),
     distance_bin_m: float = typer.Option(0.005, "--distance-bin-m", help="Grid distance bin (m)."),
@@ -70,7 +72,8 @@ def scan(
                        distance_max_m=distance_max_m, min_count_frame=min_count_frame,
                        min_count_sequence=min_count_sequence, figure_frame=figure_frame,
                        intrinsics=intrinsics, poisson_depth=poisson_depth,
-                       density_quantile=density_quantile, target=RerunTarget(rrd, spawn, serve))
+                       density_quantile=density_quantile, force=force,
+                       target=RerunTarget(rrd, spawn, serve, force))
     s = run_scan(sequence, poses, reference, out, opts)
     reg = s["registration"]
     c2c = reg["mean_c2c_m"]

@@ -6,11 +6,10 @@ The command and a batch item both end here, so they write the same files.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from depthstation.core.grid import GRID_FILE
-from depthstation.core.results import SUMMARY_FILE, write_json, write_result_info
+from depthstation.core.results import SUMMARY_FILE, inside, write_json, write_result_info
 from depthstation.evaluate.scan.figures import frame_figure, grid_figure
 from depthstation.evaluate.scan.raycast import MeshCaster
 from depthstation.evaluate.scan.study import ChunkResult, StudyConfig, evaluate_chunk, frame_images
@@ -34,12 +33,12 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
         frame_cfg = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
                                 tolerance_s=opt.tolerance_s)
         one = evaluate_chunk(caster, source, job.posed, frame_cfg, fig_index, 1)
-        figures["frame"] = str(frame_figure(images, out / "fig8_frame.png",
-                                            f"frame {fig_index}: measured vs reference"))
-        figures["frame_grid"] = str(grid_figure(one.grid, out / "fig9_frame_grid.png", opt.min_count_frame,
-                                                f"frame {fig_index}"))
-    figures["sequence_grid"] = str(grid_figure(grid, out / "fig10_sequence_grid.png",
-                                               opt.min_count_sequence, f"{source.name}: all frames"))
+        figures["frame"] = frame_figure(images, out / "fig8_frame.png",
+                                        f"frame {fig_index}: measured vs reference").name
+        figures["frame_grid"] = grid_figure(one.grid, out / "fig9_frame_grid.png", opt.min_count_frame,
+                                            f"frame {fig_index}").name
+    figures["sequence_grid"] = grid_figure(grid, out / "fig10_sequence_grid.png",
+                                           opt.min_count_sequence, f"{source.name}: all frames").name
     job.seconds["figures"] = time.perf_counter() - t0
     reg = job.registration
     summary = {
@@ -49,7 +48,7 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
                      "intrinsics": source.info.depth_intrinsics.to_dict(),
                      "depth_units_m": source.info.depth_units_m},
         "trajectory": {"poses": len(job.trajectory), "tolerance_s": opt.tolerance_s},
-        "reference_mesh": {"path": str(job.mesh_path), **job.mesh_info},
+        "reference_mesh": {"path": inside(job.mesh_path, out), **job.mesh_info},
         "registration": reg.to_dict(),
         "frames": {"used": len(result.used), "skipped_no_pose": len(result.no_pose),
                    "skipped_no_depth": len(result.no_depth), "every": opt.every,
@@ -66,6 +65,6 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
     write_result_info(out, "scan", [str(job.sequence), str(job.poses), str(job.reference)], opt.to_dict(),
                       device=dict(source.info.device),
                       extra={"summary": SUMMARY_FILE, "grid": GRID_FILE,
-                             "files": [GRID_FILE, SUMMARY_FILE, *(Path(f).name for f in figures.values())],
+                             "files": [GRID_FILE, SUMMARY_FILE, *figures.values()],
                              "registration": {"scale": reg.scale, "mean_c2c_m": reg.mean_c2c_m}})
     return summary

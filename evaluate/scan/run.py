@@ -24,6 +24,7 @@ from depthstation.core.grid import Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn
 from depthstation.core.progress import progress
 from depthstation.core.rerun_bridge import RerunTarget, recording
+from depthstation.core.results import result_folder
 from depthstation.evaluate.scan import rerun_log
 from depthstation.evaluate.scan.chunks import ScanChunk, frames_to_read, run_scan_chunks, scan_chunks
 from depthstation.evaluate.scan.reference import PoissonParams, reference_mesh, sample_reference_points
@@ -56,12 +57,13 @@ class ScanOptions:
     min_count_sequence: int = 2000
     figure_frame: int | None = None
     intrinsics: Path | None = None
+    force: bool = False
     poisson_depth: int = 9
     density_quantile: float = 0.05
     target: RerunTarget = field(default_factory=RerunTarget)
 
     def to_dict(self) -> dict[str, Any]:
-        d = {k: v for k, v in self.__dict__.items() if k != "target"}
+        d = {k: v for k, v in self.__dict__.items() if k not in ("target", "force")}
         d["rrd"] = self.target.rrd
         return d
 
@@ -76,7 +78,7 @@ class ScanOptions:
                      where: str) -> ScanOptions:
         """Options of a batch item (the command's option names, snake_case) and its optional paths
         (similarity, pass_points, intrinsics); an unknown name is an error naming it."""
-        names = {f.name for f in dataclasses.fields(cls)} - {"target", "workers", "cluster"}
+        names = {f.name for f in dataclasses.fields(cls)} - {"target", "workers", "cluster", "force"}
         unknown = sorted(set(options) - names)
         if unknown:
             raise InputError(source, f"{where}: unknown scan options {', '.join(unknown)} "
@@ -196,9 +198,11 @@ def run_scan(sequence: Path, poses: Path, reference: Path, out: Path,
              options: ScanOptions | None = None) -> dict[str, Any]:
     """The reference-scan study (paper Section 3.2) into the result folder `out`; returns the summary."""
     opt = options or ScanOptions()
-    with ChunkRunner(opt.workers, opt.cluster) as runner:
-        job = prepare_scan(sequence, poses, reference, out, opt, in_process=runner.in_process)
-        with recording("depthstation-scan", opt.target, description=rerun_log.DESCRIPTION) as rec:
+    opt.check()
+    with result_folder(out, force=opt.force) as tmp, ChunkRunner(opt.workers, opt.cluster) as runner:
+        job = prepare_scan(sequence, poses, reference, tmp, opt, in_process=runner.in_process)
+        with recording("depthstation-scan", opt.target.within(out, tmp),
+                       description=rerun_log.DESCRIPTION) as rec:
             result = run_prepared(job, runner, rec=rec)
             rerun_log.log_grid_tensors(rec, result.grid, opt.min_count_sequence)
-    return write_scan(job, result)
+        return write_scan(job, result)

@@ -18,9 +18,10 @@ from mcap.stream_reader import StreamReader
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture import mcap_writer as mw
 from depthstation.core.capture import rosmsgs
-from depthstation.core.capture.recording import Recording, log
+from depthstation.core.capture.recording import Recording
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
+from depthstation.core.run_warnings import warn
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -134,9 +135,8 @@ class McapRecording(Recording):
         if truncated:
             self.truncated = True
             self.recovered_frames = count
-            log.warning(
-                "%s: recording is cut short; recovered %d frames from its complete chunks", self.path, count
-            )
+            warn(f"recording is cut short; recovered {count} frames from its complete chunks", str(self.path),
+                 "truncated-input")
 
     def temperatures(self) -> dict[str, tuple[list[int], list[float]]]:
 
@@ -198,6 +198,8 @@ def open_mcap(path: Path) -> McapRecording:
                         break
             except Exception:
                 pass
+    if summary is None and mw.DEPTH_TOPIC not in topics.values():
+        raise InputError(path, "is cut short before its first complete chunk: no frame can be recovered")
     if "streams" not in meta:
         raise InputError(path, "is no depthstation recording (no 'streams' metadata record)")
     if mw.DEPTH_TOPIC not in topics.values():
@@ -222,4 +224,6 @@ def open_mcap(path: Path) -> McapRecording:
     }
     frame_count = by_topic.get(mw.FRAME_TOPIC) if summary is not None else None
     name = path.name.split(".")[0]
-    return McapRecording(name, path, info, docs, frame_count, stream_counts)
+    rec = McapRecording(name, path, info, docs, frame_count, stream_counts)
+    rec.truncated = summary is None  # said with the frames recovered, once they are read
+    return rec

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from depthstation.core.camera_model import Intrinsics, StreamInfo
+from depthstation.core.capture.realsense_bag import open_realsense
 from depthstation.core.errors import CaptureError, InputError
 from depthstation.core.frames import FrameSet
 
@@ -138,4 +139,18 @@ def write_realsense_recording(path: Path, info: StreamInfo, frames: Iterable[Fra
             s.close()
         del recorder
         gc.collect()
+    return _check_written(path, n)
+
+
+def _check_written(path: Path, n: int) -> int:
+    """The recorder reports no write error (a full disk loses frames silently): read the file back
+    and count its depth frames."""
+    try:
+        written = open_realsense(path).stream_counts.get("depth", 0)
+    except InputError as exc:
+        raise CaptureError(f"{path}: the librealsense recorder left no readable file ({exc.problem}); "
+                           "is the disk full?") from exc
+    if written != n:
+        raise CaptureError(f"{path}: the librealsense recorder wrote {written} of {n} depth frames; "
+                           "is the disk full?")
     return n

@@ -109,27 +109,64 @@ class Session:
         if data.get("format") != SESSION_FORMAT:
             raise InputError(path, "is no depthstation session file")
         s = cls(d, data, read_only=read_only)
+        if s._reconcile() and not read_only:
+            s._save()
+        return s
+
+    def _reconcile(self) -> bool:
+        """Make session.json agree with the files on disk after a crash at any step.
+
+        A standpoint killed while recording or closing leaves `<name>.mcap.partial`: it is marked
+        'partial' (re-recorded on resume, the file kept aside). One killed after its file was
+        renamed to `<name>.mcap` but before session.json said so, or a finished MCAP the session
+        never listed, is adopted as complete once it reads back whole: never lost, never blocking
+        a resume.
+        """
+        d, data = self.dir, self.data
         changed = False
-        known = {e["file"]: e for e in data.get("standpoints", [])}
-        for e in data.get("standpoints", []):
-            if e.get("status") == "recording":
+        entries = data.setdefault("standpoints", [])
+        for e in entries:
+            final = d / f"{e['name']}.mcap"
+            if e.get("status") in ("recording", "partial") and str(e.get("file", "")).endswith(".partial") \
+                    and not (d / e["file"]).exists() and final.is_file() and self._adopt(e, final):
+                changed = True
+            elif e.get("status") == "recording":
                 e["status"] = "partial"
                 e["note"] = "interrupted while recording"
                 changed = True
+        known = {e["file"] for e in entries}
         for p in sorted(d.glob("*.mcap.partial")):
             if p.name not in known:
-                data.setdefault("standpoints", []).append(
-                    {
-                        "name": p.name.split(".")[0],
-                        "file": p.name,
-                        "status": "partial",
-                        "note": "found without an entry (crash)",
-                    }
-                )
+                entries.append({"name": p.name.split(".")[0], "file": p.name, "status": "partial",
+                                "note": "found without an entry (crash)"})
                 changed = True
-        if changed and not read_only:
-            s._save()
-        return s
+        for p in sorted(d.glob("*.mcap")):
+            name = p.name[: -len(".mcap")]
+            if p.name in known or "." in name:  # discarded-N / attempt files carry a dot
+                continue
+            if any(e["name"] == name and e.get("status") == "complete" for e in entries):
+                continue
+            entry: dict[str, Any] = {"name": name, "file": p.name, "status": "partial"}
+            if self._adopt(entry, p):
+                entries.append(entry)
+                changed = True
+        return changed
+
+    def _adopt(self, entry: dict[str, Any], path: Path) -> bool:
+        """Take a finished MCAP into the session after a read check (summary and frames present)."""
+        try:
+            rec = open_mcap(path)
+        except (InputError, OSError) as exc:
+            log.warning("%s: not adopted (%s)", path, exc)
+            return False
+        if rec.frame_count is None or rec.frame_count < 1:
+            return False
+        indices = [fs.index for fs in rec.frames()]
+        entry.update(status="complete", file=path.name, frames=rec.frame_count,
+                     first_index=indices[0] if indices else None,
+                     last_index=indices[-1] if indices else None, adopted=_now(),
+                     note="finished file adopted after a crash (session.json had not recorded it)")
+        return True
 
     def _save(self) -> None:
         if self.read_only:

@@ -1,0 +1,66 @@
+"""Warnings of a run: what the station noticed that a user must see before trusting a number.
+
+Why a collector and not `logging`: a warning that only sits in a log or a summary file is a warning
+nobody reads. Every command runs inside `collecting()`; the console script prints what was
+collected on stderr (one line each, naming the standpoint or file), `result.json` lists it, and
+`--strict` turns any warning into exit code 3. Code that runs outside a command (a notebook, a
+test) gets each warning at once through the `depthstation.warnings` logger (stderr by default).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
+from dataclasses import asdict, dataclass
+from typing import Any
+
+
+@dataclass(frozen=True)
+class RunWarning:
+    """One warning: what happened, where (standpoint, file), and a stable code to filter on."""
+
+    message: str
+    where: str | None = None
+    code: str = "general"
+
+    def line(self) -> str:
+        return f"{self.where}: {self.message}" if self.where else self.message
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+log = logging.getLogger("depthstation.warnings")
+_COLLECTED: ContextVar[list[RunWarning] | None] = ContextVar("depthstation_warnings", default=None)
+
+
+@contextmanager
+def collecting() -> Iterator[list[RunWarning]]:
+    """Collect the warnings of the code inside; nested collectors pass theirs to the outer one."""
+    outer = _COLLECTED.get()
+    mine: list[RunWarning] = []
+    token = _COLLECTED.set(mine)
+    try:
+        yield mine
+    finally:
+        _COLLECTED.reset(token)
+        if outer is not None:
+            outer.extend(w for w in mine if w not in outer)
+
+
+def warn(message: str, where: str | None = None, code: str = "general") -> RunWarning:
+    """Record a warning (once: the same message for the same place is not repeated)."""
+    w = RunWarning(message, None if where is None else str(where), code)
+    bucket = _COLLECTED.get()
+    if bucket is None:
+        log.warning(w.line())
+    elif w not in bucket:
+        bucket.append(w)
+    return w
+
+
+def current() -> list[RunWarning]:
+    """The warnings collected so far in this run (empty outside a collector)."""
+    return list(_COLLECTED.get() or [])
