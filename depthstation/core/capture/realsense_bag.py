@@ -216,6 +216,10 @@ def open_realsense(path: Path) -> RealsenseRecording:
         raise InputError(path, f"is no readable ROS bag ({type(exc).__name__}: {exc})") from exc
     try:
         return _parse(path, reader, ts)
+    except InputError:
+        raise
+    except (KeyError, ValueError, IndexError, TypeError, AttributeError) as exc:  # a broken or cut file
+        raise InputError(path, f"is no readable RealSense recording ({type(exc).__name__}: {exc})") from exc
     finally:
         reader_cm.__exit__(None, None, None)
 

@@ -150,6 +150,9 @@ def _check_written(path: Path, n: int) -> int:
     except InputError as exc:
         raise CaptureError(f"{path}: the librealsense recorder left no readable file ({exc.problem}); "
                            "is the disk full?") from exc
+    except Exception as exc:  # rosbags on a torn sqlite file
+        raise CaptureError(f"{path}: the librealsense recorder left no readable file "
+                           f"({type(exc).__name__}: {exc}); is the disk full?") from exc
     if written != n:
         raise CaptureError(f"{path}: the librealsense recorder wrote {written} of {n} depth frames; "
                            "is the disk full?")

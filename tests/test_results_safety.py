@@ -1,0 +1,117 @@
+"""Results are never lost or torn: a second run into a busy folder refuses and the first one's result
+is complete; a non-empty --out or an existing --rrd needs --force; a full disk ends in one line naming
+the path, exit 1, and leaves nothing that looks like a finished result."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+EXE = str(Path(sys.executable).with_name("depthstation"))
+
+
+def run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([EXE, *args], capture_output=True, text=True, timeout=300, cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small simulated session (2 standpoints x 12 frames of 640x360)."""
+    root = tmp_path_factory.mktemp("sim")
+    proto = root / "p.toml"
+    proto.write_text((Path(__file__).parents[1] / "protocols" / "demo-d455.toml").read_text()
+                     .replace("width = 1280", "width = 640").replace("height = 720", "height = 360"))
+    r = run("simulate", "checkerboard", "--protocol", str(proto), "--out", str(root / "s"), "--frames", "12",
+            "--standpoint", "standpoint_01", "--standpoint", "standpoint_02")
+    assert r.returncode == 0, r.stderr
+    return root / "s"
+
+
+def test_second_run_into_a_busy_folder_refuses(tmp_path: Path, session: Path) -> None:
+    out = tmp_path / "res"
+    board = str(session.parent / "p.toml")
+    args = ["evaluate", "checkerboard", str(session), "--board", board, "--out", str(out), "--frames", "12"]
+    first = subprocess.Popen([EXE, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    lock = tmp_path / ".res.lock"
+    deadline = time.monotonic() + 60
+    while not lock.exists() and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert lock.exists(), "the first run never took the folder's lock"
+    second = run(*args)
+    assert second.returncode == 2, second.stderr
+    assert "another depthstation run is writing" in second.stderr and "Traceback" not in second.stderr
+    _, err = first.communicate(timeout=300)
+    assert first.returncode == 0, err
+    assert {"standpoints.csv", "frames.csv", "summary.json", "result.json"} <= {p.name for p in out.iterdir()}
+    assert len((out / "standpoints.csv").read_text().splitlines()) == 3
+    assert not lock.exists() and not list(tmp_path.glob(".res.partial-*"))
+
+
+def test_non_empty_out_and_existing_rrd_need_force(tmp_path: Path, session: Path) -> None:
+    board = str(session.parent / "p.toml")
+    out = tmp_path / "res"
+    out.mkdir()
+    (out / "keep.txt").write_text("a result of last week")
+    r = run("evaluate", "checkerboard", str(session), "--board", board, "--out", str(out), "--frames", "3")
+    assert r.returncode == 2 and "never overwrite" in r.stderr
+    assert (out / "keep.txt").read_text() == "a result of last week"
+    rrd = tmp_path / "x.rrd"
+    rrd.write_text("an old recording")
+    r = run("evaluate", "checkerboard", str(session), "--board", board, "--out", str(tmp_path / "new"),
+            "--frames", "3", "--rrd", str(rrd))
+    assert r.returncode == 2 and "x.rrd" in r.stderr and rrd.read_text() == "an old recording"
+    assert not (tmp_path / "new").exists()
+    r = run("evaluate", "checkerboard", str(session), "--board", board, "--out", str(out), "--frames", "3",
+            "--rrd", str(rrd), "--force")
+    assert r.returncode == 0, r.stderr
+    assert not (out / "keep.txt").exists() and (out / "result.json").is_file()
+    assert rrd.read_bytes()[:4] != b"an o"  # a real recording now
+
+
+def _small_disk(tmp_path: Path, kbytes: int) -> list[str] | None:
+    """A command prefix that runs inside a private mount namespace with a tmpfs of `kbytes` at
+    tmp_path/disk, or None where the machine allows no such mount."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    for prefix in (["unshare", "--user", "--map-root-user", "--mount"], ["unshare", "--mount"]):
+        if shutil.which(prefix[0]) is None:
+            continue
+        probe = subprocess.run([*prefix, "sh", "-c", f"mount -t tmpfs -o size={kbytes}k tmpfs {disk}"],
+                               capture_output=True, text=True)
+        if probe.returncode == 0:
+            return [*prefix, "sh", "-c", f'mount -t tmpfs -o size={kbytes}k tmpfs {disk} && exec "$@"', "sh"]
+    return None
+
+
+def test_full_disk_is_one_line_and_leaves_no_finished_folder(tmp_path: Path, session: Path) -> None:
+    prefix = _small_disk(tmp_path, 64)
+    if prefix is None:
+        pytest.skip("this machine allows no private tmpfs mount (unshare/mount refused)")
+    out = tmp_path / "disk" / "res"
+    r = subprocess.run([*prefix, EXE, "evaluate", "checkerboard", str(session), "--board",
+                        str(session.parent / "p.toml"), "--out", str(out), "--frames", "12"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1, r.stdout + r.stderr
+    lines = [x for x in r.stderr.splitlines() if "error" in x]
+    assert len(lines) == 1 and "no space left" in lines[0] and str(tmp_path / "disk") in lines[0], r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_full_disk_db3_simulation_fails_loudly(tmp_path: Path) -> None:
+    pytest.importorskip("pyrealsense2")
+    prefix = _small_disk(tmp_path, 400)
+    if prefix is None:
+        pytest.skip("this machine allows no private tmpfs mount (unshare/mount refused)")
+    out = tmp_path / "disk" / "sim"
+    args = ["simulate", "checkerboard", "--protocol", "demo-d455", "--format", "db3", "--out", str(out),
+            "--frames", "5", "--standpoint", "standpoint_01"]
+    r = subprocess.run([*prefix, EXE, *args], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "simulated into" not in r.stdout and "Traceback" not in r.stderr
+    assert "internal error" not in r.stderr and ("disk full" in r.stderr or "no space left" in r.stderr)
+    assert not out.exists() or not (out / "result.json").exists()
