@@ -36,6 +36,7 @@ from depthstation.core.errors import DepthstationError, EvaluationError, InputEr
 from depthstation.core.grid import GRID_FILE, Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn, progress_bar
 from depthstation.core.results import RESULT_FILE, result_folder, write_json, write_result_info
+from depthstation.core.text_files import read_text
 from depthstation.evaluate.checkerboard.chunks import StandpointOptions, checkerboard_chunk
 from depthstation.evaluate.checkerboard.run import finish_checkerboard, prepare_checkerboard
 from depthstation.evaluate.checkerboard.study import StandpointResult
@@ -130,13 +131,20 @@ def load_manifest(path: Path) -> Manifest:
     if not path.is_file():
         raise InputError(path, "manifest not found")
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(read_text(path, "batch manifest TOML"))
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise InputError(path, f"broken TOML ({exc})") from exc
+    unknown = sorted(set(data) - {"out", "defaults", "items"})
+    if unknown:
+        raise InputError(path, f"unknown key '{unknown[0]}' (a manifest has out, [defaults.*], [[items]])")
     base = path.parent.resolve()
+    if not isinstance(data.get("out", ""), str):
+        raise InputError(path, "out must be a folder path (a string)")
     out = Path(str(data.get("out", f"{path.stem}-results"))).expanduser()
     out = out if out.is_absolute() else base / out
     defaults = data.get("defaults", {})
+    if not isinstance(defaults, dict) or not all(isinstance(v, dict) for v in defaults.values()):
+        raise InputError(path, "[defaults] must hold one table per kind ([defaults.scan], ...)")
     raw_items = data.get("items", [])
     if not isinstance(raw_items, list) or not raw_items:
         raise InputError(path, "no [[items]] in the manifest")
@@ -146,6 +154,11 @@ def load_manifest(path: Path) -> Manifest:
         where = f"items[{k}]"
         if not isinstance(raw, dict):
             raise InputError(path, f"{where} is not a table")
+        bad = sorted(set(raw) - {"kind", "name", "out", "inputs", "options"})
+        if bad:
+            raise InputError(path, f"{where}: unknown key '{bad[0]}' (kind, name, out, inputs, options)")
+        if not isinstance(raw.get("options", {}), dict):
+            raise InputError(path, f"{where}.options must be a table")
         kind = raw.get("kind")
         if kind not in KINDS:
             known = ", ".join(sorted(KINDS)) or "none"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,6 +12,7 @@ import numpy as np
 import tomllib
 
 from depthstation.core.errors import InputError, SimulationError
+from depthstation.core.text_files import read_text
 from depthstation.simulate.effects import EFFECTS
 from depthstation.simulate.effects.base import Array, Effect, PixelContext
 from depthstation.simulate.fastpath import FusedSampler, fusable
@@ -134,13 +136,16 @@ def model_from_dict(data: dict[str, Any], name: str, source: Path | None = None)
     for k in data:
         if k not in ("camera", "effects"):
             raise InputError(source, f"model: unknown key '{k}' (expected [camera] and [effects.*])")
-    cam = dict(data.get("camera", {}))
-    preset_name = str(cam.pop("preset", "d455")).lower()
+    if not isinstance(data.get("camera"), dict) or "preset" not in data["camera"]:
+        raise InputError(source, "model: missing key 'camera.preset' (d455, d435 or d415: the camera "
+                                 "whose geometry the model starts from)")
+    cam = dict(data["camera"])
+    preset_name = str(cam.pop("preset")).lower()
     if preset_name not in PRESETS:
         known = ', '.join(PRESETS)
         raise InputError(source, f"model: camera.preset '{preset_name}' unknown (known: {known})")
     try:
-        camera = PRESETS[preset_name].with_overrides(cam)
+        camera = PRESETS[preset_name].with_overrides(cam).check()
     except KeyError as exc:
         raise InputError(source, f"model: unknown key 'camera.{exc.args[0]}'") from exc
     except (TypeError, ValueError) as exc:
@@ -152,6 +157,14 @@ def model_from_dict(data: dict[str, Any], name: str, source: Path | None = None)
     for ename, params in effects_data.items():
         if not isinstance(params, dict):
             raise InputError(source, f"model: [effects.{ename}] must be a table")
+        spec = EFFECTS[ename].PARAMS if ename in EFFECTS else {}
+        missing = [k for k in spec if k not in params]
+        if missing:  # an effect named without its value would run at a default nobody chose
+            _, unit, meaning = spec[missing[0]]
+            raise InputError(source, f"model: missing key 'effects.{ename}.{missing[0]}' ({unit}: {meaning})")
+        bad = [k for k, v in params.items() if isinstance(v, (int, float)) and not math.isfinite(float(v))]
+        if bad:
+            raise InputError(source, f"model: 'effects.{ename}.{bad[0]}' must be finite")
         try:
             effects.append(make_effect(ename, params))
         except SimulationError as exc:
@@ -169,7 +182,7 @@ def load_model(name_or_path: str | Path | SensorModel = "d455") -> SensorModel:
     if not p.is_file():
         raise InputError(p, f"model not found (a preset {', '.join(PRESETS)} or a model TOML)")
     try:
-        data = tomllib.loads(p.read_text())
+        data = tomllib.loads(read_text(p, "model TOML"))
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise InputError(p, f"not valid TOML ({exc})") from exc
     return model_from_dict(data, p.stem, p)

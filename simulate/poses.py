@@ -17,6 +17,7 @@ from depthstation.core.geometry import (
     quaternion_to_matrix,
     rodrigues,
 )
+from depthstation.core.text_files import read_text
 
 Pose = NDArray[np.float64]
 
@@ -94,7 +95,7 @@ def read_tum(path: Path) -> tuple[NDArray[np.float64], list[Pose]]:
     if not p.is_file():
         raise InputError(p, "trajectory not found")
     stamps, poses = [], []
-    for n, line in enumerate(p.read_text().splitlines(), 1):
+    for n, line in enumerate(read_text(p, "TUM trajectory").splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue

@@ -100,6 +100,20 @@ class CameraPreset:
             conv[k] = tuple(float(x) for x in v) if isinstance(cur, tuple) else type(cur)(v)
         return replace(self, **conv)
 
+    def check(self) -> CameraPreset:
+        """Raise ValueError naming the field when a value has no physical meaning."""
+        if not 0.005 < self.baseline_m < 1.0:
+            raise ValueError(f"baseline_m must be the stereo baseline in metres (0.005 to 1), "
+                             f"got {self.baseline_m}")
+        for name in ("depth_hfov_deg", "color_hfov_deg"):
+            v = getattr(self, name)
+            if not 1.0 < v < 179.0:
+                raise ValueError(f"{name} must be a field of view in degrees (1 to 179), got {v}")
+        for name in ("max_range_m", "max_disparity_px", "depth_units_m"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        return self
+
     def to_dict(self) -> dict[str, Any]:
         return {k: (list(v) if isinstance(v, tuple) else v)
                 for k, v in self.__dict__.items()}

@@ -64,17 +64,24 @@ def _say_warnings(found: list[RunWarning]) -> None:
 def main() -> None:
     """Entry point: one-line errors on stderr, exit 2 for bad input, 1 for other failures, 3 for
     warnings under --strict; every warning of the run is printed at the end, one line each."""
-    argv = sys.argv[1:]
+    sys.exit(run_cli(sys.argv[1:]))
+
+
+def run_cli(argv: list[str]) -> int:
+    """The console script without the process exit: its exit code (tests call it in-process)."""
     strict = STRICT_FLAG in argv
     args = [a for a in argv if a != STRICT_FLAG]
-    COMMAND_LINE.set(["depthstation", *argv])
-    with collecting() as found:
-        code = _run(args)
+    token = COMMAND_LINE.set(["depthstation", *argv])
+    try:
+        with collecting() as found:
+            code = _run(args)
+    finally:
+        COMMAND_LINE.reset(token)
     _say_warnings(found)
     if code == 0 and strict and found:
         typer.echo(f"depthstation: {len(found)} warning(s) and --strict: exit {STRICT_EXIT}", err=True)
         code = STRICT_EXIT
-    sys.exit(code)
+    return code
 
 
 def _run(args: list[str]) -> int:

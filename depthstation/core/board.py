@@ -9,6 +9,7 @@ camera that sees the board's front). The board surface is z = 0; its centre is
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -18,8 +19,17 @@ import tomllib
 from numpy.typing import NDArray
 
 from depthstation.core.errors import InputError
+from depthstation.core.text_files import read_text
 
 BOARD_TYPES = ("checkerboard", "charuco")
+REQUIRED_MEANING = {
+    "type": "checkerboard or charuco",
+    "squares_x": "squares along the board's long side",
+    "squares_y": "squares along the short side",
+    "square_length_m": "the printed square's side in metres: it sets every distance the study reports",
+    "marker_length_m": "the ArUco marker's side in metres",
+    "dictionary": "the ArUco dictionary, e.g. DICT_4X4_50",
+}
 
 
 @dataclass(frozen=True)
@@ -82,15 +92,32 @@ class Board:
         for key in d:
             if key not in known:
                 raise InputError(source, f"board: unknown key '{key}'")
-        btype = str(d.get("type", "checkerboard"))
+        # the geometry the study measures against has no default: a missing size is not 0.095 m
+        required = ["type", "squares_x", "squares_y", "square_length_m"]
+        if d.get("type") == "charuco":
+            required += ["marker_length_m", "dictionary"]
+        missing = [k for k in required if k not in d]
+        if missing:
+            raise InputError(source, f"board: missing key '{missing[0]}' ({REQUIRED_MEANING[missing[0]]})")
+        btype = str(d["type"])
         if btype not in BOARD_TYPES:
             raise InputError(source, f"board.type must be one of {BOARD_TYPES}, got '{btype}'")
+        for key in ("squares_x", "squares_y"):
+            if isinstance(d[key], bool) or not isinstance(d[key], int):
+                raise InputError(source, f"board.{key} must be a whole number, got {d[key]!r}")
+        for key in ("square_length_m", "marker_length_m", "plate_margin_m"):
+            if key in d and (isinstance(d[key], bool) or not isinstance(d[key], (int, float))
+                             or not math.isfinite(float(d[key]))):
+                raise InputError(source, f"board.{key} must be a number in metres, got {d[key]!r}")
+        if "first_square_black" in d and not isinstance(d["first_square_black"], bool):
+            got = d["first_square_black"]
+            raise InputError(source, f"board.first_square_black must be true or false, got {got!r}")
         try:
             board = cls(
                 type=btype,
-                squares_x=int(d.get("squares_x", 7)),
-                squares_y=int(d.get("squares_y", 5)),
-                square_length_m=float(d.get("square_length_m", 0.095)),
+                squares_x=int(d["squares_x"]),
+                squares_y=int(d["squares_y"]),
+                square_length_m=float(d["square_length_m"]),
                 marker_length_m=None if d.get("marker_length_m") is None else float(d["marker_length_m"]),
                 dictionary=None if d.get("dictionary") is None else str(d["dictionary"]),
                 first_square_black=bool(d.get("first_square_black", True)),
@@ -98,6 +125,8 @@ class Board:
             )
         except (TypeError, ValueError) as exc:
             raise InputError(source, f"board: {exc}") from exc
+        if board.plate_margin_m < 0:
+            raise InputError(source, "board.plate_margin_m must be >= 0")
         if board.squares_x < 3 or board.squares_y < 3:
             raise InputError(source, "board.squares_x and board.squares_y must be at least 3")
         if not 0.005 < board.square_length_m < 1.0:
@@ -105,7 +134,7 @@ class Board:
         if btype == "charuco":
             if board.marker_length_m is None or board.dictionary is None:
                 raise InputError(source, "board: a charuco board needs marker_length_m and dictionary")
-            if board.marker_length_m >= board.square_length_m:
+            if not 0 < board.marker_length_m < board.square_length_m:
                 raise InputError(source, "board.marker_length_m must be smaller than square_length_m")
         return board
 
@@ -117,14 +146,14 @@ def load_board(path: str | Path) -> Board:
         raise InputError(p, "board file not found")
     if p.suffix.lower() == ".toml":  # a capture protocol: its [board] table
         try:
-            table = tomllib.loads(p.read_text()).get("board")
+            table = tomllib.loads(read_text(p, "protocol TOML")).get("board")
         except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise InputError(p, f"not valid TOML ({exc})") from exc
         if not isinstance(table, dict):
             raise InputError(p, "has no [board] table")
         return Board.from_dict(table, p)
     try:
-        data = json.loads(p.read_text())
+        data = json.loads(read_text(p, "board JSON"))
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(p, f"not a board JSON ({exc})") from exc
     if not isinstance(data, dict):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -62,15 +63,32 @@ class Intrinsics:
         return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
                 "ppx": self.ppx, "ppy": self.ppy, "model": self.model, "coeffs": list(self.coeffs)}
 
+    def check(self) -> Intrinsics:
+        """Raise ValueError naming the field when the record has no physical meaning."""
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"width and height must be positive, got {self.width}x{self.height}")
+        for name in ("fx", "fy"):
+            v = getattr(self, name)
+            if not math.isfinite(v) or v <= 0:
+                raise ValueError(f"{name} must be a positive focal length in pixels, got {v}")
+        for name, size in (("ppx", self.width), ("ppy", self.height)):
+            v = getattr(self, name)
+            if not math.isfinite(v) or not -0.5 <= v <= size - 0.5:
+                raise ValueError(f"{name} must lie in the image (0 to {size - 1} px), got {v}")
+        if not all(math.isfinite(c) for c in self.coeffs):
+            raise ValueError("distortion coefficients must be finite")
+        return self
+
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Intrinsics:
-        """Accepts our keys and the `cx`/`cy`/`distortion` spelling of camera.json files."""
+        """Accepts our keys and the `cx`/`cy`/`distortion` spelling of camera.json files; raises
+        KeyError for a missing key and ValueError for a value without physical meaning."""
         ppx = d["ppx"] if "ppx" in d else d["cx"]
         ppy = d["ppy"] if "ppy" in d else d["cy"]
         coeffs = d.get("coeffs", d.get("distortion", [0.0] * 5))
         return cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]),
                    float(ppx), float(ppy), str(d.get("model", "none")),
-                   tuple(float(c) for c in coeffs))
+                   tuple(float(c) for c in coeffs)).check()
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -11,6 +12,7 @@ import tomllib
 
 from depthstation.core.board import Board
 from depthstation.core.errors import ProtocolError
+from depthstation.core.text_files import read_text
 
 PROTOCOL_DIR = Path(__file__).resolve().parent.parent / "protocols"
 
@@ -144,6 +146,27 @@ def _table(cls: type, data: Any, key: str, source: Path | None) -> Any:
     return cls(**kwargs)
 
 
+# What a protocol must say itself: the board, the stream mode and the plan are what the study
+# measures; a default there would run a plan nobody asked for. The other tables have defaults
+# that only shape the guidance (tolerances, warm-up rule, calibration).
+REQUIRED = {
+    "board": (),  # its keys are Board's required ones
+    "streams": ("width", "height", "fps"),
+    "plan": ("frames_per_standpoint", "start_distance_m", "step_m", "max_distance_m", "inclinations_deg"),
+}
+
+
+def _positive(source: Path | None, table: Any, key: str, names: tuple[str, ...],
+              allow_zero: bool = False) -> None:
+    for n in names:
+        v = getattr(table, n)
+        if v is None:
+            continue
+        if not math.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
+            need = ">= 0" if allow_zero else "> 0"
+            raise ProtocolError(source, f"'{key}.{n}' must be {need}, got {v}")
+
+
 def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Protocol:
     """Validate a parsed protocol; every error names the key."""
     known = {"name", "description", "board", "streams", "plan", "tolerances", "warmup", "calibration"}
@@ -152,9 +175,13 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
             raise ProtocolError(source, f"unknown key '{k}'")
     if "name" not in data or not isinstance(data["name"], str):
         raise ProtocolError(source, "missing key 'name' (a string)")
-    board_data = data.get("board", {})
-    if not isinstance(board_data, dict):
-        raise ProtocolError(source, "[board] must be a table")
+    for table, keys in REQUIRED.items():
+        if not isinstance(data.get(table), dict):
+            raise ProtocolError(source, f"missing table [{table}]")
+        missing = [k for k in keys if k not in data[table]]
+        if missing:
+            raise ProtocolError(source, f"missing key '{table}.{missing[0]}'")
+    board_data = data["board"]
     board = Board.from_dict(board_data, source)
     proto = Protocol(
         name=data["name"],
@@ -180,6 +207,20 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
         raise ProtocolError(source, "'plan.side' must be 'left' or 'right'")
     if proto.streams.width <= 0 or proto.streams.height <= 0 or proto.streams.fps <= 0:
         raise ProtocolError(source, "'streams.width', 'streams.height' and 'streams.fps' must be positive")
+    _positive(source, proto.tolerances, "tolerances", ("distance_m", "inclination_deg", "still_seconds",
+                                                       "still_translation_m", "still_rotation_deg"))
+    if not 0 < proto.tolerances.end_fill_rate <= 1:
+        raise ProtocolError(source, f"'tolerances.end_fill_rate' must lie in (0, 1], got "
+                                    f"{proto.tolerances.end_fill_rate}")
+    w = proto.warmup
+    _positive(source, w, "warmup", ("min_minutes",), allow_zero=True)
+    _positive(source, w, "warmup", ("max_slope_c_per_min", "window_minutes", "max_minutes"))
+    if w.max_minutes < w.min_minutes:
+        raise ProtocolError(source, f"'warmup.max_minutes' ({w.max_minutes}) must be >= warmup.min_minutes "
+                                    f"({w.min_minutes})")
+    c = proto.calibration
+    _positive(source, c, "calibration", ("tare_distance_m",))
+    _positive(source, c, "calibration", ("min_health",), allow_zero=True)
     return proto
 
 
@@ -193,7 +234,7 @@ def load_protocol(path_or_name: str | Path) -> Protocol:
     if not p.is_file():
         raise ProtocolError(p, "protocol file not found")
     try:
-        data = tomllib.loads(p.read_text())
+        data = tomllib.loads(read_text(p, "protocol TOML"))
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ProtocolError(p, f"not valid TOML ({exc})") from exc
     return protocol_from_dict(data, p)

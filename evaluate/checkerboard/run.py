@@ -14,7 +14,7 @@ from typing import Any
 from depthstation.core.board import Board, load_board
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs
-from depthstation.core.errors import EvaluationError, InputError
+from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
 from depthstation.core.progress import progress
@@ -80,12 +80,17 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
 
 
 def check_usable(job: CheckerboardJob, results: list[StandpointResult]) -> None:
-    """No usable frame anywhere is a failure that names the likely cause."""
+    """No usable frame anywhere is bad input (exit 2): the board file does not describe the print,
+    or the recordings do not show it; the line names the likely cause."""
     if not any(x.usable for x in results):
         reasons = sorted({k for x in results for k in x.rejected})
-        msg = (f"no usable frame in any of {len(results)} standpoints ({', '.join(reasons) or 'no frames'}); "
-               f"does {job.board_source} describe the printed board (type, squares, dictionary)?")
-        raise EvaluationError(msg)
+        if reasons == ["board not found"]:
+            raise InputError(job.board_source if Path(job.board_source).exists() else None,
+                             f"the board was found in no frame of the {len(results)} standpoint(s): does "
+                             "this board file describe the printed board (type, squares, dictionary)?")
+        raise InputError(None, f"no usable frame in any of {len(results)} standpoints "
+                               f"({', '.join(reasons) or 'no frames'}); check the inputs and "
+                               f"{job.board_source}")
 
 
 def say_warnings(results: list[StandpointResult]) -> None:

@@ -8,6 +8,7 @@ Why with scale: SLAM trajectories and the camera's depth scale need not agree wi
 from __future__ import annotations
 
 import csv
+import io
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,7 @@ from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSource
 from depthstation.core.geometry import rodrigues, rotation_angle_deg
 from depthstation.core.lazy_open3d import open3d
+from depthstation.core.text_files import read_text
 from depthstation.evaluate.scan.trajectory import Trajectory, compose_similarity, decompose_similarity
 
 F64 = NDArray[np.float64]
@@ -49,7 +51,8 @@ def read_similarity(path: Path) -> F64:
     """A 4x4 matrix as text (whitespace or commas); 3x4 accepted; positive scale required."""
     path = Path(path)
     try:
-        m = np.loadtxt(path, delimiter="," if "," in path.read_text() else None, ndmin=2)
+        text = read_text(path, "similarity matrix")
+        m = np.loadtxt(io.StringIO(text), delimiter="," if "," in text else None, ndmin=2)
     except (OSError, ValueError) as exc:
         raise InputError(path, f"not a 4x4 matrix ({exc})") from exc
     if m.shape == (3, 4):

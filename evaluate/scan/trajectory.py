@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from depthstation.core.errors import InputError
 from depthstation.core.geometry import matrix_to_quaternion, quaternion_to_matrix
+from depthstation.core.text_files import read_text
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,7 @@ def read_tum(path: Path) -> Trajectory:
     if not path.is_file():
         raise InputError(path, "trajectory file not found")
     rows: list[list[float]] = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    for lineno, line in enumerate(read_text(path, "TUM trajectory").splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue

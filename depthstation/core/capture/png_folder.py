@@ -16,6 +16,7 @@ from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
 from depthstation.core.capture.recording import Recording
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
+from depthstation.core.text_files import read_text
 
 
 def _png_frames(folder: Path) -> list[tuple[int, Path, Path | None]]:
@@ -62,17 +63,42 @@ def _png_camera_json(folder: Path) -> Path | None:
     return None
 
 
+def _intrinsics(cam: dict[str, Any], key: str, path: Path) -> Intrinsics:
+    """One stream's intrinsics from camera.json; errors name the key."""
+    table = cam.get(key)
+    if not isinstance(table, dict):
+        raise InputError(path, f"missing key '{key}' (the stream's width, height, fx, fy, cx, cy)")
+    try:
+        return Intrinsics.from_dict(table)
+    except KeyError as exc:
+        raise InputError(path, f"missing key '{key}.{exc.args[0]}'") from exc
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, f"{key}: {exc}") from exc
+
+
 def open_png(folder: Path) -> PngRecording:
     cam_path = _png_camera_json(folder)
     if cam_path is None:
         raise InputError(folder, "PNG folder without camera.json (here or one level up)")
     try:
-        cam = json.loads(cam_path.read_text())
-        color = Intrinsics.from_dict(cam["color"])
-    except (ValueError, KeyError) as exc:
-        raise InputError(cam_path, f"bad camera.json: {exc}") from exc
-    aligned = bool(cam.get("depth_aligned_to_color", True))
-    depth_intr = color if aligned else Intrinsics.from_dict(cam["depth"])
+        cam = json.loads(read_text(cam_path, "camera JSON"))
+    except ValueError as exc:
+        raise InputError(cam_path, f"broken JSON ({exc})") from exc
+    if not isinstance(cam, dict):
+        raise InputError(cam_path, "expected a JSON object")
+    color = _intrinsics(cam, "color", cam_path)
+    aligned = cam.get("depth_aligned_to_color", True)
+    if not isinstance(aligned, bool):
+        raise InputError(cam_path, f"depth_aligned_to_color must be true or false, got {aligned!r}")
+    depth_intr = color if aligned else _intrinsics(cam, "depth", cam_path)
+    if "depth_units_m" not in cam:  # the scale of every depth value: never assumed
+        raise InputError(cam_path, "missing key 'depth_units_m' (metres per depth count, e.g. 0.001)")
+    units = cam["depth_units_m"]
+    if isinstance(units, bool) or not isinstance(units, (int, float)) or not 1e-6 <= float(units) <= 0.1:
+        raise InputError(cam_path, f"depth_units_m must be metres per count (1e-6 to 0.1), got {units!r}")
+    fps = cam.get("fps", 30.0)
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not fps > 0:
+        raise InputError(cam_path, f"fps must be positive, got {fps!r}")
     frames = _png_frames(folder)
     if not frames:
         raise InputError(folder, "has no frameK_depth.png files")
@@ -82,18 +108,18 @@ def open_png(folder: Path) -> PngRecording:
         depth_intrinsics=depth_intr,
         color_intrinsics=color,
         depth_to_color=Extrinsics(),
-        depth_units_m=float(cam.get("depth_units_m", 0.001)),
+        depth_units_m=float(units),
         depth_aligned_to_color=aligned,
         baseline_m=None if baseline is None else float(baseline),
-        fps=float(cam.get("fps", 30.0)),
+        fps=float(fps),
         device=device,
         # aligned depth: disparity physics lives in the stereo imager's own pixels
-        stereo_intrinsics=(Intrinsics.from_dict(cam["depth_unaligned"])
+        stereo_intrinsics=(_intrinsics(cam, "depth_unaligned", cam_path)
                            if aligned and isinstance(cam.get("depth_unaligned"), dict) else None),
     )
     meta: dict[str, Any] = {"device": device, "source": {"kind": "png", "camera_json": str(cam_path)}}
     if (cam_path.parent / "board.json").is_file():
-        meta["board"] = json.loads((cam_path.parent / "board.json").read_text())
+        meta["board"] = json.loads(read_text(cam_path.parent / "board.json", "board JSON"))
     if "depth_unaligned" in cam:
         meta["depth_unaligned_intrinsics"] = cam["depth_unaligned"]
     n_color = sum(1 for f in frames if f[2] is not None)

@@ -26,6 +26,7 @@ from depthstation.core.capture.mcap_writer import McapFileWriter
 from depthstation.core.errors import CaptureError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.results import _jsonable
+from depthstation.core.text_files import read_text
 
 log = logging.getLogger("depthstation.core.capture")
 
@@ -103,7 +104,7 @@ class Session:
         if not path.is_file():
             raise InputError(d, "is no capture session (no session.json)")
         try:
-            data = json.loads(path.read_text())
+            data = json.loads(read_text(path, "session JSON"))
         except ValueError as exc:
             raise InputError(path, f"is not valid JSON ({exc})") from exc
         if data.get("format") != SESSION_FORMAT:

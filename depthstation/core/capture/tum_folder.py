@@ -18,6 +18,7 @@ from depthstation.core.camera_model import Intrinsics, StreamInfo
 from depthstation.core.capture.recording import Recording
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
+from depthstation.core.text_files import read_text
 
 TUM_DEPTH_FACTOR = 5000.0  # TUM RGB-D depth PNGs: 5000 counts per metre
 _INTRINSICS_NAMES = ("camera.json", "intrinsics.json", "intrinsics.txt", "camera.txt", "calibration.txt")
@@ -29,7 +30,7 @@ def _read_intrinsics(path: Path) -> tuple[Intrinsics, float | None]:
     file `fx fy cx cy [width height] [depth_factor]`. Returns (intrinsics, depth units or None)."""
     if path.suffix == ".json":
         try:
-            d: dict[str, Any] = json.loads(path.read_text())
+            d: dict[str, Any] = json.loads(read_text(path, "intrinsics JSON"))
         except json.JSONDecodeError as exc:
             raise InputError(path, f"broken JSON ({exc})") from exc
         if "depth_intrinsics" in d:
@@ -44,7 +45,7 @@ def _read_intrinsics(path: Path) -> tuple[Intrinsics, float | None]:
         except KeyError as exc:
             raise InputError(path, f"intrinsics lack {exc}") from exc
     vals: list[float] = []
-    for line in path.read_text().splitlines():
+    for line in read_text(path, "intrinsics file").splitlines():
         s = line.split("#", 1)[0].strip()
         if s:
             vals += [float(x) for x in s.replace(",", " ").split()]
@@ -88,7 +89,7 @@ def open_tum_folder(path: Path, intrinsics: Path | None = None) -> TumSequence:
         raise InputError(path, f"no {' / '.join(_ASSOC_NAMES)} in this TUM RGB-D folder")
     stamps: list[float] = []
     files: list[Path] = []
-    for line in assoc.read_text().splitlines():
+    for line in read_text(assoc, "TUM association file").splitlines():
         s = line.strip()
         if not s or s.startswith("#"):
             continue

@@ -1,0 +1,189 @@
+"""Strict inputs: every required key present, every value in its physical range, text files in
+UTF-8, manifests writing only inside their folder. Each bad input ends in exit 2 and one line that
+names the file and the key, never a silent default and never an internal error."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from depthstation.app.cli import run_cli
+from depthstation.core.capture.sample_recordings import sample_frames, sample_info
+
+EXE = str(Path(sys.executable).with_name("depthstation"))
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclass
+class Ran:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+@pytest.fixture()
+def run(capsys: pytest.CaptureFixture[str]) -> Callable[..., Ran]:
+    """The console script in this process (the same code path as the installed command, without a
+    second start-up per case); one case also runs the real executable."""
+
+    def call(*args: str) -> Ran:
+        capsys.readouterr()
+        code = run_cli(list(args))
+        out = capsys.readouterr()
+        return Ran(code, out.out, out.err)
+    return call
+
+
+def test_the_executable_says_it_the_same_way(tmp_path: Path) -> None:
+    bad = tmp_path / "m.toml"
+    bad.write_text("[effects.disparity_noise]\nsigma_px = 0.08\n")
+    r = subprocess.run([EXE, "simulate", "checkerboard", "--model", str(bad), "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True, timeout=120)
+    one_line_error(Ran(r.returncode, r.stdout, r.stderr), "m.toml", "camera.preset")
+
+
+def one_line_error(r: Ran, *words: str, code: int = 2) -> None:
+    assert r.returncode == code, r.stdout + r.stderr
+    errors = [x for x in r.stderr.splitlines() if x.startswith("depthstation: error")]
+    assert len(errors) == 1, r.stderr
+    assert "Traceback" not in r.stderr and "internal error" not in r.stderr
+    for w in words:
+        assert w in errors[0], (w, errors[0])
+
+
+@pytest.fixture()
+def png_set(tmp_path: Path, charuco_dir: Path) -> Path:
+    """A copy of one real standpoint with its own camera.json and board.json to break."""
+    root = tmp_path / "set"
+    (root / "pose03").mkdir(parents=True)
+    for f in sorted((charuco_dir / "pose03").iterdir())[:4]:
+        (root / "pose03" / f.name).symlink_to(f)
+    (root / "camera.json").write_text((charuco_dir / "camera.json").read_text())
+    (root / "board.json").write_text((charuco_dir / "board.json").read_text())
+    return root
+
+
+def edit_json(path: Path, change: dict[str, object], drop: tuple[str, ...] = ()) -> None:
+    data = json.loads(path.read_text())
+    for k, v in change.items():
+        target = data
+        *head, last = k.split(".")
+        for h in head:
+            target = target[h]
+        target[last] = v
+    for k in drop:
+        data.pop(k)
+    path.write_text(json.dumps(data))
+
+
+def test_board_without_square_length(png_set: Path, tmp_path: Path, run: Callable[..., Ran]) -> None:
+    edit_json(png_set / "board.json", {}, drop=("square_length_m",))
+    r = run("evaluate", "checkerboard", str(png_set), "--board", str(png_set / "board.json"),
+            "--out", str(tmp_path / "o"), "--frames", "1")
+    one_line_error(r, "board.json", "square_length_m")
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(("change", "drop", "words"), [
+    ({"color.fx": 0}, (), ("camera.json", "color", "fx")),
+    ({"depth_units_m": 0}, (), ("camera.json", "depth_units_m")),
+    ({}, ("depth_units_m",), ("camera.json", "depth_units_m")),
+    ({"color.cx": 5000.0}, (), ("camera.json", "ppx")),
+])
+def test_camera_json_out_of_range(png_set: Path, tmp_path: Path, change: dict[str, object],
+                                  drop: tuple[str, ...], words: tuple[str, ...],
+                                  run: Callable[..., Ran]) -> None:
+    edit_json(png_set / "camera.json", change, drop)
+    r = run("capture", "info", str(png_set / "pose03"))
+    one_line_error(r, *words)
+
+
+PROTOCOL = (ROOT / "protocols" / "demo-d455.toml").read_text()
+
+
+@pytest.mark.parametrize(("old", "new", "words"), [
+    ("[plan]\n", "[x]\n", ("missing table [plan]",)),
+    ("square_length_m = 0.095\n", "", ("square_length_m",)),
+    ("distance_m = 0.05\n", "distance_m = -0.05\n", ("tolerances.distance_m",)),
+    ("min_minutes = 10.0\n", "min_minutes = -10.0\n", ("warmup.min_minutes",)),
+    ("max_minutes = 40.0\n", "max_minutes = 5.0\n", ("warmup.max_minutes",)),
+    ("fps = 30\n", "", ("streams.fps",)),
+])
+def test_protocol_required_and_in_range(tmp_path: Path, old: str, new: str, words: tuple[str, ...],
+                                        run: Callable[..., Ran]) -> None:
+    assert old in PROTOCOL
+    bad = tmp_path / "bad.toml"
+    text = PROTOCOL.replace(old, new, 1)
+    if new == "[x]\n":  # the whole [plan] table gone, its keys with it
+        head, rest = text.split("[x]\n", 1)
+        text = head + rest[rest.index("\n["):]
+    bad.write_text(text)
+    r = run("simulate", "checkerboard", "--protocol", str(bad), "--out", str(tmp_path / "o"), "--frames", "1")
+    one_line_error(r, "bad.toml", *words)
+
+
+@pytest.mark.parametrize(("text", "words"), [
+    ('[effects.disparity_noise]\nsigma_px = 0.08\n', ("camera.preset",)),
+    ('[camera]\npreset = "d455"\n[effects.thermal_drift]\ncoeff_px_per_c = 0.01\n',
+     ("effects.thermal_drift.reference_c", "degC")),
+    ('[camera]\npreset = "d455"\nbaseline_m = -0.095\n', ("baseline_m",)),
+])
+def test_model_required_and_in_range(tmp_path: Path, text: str, words: tuple[str, ...],
+                                     run: Callable[..., Ran]) -> None:
+    bad = tmp_path / "m.toml"
+    bad.write_text(text)
+    r = run("simulate", "checkerboard", "--protocol", "demo-d455", "--model", str(bad), "--out",
+            str(tmp_path / "o"), "--frames", "1")
+    one_line_error(r, "m.toml", *words)
+
+
+def test_non_utf8_trajectory(tmp_path: Path, run: Callable[..., Ran]) -> None:
+    seq = tmp_path / "seq.mcap"
+    from depthstation.core.capture.mcap_writer import write_mcap
+
+    info = sample_info(32, 24)
+    write_mcap(seq, info, sample_frames(info, 2))
+    poses = tmp_path / "poses.txt"
+    poses.write_bytes(b"0.0 0 0 0 0 0 0 1\n\xff\xfe junk \x80\n")
+    mesh = tmp_path / "room.ply"
+    mesh.write_text("ply\n")
+    r = run("evaluate", "scan", "--sequence", str(seq), "--poses", str(poses), "--reference", str(mesh),
+            "--out", str(tmp_path / "o"))
+    one_line_error(r, "poses.txt", "UTF-8")
+
+
+def test_wrong_board_is_input_error(charuco_dir: Path, tmp_path: Path, run: Callable[..., Ran]) -> None:
+    board = tmp_path / "board.json"
+    board.write_text(json.dumps({"type": "checkerboard", "squares_x": 7, "squares_y": 5,
+                                 "square_length_m": 0.075}))
+    r = run("evaluate", "checkerboard", str(charuco_dir / "pose03"), "--board", str(board), "--out",
+            str(tmp_path / "o"), "--frames", "2")
+    one_line_error(r, "board.json", "board was found in no frame")
+
+
+def test_batch_item_outside_its_folder(tmp_path: Path, run: Callable[..., Ran]) -> None:
+    m = tmp_path / "m.toml"
+    m.write_text('out = "res"\n[[items]]\nkind = "checkerboard"\nout = "../../x"\n'
+                 'inputs = { inputs = "a", board = "b.json" }\n')
+    r = run("evaluate", "batch", str(m))
+    one_line_error(r, "m.toml", "items[0].out", "outside")
+    assert not (tmp_path.parent / "x").exists()
+
+
+def test_mcap_cut_before_its_first_chunk(tmp_path: Path, run: Callable[..., Ran]) -> None:
+    from depthstation.core.capture.mcap_writer import write_mcap
+
+    info = sample_info(64, 48)
+    full = tmp_path / "full.mcap"
+    write_mcap(full, info, sample_frames(info, 3))
+    data = full.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: min(len(data) // 2, 2000)])
+    r = run("capture", "info", str(cut))
+    one_line_error(r, "cut.mcap", "cut short")
