@@ -12,11 +12,20 @@ from pathlib import Path
 
 import pytest
 
+from depthstation.app.cli import run_cli
+
 EXE = str(Path(sys.executable).with_name("depthstation"))
 
 
-def run(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([EXE, *args], capture_output=True, text=True, timeout=300, cwd=cwd)
+def run(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([EXE, *args], capture_output=True, text=True, timeout=300)
+
+
+def run_here(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
+    """The console script in this process: (exit code, stderr)."""
+    capsys.readouterr()
+    code = run_cli(list(args))
+    return code, capsys.readouterr().err
 
 
 @pytest.fixture(scope="module")
@@ -26,9 +35,9 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     proto = root / "p.toml"
     proto.write_text((Path(__file__).parents[1] / "protocols" / "demo-d455.toml").read_text()
                      .replace("width = 1280", "width = 640").replace("height = 720", "height = 360"))
-    r = run("simulate", "checkerboard", "--protocol", str(proto), "--out", str(root / "s"), "--frames", "12",
-            "--standpoint", "standpoint_01", "--standpoint", "standpoint_02")
-    assert r.returncode == 0, r.stderr
+    code = run_cli(["simulate", "checkerboard", "--protocol", str(proto), "--out", str(root / "s"),
+                    "--frames", "12", "--standpoint", "standpoint_01", "--standpoint", "standpoint_02"])
+    assert code == 0
     return root / "s"
 
 
@@ -52,23 +61,23 @@ def test_second_run_into_a_busy_folder_refuses(tmp_path: Path, session: Path) ->
     assert not lock.exists() and not list(tmp_path.glob(".res.partial-*"))
 
 
-def test_non_empty_out_and_existing_rrd_need_force(tmp_path: Path, session: Path) -> None:
+def test_non_empty_out_and_existing_rrd_need_force(tmp_path: Path, session: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
     board = str(session.parent / "p.toml")
     out = tmp_path / "res"
     out.mkdir()
     (out / "keep.txt").write_text("a result of last week")
-    r = run("evaluate", "checkerboard", str(session), "--board", board, "--out", str(out), "--frames", "3")
-    assert r.returncode == 2 and "never overwrite" in r.stderr
+    args = ["evaluate", "checkerboard", str(session), "--board", board, "--frames", "3"]
+    code, err = run_here(capsys, *args, "--out", str(out))
+    assert code == 2 and "never overwrite" in err
     assert (out / "keep.txt").read_text() == "a result of last week"
     rrd = tmp_path / "x.rrd"
     rrd.write_text("an old recording")
-    r = run("evaluate", "checkerboard", str(session), "--board", board, "--out", str(tmp_path / "new"),
-            "--frames", "3", "--rrd", str(rrd))
-    assert r.returncode == 2 and "x.rrd" in r.stderr and rrd.read_text() == "an old recording"
+    code, err = run_here(capsys, *args, "--out", str(tmp_path / "new"), "--rrd", str(rrd))
+    assert code == 2 and "x.rrd" in err and rrd.read_text() == "an old recording"
     assert not (tmp_path / "new").exists()
-    r = run("evaluate", "checkerboard", str(session), "--board", board, "--out", str(out), "--frames", "3",
-            "--rrd", str(rrd), "--force")
-    assert r.returncode == 0, r.stderr
+    code, err = run_here(capsys, *args, "--out", str(out), "--rrd", str(rrd), "--force")
+    assert code == 0, err
     assert not (out / "keep.txt").exists() and (out / "result.json").is_file()
     assert rrd.read_bytes()[:4] != b"an o"  # a real recording now
 
