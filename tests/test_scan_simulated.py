@@ -106,8 +106,8 @@ def test_registration_of_the_simulated_sequence_recovers_a_rigid_perturbation(
     si = np.linalg.inv(S)
     rng = np.random.default_rng(2)
     src = ref_pts @ si[:3, :3].T + si[:3, 3] + rng.normal(0, 0.03, ref_pts.shape)
-    reg = register(rec, moved, mesh, sample_reference_points(mesh, 300_000), pass_points=(src, ref_pts),
-                   every=1)
+    reg = register(rec, moved, mesh, sample_reference_points(mesh, 300_000), mode="similarity",
+                   pass_points=(src, ref_pts), every=1)
     s, r, t = decompose_similarity(reg.matrix)
     _, r0, t0 = decompose_similarity(S)
     assert abs(s - 1.0) < 1e-3

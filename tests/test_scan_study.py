@@ -103,7 +103,8 @@ def test_registration_recovers_a_known_similarity(room: Room, mesh: object) -> N
     ref_pts = np.array([[0, 0, 0], [6, 0, 0], [6, 5, 0], [0, 5, 2.8], [3, 2.5, 0.75], [6, 5, 2.8]], float)
     si = np.linalg.inv(S)
     src = ref_pts @ si[:3, :3].T + si[:3, 3] + rng.normal(0, 0.02, ref_pts.shape)
-    reg = register(seq, traj_f, mesh, sample_reference_points(mesh, 300_000), pass_points=(src, ref_pts),
+    reg = register(seq, traj_f, mesh, sample_reference_points(mesh, 300_000), mode="similarity",
+                   pass_points=(src, ref_pts),
                    every=1)
     s, r, t = decompose_similarity(reg.matrix)
     s0, r0, t0 = decompose_similarity(S)

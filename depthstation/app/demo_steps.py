@@ -182,7 +182,7 @@ def _scan_step(ctx: DemoContext) -> tuple[Path, str]:
                             progress=True)
     out = ctx.out / "scan"
     summary = run_scan(capture / "sequence.mcap", capture / "trajectory.txt", capture / "scene.ply", out,
-                       ScanOptions(similarity=plan / "similarity.txt", icp=True, min_count_sequence=200,
+                       ScanOptions(similarity=plan / "similarity.txt", register="none", min_count_sequence=200,
                                    target=ctx.target(out, "scan")))
     reg = summary.get("registration", {})
     ctx.facts["scan_registration"] = {k: reg.get(k) for k in ("scale", "mean_c2c_m", "mean_c2m_m")}

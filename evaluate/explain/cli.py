@@ -12,6 +12,7 @@ from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.core.results import result_folder
 from depthstation.evaluate.explain.run import run_explain
 from depthstation.evaluate.explain.scan_form import explain_scan, write_scan_outputs
+from depthstation.evaluate.scan.run import ScanOptions
 from depthstation.simulate.model import load_model
 
 
@@ -33,7 +34,11 @@ def explain(
     poses: Path | None = typer.Option(None, "--poses", help="--scan: TUM trajectory of the sequence."),
     reference: Path | None = typer.Option(None, "--reference", help="--scan: reference mesh or cloud."),
     similarity: Path | None = typer.Option(None, "--similarity", help="--scan: 4x4 trajectory-to-reference."),
-    icp: bool = typer.Option(True, "--icp/--no-icp", help="--scan: refine the registration by ICP."),
+    register: str = typer.Option("none", "--register",
+                                 help="--scan: none (trajectory as given), rigid, similarity (its scale is "
+                                      "reported as the depth-scale error it absorbs) or pass-points."),
+    icp: bool | None = typer.Option(None, "--icp/--no-icp", help="--scan, deprecated: --icp is --register "
+                                                                 "similarity, --no-icp --register none."),
     block_frames: int = typer.Option(8, "--block-frames",
                                      help="--scan: frames per block (unit of independence)."),
     rrd: Path | None = typer.Option(None, "--rrd", help="Also write a rerun recording here."),
@@ -53,7 +58,8 @@ def explain(
     if out.exists() and any(out.iterdir()) and not force:
         raise InputError(out, "is not empty; explain never overwrites results (--force replaces it)")
     if scan:
-        _explain_scan(real, poses, reference, model, out, frames, seed, similarity, icp, block_frames,
+        mode = ScanOptions(register=register, icp=icp).register_mode
+        _explain_scan(real, poses, reference, model, out, frames, seed, similarity, mode, block_frames,
                       not no_resimulate, force)
         return
     if board is None:
@@ -78,7 +84,7 @@ def explain(
 
 
 def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, model: str, out: Path,
-                  frames: int, seed: int, similarity: Path | None, icp: bool, block_frames: int,
+                  frames: int, seed: int, similarity: Path | None, register: str, block_frames: int,
                   resimulate: bool, force: bool) -> None:
     """`explain --scan`: a reference-scan sequence against its simulation along the same trajectory."""
 
@@ -98,9 +104,10 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
 
     with result_folder(out, force=force) as tmp:
         ex = explain_scan(real[0], poses, reference, mdl, tmp, frames=frames, block_frames=block_frames,
-                          seed=seed, icp=icp, similarity=similarity, resimulate=resimulate, tick=tick)
+                          seed=seed, register=register, similarity=similarity, resimulate=resimulate,
+                          tick=tick)
         data = write_scan_outputs(ex, tmp, [str(real[0]), str(poses), str(reference)],
-                                  {"model": model, "frames": frames, "seed": seed, "icp": icp,
+                                  {"model": model, "frames": frames, "seed": seed, "register": register,
                                    "block_frames": block_frames,
                                    "similarity": str(similarity) if similarity else None})
     verdict = "significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch"

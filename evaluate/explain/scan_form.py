@@ -342,7 +342,7 @@ class ScanExplanation:
 
 
 def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorModel, out: Path, *,
-                 frames: int | None = None, block_frames: int = 8, seed: int = 0, icp: bool = True,
+                 frames: int | None = None, block_frames: int = 8, seed: int = 0, register: str = "none",
                  similarity: Path | None = None, resimulate: bool = True, tolerance_s: float = 0.01,
                  tick: Progress | None = None) -> ScanExplanation:
     """Evaluate the real sequence and its simulation in frame blocks, locate, attribute, re-simulate."""
@@ -350,7 +350,7 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
     if tick:
         tick("prepare: reference mesh and registration")
     job = prepare_scan(sequence, poses, reference, out,
-                       ScanOptions(similarity=similarity, icp=icp, tolerance_s=tolerance_s))
+                       ScanOptions(similarity=similarity, register=register, tolerance_s=tolerance_s))
     source, mesh_path, posed = job.source, job.mesh_path, job.posed
     reg_info: dict[str, Any] = job.registration.to_dict()
     clock = read_clock(source)

@@ -25,8 +25,13 @@ def scan(
                                            help="4x4 similarity text file: trajectory -> reference."),
     pass_points: Path | None = typer.Option(None, "--pass-points",
                                             help="CSV x,y,z,x_ref,y_ref,z_ref (Umeyama with scale)."),
-    icp: bool = typer.Option(True, "--icp/--no-icp", help="Refine by ICP with scale on depth pixels "
-                                                          "in the 0.5-2.0 m band."),
+    register: str = typer.Option("none", "--register",
+                                 help="none (the trajectory as given, checked against the reference), "
+                                      "rigid (ICP + mesh refinement), similarity (with a scale: reported as "
+                                      "the depth-scale error it absorbs) or pass-points (Umeyama)."),
+    icp: bool | None = typer.Option(None, "--icp/--no-icp",
+                                    help="Deprecated: --icp is --register similarity, "
+                                         "--no-icp --register none."),
     icp_min_m: float = typer.Option(0.5, "--icp-min-m", help="Depth band for the ICP cloud: lower (m)."),
     icp_max_m: float = typer.Option(2.0, "--icp-max-m", help="Depth band for the ICP cloud: upper (m)."),
     frames: int | None = typer.Option(None, "--frames", min=1, help="Evaluate at most N frames."),
@@ -64,7 +69,7 @@ def scan(
     """The reference-scan study (paper Section 3.2): per-pixel depth error against a TLS reference,
     gridded over distance x inclination."""
 
-    opts = ScanOptions(similarity=similarity, pass_points=pass_points, icp=icp,
+    opts = ScanOptions(similarity=similarity, pass_points=pass_points, register=register, icp=icp,
                        icp_band_m=(icp_min_m, icp_max_m), frames=frames, every=every,
                        per_frame_grids=per_frame_grids, workers=workers, cluster=cluster,
                        chunk_frames=chunk_frames, tolerance_s=tolerance_s,
@@ -75,8 +80,5 @@ def scan(
                        density_quantile=density_quantile, force=force,
                        target=RerunTarget(rrd, spawn, serve, force))
     s = run_scan(sequence, poses, reference, out, opts)
-    reg = s["registration"]
-    c2c = reg["mean_c2c_m"]
     typer.echo(f"{s['frames']['used']} frames, {s['pixels']['evaluated']} pixels evaluated; "
-               f"scale {reg['scale']:.5f}, mean c2c {c2c * 100 if c2c is not None else float('nan'):.2f} cm "
-               f"-> {out / 'grid.npz'}")
+               f"{s['registration_caption']} -> {out / 'grid.npz'}")

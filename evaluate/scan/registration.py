@@ -1,8 +1,15 @@
-"""Registration of the trajectory frame to the reference: a given similarity, Umeyama from pass
-points, then ICP with scale on a cloud of depth pixels in a trusted band (paper: 0.5-2.0 m).
+"""Registration of the trajectory frame to the reference, chosen by the user (`--register`):
 
-Why with scale: SLAM trajectories and the camera's depth scale need not agree with the TLS metre
-(paper: s = 0.98288); a rigid fit would push that disagreement into the rotation.
+- `none` (default): the trajectory as given (or the `--similarity` given), checked against the
+  reference: a cloud of depth pixels in a trusted band (paper: 0.5-2.0 m) must lie on the mesh;
+- `rigid`: ICP and a point-to-plane refinement on the mesh, rotation and translation only;
+- `similarity`: the same with a scale (the paper's registration, s = 0.98288);
+- `pass-points`: Umeyama with scale from surveyed pass points.
+
+Why `none` by default: the study measures depth error, and a scale fitted on the depth pixels
+swallows exactly the depth-scale error it exists to measure (a scale of 0.98288 absorbs a
++1.74 % depth error: 52 mm at 3 m). A scale, wherever it comes from, is therefore reported as the
+depth-scale error it absorbs, with its 95 % band from refits on disjoint frame subsets.
 """
 
 from __future__ import annotations
@@ -26,6 +33,10 @@ from depthstation.evaluate.scan.trajectory import Trajectory, compose_similarity
 F64 = NDArray[np.float64]
 
 
+REGISTER_MODES = ("none", "rigid", "similarity", "pass-points")
+SCALE_SUBSETS = 5  # disjoint frame subsets for the band of an estimated scale
+
+
 @dataclass
 class Registration:
     """p_reference = s R p_trajectory + t, how it was found, and how well it fits."""
@@ -35,16 +46,50 @@ class Registration:
     mean_c2c_m: float | None = None
     mean_c2m_m: float | None = None
     icp: dict[str, Any] = field(default_factory=dict)
+    mode: str = "none"
+    median_c2m_m: float | None = None
+    scale_band95: tuple[float, float] | None = None  # of an estimated scale (None: given or 1)
 
     @property
     def scale(self) -> float:
         return decompose_similarity(self.matrix)[0]
 
+    @property
+    def absorbed_depth_scale_error(self) -> float:
+        """The relative depth-scale error the scale hides: depth (and a trajectory built on it)
+        too long by (1 + e) is mapped onto the reference by s = 1 / (1 + e)."""
+        return 1.0 / self.scale - 1.0
+
+    def absorbed(self) -> dict[str, Any] | None:
+        """What the registration's scale absorbs (None when it applies no scale)."""
+        if abs(self.scale - 1.0) < 1e-12:
+            return None
+        band = None if self.scale_band95 is None else [1.0 / s - 1.0 for s in self.scale_band95[::-1]]
+        return {"scale": self.scale, "depth_scale_error": self.absorbed_depth_scale_error,
+                "depth_scale_error_band95": band,
+                "meaning": "the registration's scale maps a trajectory (and the depth it was built on) too "
+                           "long by this fraction onto the reference; with exact poses it would be depth "
+                           "error moved into the poses, hidden from the grid"}
+
+    def caption(self) -> str:
+        """One line for figure captions and the console."""
+        a = self.absorbed()
+        text = f"registration {self.mode}"
+        if a is not None:
+            band = a["depth_scale_error_band95"]
+            text += (f", scale {self.scale:.5f} absorbs a depth-scale error of "
+                     f"{100 * a['depth_scale_error']:+.3f}%"
+                     + (f" (95%: {100 * band[0]:+.3f} to {100 * band[1]:+.3f}%)" if band else " (given)"))
+        if self.median_c2m_m is not None:
+            text += f"; median cloud-to-mesh {1000 * self.median_c2m_m:.1f} mm"
+        return text
+
     def to_dict(self) -> dict[str, Any]:
         s, r, t = decompose_similarity(self.matrix)
-        return {"method": self.method, "scale": s, "rotation": r.tolist(), "translation_m": t.tolist(),
-                "matrix": self.matrix.tolist(), "mean_c2c_m": self.mean_c2c_m,
-                "mean_c2m_m": self.mean_c2m_m, "icp": self.icp}
+        return {"mode": self.mode, "method": self.method, "scale": s, "rotation": r.tolist(),
+                "translation_m": t.tolist(), "matrix": self.matrix.tolist(), "mean_c2c_m": self.mean_c2c_m,
+                "mean_c2m_m": self.mean_c2m_m, "median_c2m_m": self.median_c2m_m,
+                "absorbed": self.absorbed(), "icp": self.icp}
 
 
 def read_similarity(path: Path) -> F64:
@@ -74,7 +119,7 @@ def read_pass_points(path: Path) -> tuple[F64, F64]:
     if not path.is_file():
         raise InputError(path, "pass-point file not found")
     src, dst = [], []
-    with path.open(newline="") as fh:
+    with io.StringIO(read_text(path, "pass-point CSV"), newline="") as fh:
         for lineno, row in enumerate(csv.reader(fh), 1):
             vals = [c.strip() for c in row if c.strip()]
             if not vals or vals[0].startswith("#"):
@@ -115,22 +160,20 @@ def umeyama(src: F64, dst: F64, with_scale: bool = True) -> F64:
     return compose_similarity(s, r, mu_d - s * r @ mu_s)
 
 
-def depth_band_cloud(source: FrameSource, trajectory: Trajectory, *, band_m: tuple[float, float] = (0.5, 2.0),
-                     tolerance_s: float = 0.01, every: int = 10, stride: int = 4,
-                     max_frames: int | None = None, voxel_m: float = 0.01) -> F64:
-    """Depth pixels within the band, back-projected and posed into the trajectory frame.
+def depth_band_frames(source: FrameSource, trajectory: Trajectory, *,
+                      band_m: tuple[float, float] = (0.5, 2.0), tolerance_s: float = 0.01, every: int = 10,
+                      stride: int = 4,
+                      max_frames: int | None = None) -> list[F64]:
+    """Per frame, its depth pixels within the band, back-projected and posed into the trajectory frame.
 
     Every `every`-th frame and every `stride`-th pixel: registration needs coverage, not density.
     """
-    o3d = open3d()
-
     info = source.info
     intr = info.depth_intrinsics
     v, u = np.mgrid[0:intr.height:stride, 0:intr.width:stride].astype(np.float64)
     x = ((u - intr.ppx) / intr.fx).ravel()
     y = ((v - intr.ppy) / intr.fy).ravel()
     parts = []
-    used = 0
     for fs in source.frames():
         if fs.index % every or fs.depth is None:
             continue
@@ -141,22 +184,34 @@ def depth_band_cloud(source: FrameSource, trajectory: Trajectory, *, band_m: tup
         ok = (z >= band_m[0]) & (z <= band_m[1])
         p = np.stack([x[ok] * z[ok], y[ok] * z[ok], z[ok]], axis=-1)
         parts.append(p @ pose[:3, :3].T + pose[:3, 3])
-        used += 1
-        if max_frames is not None and used >= max_frames:
+        if max_frames is not None and len(parts) >= max_frames:
             break
     if not parts:
         raise EvaluationError(f"no frame with a pose and depth in {band_m[0]}-{band_m[1]} m for registration")
-    pts = np.concatenate(parts)
-    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    return parts
+
+
+def voxel_cloud(parts: list[F64], voxel_m: float = 0.01) -> F64:
+    o3d = open3d()
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(parts)))
     if voxel_m > 0:
         pc = pc.voxel_down_sample(voxel_m)
     return np.asarray(pc.points)
 
 
+def depth_band_cloud(source: FrameSource, trajectory: Trajectory, *, band_m: tuple[float, float] = (0.5, 2.0),
+                     tolerance_s: float = 0.01, every: int = 10, stride: int = 4,
+                     max_frames: int | None = None, voxel_m: float = 0.01) -> F64:
+    """The band's depth pixels of all frames in one cloud, thinned to `voxel_m`."""
+    return voxel_cloud(depth_band_frames(source, trajectory, band_m=band_m, tolerance_s=tolerance_s,
+                                         every=every, stride=stride, max_frames=max_frames), voxel_m)
+
+
 def icp_with_scale(points: F64, target: Any, init: F64, *,
                    distances_m: tuple[float, ...] = (0.2, 0.08, 0.03, 0.015),
-                   max_iterations: int = 60) -> tuple[F64, dict[str, Any]]:
-    """Point-to-point ICP estimating a similarity, coarse to fine correspondence distances."""
+                   max_iterations: int = 60, with_scale: bool = True) -> tuple[F64, dict[str, Any]]:
+    """Point-to-point ICP estimating a similarity (or, without scale, a rigid motion), coarse to
+    fine correspondence distances."""
     o3d = open3d()
 
     reg = o3d.pipelines.registration
@@ -165,7 +220,7 @@ def icp_with_scale(points: F64, target: Any, init: F64, *,
     res = None
     for dist in distances_m:
         res = reg.registration_icp(
-            src, target, dist, m, reg.TransformationEstimationPointToPoint(with_scaling=True),
+            src, target, dist, m, reg.TransformationEstimationPointToPoint(with_scaling=with_scale),
             reg.ICPConvergenceCriteria(relative_fitness=1e-10, relative_rmse=1e-10,
                                        max_iteration=max_iterations))
         m = np.asarray(res.transformation).copy()
@@ -179,8 +234,10 @@ def icp_with_scale(points: F64, target: Any, init: F64, *,
 
 
 def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float = 0.05,
-                   iterations: int = 50, tol: float = 1e-8) -> tuple[F64, dict[str, Any]]:
-    """Point-to-plane ICP with scale against the exact surface (Gauss-Newton on a similarity).
+                   iterations: int = 50, tol: float = 1e-8,
+                   with_scale: bool = True) -> tuple[F64, dict[str, Any]]:
+    """Point-to-plane ICP against the exact surface (Gauss-Newton on a similarity, or without
+    scale on a rigid motion).
 
     Why: point-to-point ICP against sampled reference points converges to where the samples
     happen to lie (cm spacing). Against the mesh, residuals are the distances along the hit
@@ -207,9 +264,10 @@ def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float =
         if used < 10:
             raise EvaluationError("mesh refinement: fewer than 10 points near the reference surface")
         qc = q[ok] - q[ok].mean(0)  # centred: better conditioned scale/translation
-        a = np.column_stack([np.cross(qc, n[ok]), n[ok], (n[ok] * qc).sum(1)])
+        cols = [np.cross(qc, n[ok]), n[ok]] + ([(n[ok] * qc).sum(1)] if with_scale else [])
+        a = np.column_stack(cols)
         x, *_ = np.linalg.lstsq(a, -d[ok], rcond=None)
-        omega, tau, eps = x[:3], x[3:6], float(x[6])
+        omega, tau, eps = x[:3], x[3:6], float(x[6]) if with_scale else 0.0
         step = np.eye(4)
         step[:3, :3] = (1.0 + eps) * rodrigues(omega)
         c = q[ok].mean(0)
@@ -220,7 +278,8 @@ def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float =
     return m, {"mesh_refine_iterations": it + 1, "mesh_refine_points": used}
 
 
-def fit_distances(points: F64, matrix: F64, target: Any, mesh: Any | None) -> tuple[float, float | None]:
+def fit_distances(points: F64, matrix: F64, target: Any,
+                  mesh: Any | None) -> tuple[float, float | None, float | None]:
     """Mean distance of the registered cloud to the reference points (C2C, as CloudCompare) and,
     with a mesh, to the surface (C2M, free of the sampling spacing of the points)."""
     o3d = open3d()
@@ -228,35 +287,89 @@ def fit_distances(points: F64, matrix: F64, target: Any, mesh: Any | None) -> tu
     p = np.asarray(points) @ matrix[:3, :3].T + matrix[:3, 3]
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p))
     c2c = float(np.mean(np.asarray(src.compute_point_cloud_distance(target))))
-    c2m = None
+    c2m = c2m_median = None
     if mesh is not None:
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-        c2m = float(np.mean(scene.compute_distance(o3d.core.Tensor(p.astype(np.float32))).numpy()))
-    return c2c, c2m
+        dist = scene.compute_distance(o3d.core.Tensor(p.astype(np.float32))).numpy()
+        c2m, c2m_median = float(np.mean(dist)), float(np.median(dist))
+    return c2c, c2m, c2m_median
 
 
-def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any, *,
+def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any, *, mode: str = "none",
              similarity: F64 | None = None, pass_points: tuple[F64, F64] | None = None,
-             icp: bool = True, band_m: tuple[float, float] = (0.5, 2.0), tolerance_s: float = 0.01,
+             band_m: tuple[float, float] = (0.5, 2.0), tolerance_s: float = 0.01,
              every: int = 10) -> Registration:
-    """Initial similarity (given, from pass points, or identity), refined by ICP when asked."""
+    """The registration `mode` asks for (see the module's docstring), from the initial transform
+    (given similarity, pass points or identity), with its fit and what its scale absorbs."""
+    if mode not in REGISTER_MODES:
+        raise InputError(None, f"--register must be one of {', '.join(REGISTER_MODES)}, not '{mode}'")
+    if mode == "pass-points" and pass_points is None:
+        raise InputError(None, "--register pass-points needs --pass-points FILE")
+    scale_band: tuple[float, float] | None = None
     if similarity is not None:
         init, method = np.asarray(similarity, dtype=np.float64), "given"
     elif pass_points is not None:
         init, method = umeyama(*pass_points), "pass_points"
+        if mode == "pass-points":
+            scale_band = _jackknife_band(*pass_points)
     else:
         init, method = np.eye(4), "identity"
-    points = depth_band_cloud(source, trajectory, band_m=band_m, tolerance_s=tolerance_s, every=every)
-    info: dict[str, Any] = {"band_m": list(band_m)}
+    parts = depth_band_frames(source, trajectory, band_m=band_m, tolerance_s=tolerance_s, every=every)
+    points = voxel_cloud(parts)
+    info: dict[str, Any] = {"band_m": list(band_m), "frames": len(parts)}
     m = init
-    if icp:
-        m, icp_info = icp_with_scale(points, target, init)
+    if mode in ("rigid", "similarity"):
+        scaled = mode == "similarity"
+        m, icp_info = icp_with_scale(points, target, init, with_scale=scaled)
         info.update(icp_info)
         method += "+icp"
         if mesh is not None:
-            m, refine_info = refine_on_mesh(points, mesh, m)
+            m, refine_info = refine_on_mesh(points, mesh, m, with_scale=scaled)
             info.update(refine_info)
             method += "+mesh"
-    c2c, c2m = fit_distances(points, m, target, mesh)
-    return Registration(m, method, c2c, c2m, info)
+            if scaled:
+                scale_band = _subset_band(parts, mesh, m)
+    c2c, c2m, c2m_median = fit_distances(points, m, target, mesh)
+    return Registration(m, method, c2c, c2m, info, mode, c2m_median, scale_band95=scale_band)
+
+
+def _subset_band(parts: list[F64], mesh: Any, m: F64,
+                 k: int = SCALE_SUBSETS) -> tuple[float, float] | None:
+    """95 % band of a mesh-refined scale: refits on k disjoint subsets (of frames when there are
+    enough, else of points), t-interval of their mean."""
+    if len(parts) >= 2 * k:
+        subsets = [voxel_cloud(parts[j::k]) for j in range(k)]
+    else:
+        pts = voxel_cloud(parts)
+        order = np.random.default_rng(0).permutation(len(pts))
+        subsets = [pts[order[j::k]] for j in range(k)]
+    scales = []
+    for sub in subsets:
+        try:
+            mj, _ = refine_on_mesh(sub, mesh, m, with_scale=True)
+        except EvaluationError:
+            continue
+        scales.append(decompose_similarity(mj)[0])
+    if len(scales) < 2:
+        return None
+    from scipy import stats
+
+    s = float(decompose_similarity(m)[0])
+    half = float(stats.t.ppf(0.975, len(scales) - 1)) * float(np.std(scales, ddof=1)) / np.sqrt(len(scales))
+    return s - half, s + half
+
+
+def _jackknife_band(src: F64, dst: F64) -> tuple[float, float] | None:
+    """95 % band of the Umeyama scale from pass points (leave-one-out jackknife)."""
+    n = len(src)
+    if n < 4:
+        return None
+    from scipy import stats
+
+    s = decompose_similarity(umeyama(src, dst))[0]
+    loo = np.array([decompose_similarity(umeyama(np.delete(src, i, 0), np.delete(dst, i, 0)))[0]
+                    for i in range(n)])
+    se = float(np.sqrt((n - 1) / n * np.sum((loo - loo.mean()) ** 2)))
+    half = float(stats.t.ppf(0.975, n - 1)) * se
+    return s - half, s + half

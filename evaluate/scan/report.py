@@ -37,8 +37,8 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
                                         f"frame {fig_index}: measured vs reference").name
         figures["frame_grid"] = grid_figure(one.grid, out / "fig9_frame_grid.png", opt.min_count_frame,
                                             f"frame {fig_index}").name
-    figures["sequence_grid"] = grid_figure(grid, out / "fig10_sequence_grid.png",
-                                           opt.min_count_sequence, f"{source.name}: all frames").name
+    figures["sequence_grid"] = grid_figure(grid, out / "fig10_sequence_grid.png", opt.min_count_sequence,
+                                           f"{source.name}: all frames; {job.registration.caption()}").name
     job.seconds["figures"] = time.perf_counter() - t0
     reg = job.registration
     summary = {
@@ -50,6 +50,8 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
         "trajectory": {"poses": len(job.trajectory), "tolerance_s": opt.tolerance_s},
         "reference_mesh": {"path": inside(job.mesh_path, out), **job.mesh_info},
         "registration": reg.to_dict(),
+        "registration_caption": reg.caption(),
+        "fit_check": None if job.fit is None else job.fit.to_dict(),
         "frames": {"used": len(result.used), "skipped_no_pose": len(result.no_pose),
                    "skipped_no_depth": len(result.no_depth), "every": opt.every,
                    "figure_frame": fig_index, "no_pose_indices": result.no_pose[:1000]},

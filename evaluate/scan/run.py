@@ -25,12 +25,20 @@ from depthstation.core.parallel import ChunkRunner, ProgressFn
 from depthstation.core.progress import progress
 from depthstation.core.rerun_bridge import RerunTarget, recording
 from depthstation.core.results import result_folder
+from depthstation.core.run_warnings import warn
 from depthstation.evaluate.scan import rerun_log
 from depthstation.evaluate.scan.chunks import ScanChunk, frames_to_read, run_scan_chunks, scan_chunks
+from depthstation.evaluate.scan.raycast import MeshCaster
 from depthstation.evaluate.scan.reference import PoissonParams, reference_mesh, sample_reference_points
-from depthstation.evaluate.scan.registration import Registration, read_pass_points, read_similarity, register
+from depthstation.evaluate.scan.registration import (
+    REGISTER_MODES,
+    Registration,
+    read_pass_points,
+    read_similarity,
+    register,
+)
 from depthstation.evaluate.scan.report import write_scan
-from depthstation.evaluate.scan.study import PER_FRAME_DIR, ChunkResult, StudyConfig
+from depthstation.evaluate.scan.study import PER_FRAME_DIR, ChunkResult, FitCheck, StudyConfig, fit_check
 from depthstation.evaluate.scan.trajectory import Trajectory, read_tum
 
 
@@ -40,7 +48,8 @@ class ScanOptions:
 
     similarity: Path | None = None
     pass_points: Path | None = None
-    icp: bool = True
+    register: str = "none"
+    icp: bool | None = None  # deprecated: --icp was --register similarity, --no-icp --register none
     icp_band_m: tuple[float, float] = (0.5, 2.0)
     icp_every: int = 10
     frames: int | None = None
@@ -70,6 +79,20 @@ class ScanOptions:
     def check(self) -> None:
         if self.similarity is not None and self.pass_points is not None:
             raise InputError(None, "give either --similarity or --pass-points, not both")
+        if self.register not in REGISTER_MODES:
+            raise InputError(None, f"--register must be one of {', '.join(REGISTER_MODES)}, "
+                                   f"not '{self.register}'")
+
+    @property
+    def register_mode(self) -> str:
+        """--register, or what the deprecated --icp / --no-icp meant."""
+        if self.icp is None:
+            return self.register
+        mode = "similarity" if self.icp else "none"
+        warn(f"--{'' if self.icp else 'no-'}icp is deprecated: it means --register {mode} "
+             "(a fitted scale hides the depth-scale error the study measures; see docs/scan-study.md)",
+             code="deprecated")
+        return mode
         if self.every < 1 or self.workers < 1 or self.chunk_frames < 1:
             raise InputError(None, "--every, --workers and --chunk-frames must be at least 1")
 
@@ -110,6 +133,7 @@ class ScanJob:
     registration: Registration
     mesh_path: Path
     mesh_info: dict[str, Any]
+    fit: FitCheck | None
     config: StudyConfig
     chunks: list[ScanChunk]
     seconds: dict[str, float] = field(default_factory=dict)
@@ -141,10 +165,13 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     mesh, mesh_path, mesh_info = reference_mesh(
         Path(reference), out, PoissonParams(depth=opt.poisson_depth, density_quantile=opt.density_quantile))
     t_mesh = time.perf_counter()
-    reg = register(source, traj, mesh, sample_reference_points(mesh), similarity=similarity,
-                   pass_points=pass_points, icp=opt.icp, band_m=opt.icp_band_m,
+    reg = register(source, traj, mesh, sample_reference_points(mesh), mode=opt.register_mode,
+                   similarity=similarity, pass_points=pass_points, band_m=opt.icp_band_m,
                    tolerance_s=opt.tolerance_s, every=opt.icp_every)
     posed = traj.transformed(reg.matrix)
+    fit = fit_check(MeshCaster(mesh_path, source.info.depth_intrinsics), source, posed,
+                    tolerance_s=opt.tolerance_s)
+    say_registration(reg, fit, Path(sequence))
     t_reg = time.perf_counter()
     config = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
                          every=opt.every, max_frames=opt.frames, tolerance_s=opt.tolerance_s,
@@ -153,8 +180,26 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     chunks = scan_chunks(Path(sequence), mesh_path, posed, config, chunk_frames=opt.chunk_frames,
                          intrinsics=opt.intrinsics, source=source)
     return ScanJob(Path(sequence), Path(poses), Path(reference), out, opt, source, traj, posed, reg,
-                   mesh_path, mesh_info, config, chunks,
+                   mesh_path, mesh_info, fit, config, chunks,
                    {"reference": t_mesh - t0, "registration": t_reg - t_mesh})
+
+
+def say_registration(reg: Registration, fit: FitCheck | None, sequence: Path) -> None:
+    """The two things a registration can hide, said where the user looks: a trajectory that does
+    not fit the reference, and a scale that absorbs the depth-scale error."""
+    if fit is not None and not fit.fits:
+        advice = ("register it: --register rigid (another frame), similarity (another frame and scale), "
+                  "pass-points, or give --similarity")
+        warn(f"the trajectory does not fit the reference after registration '{reg.mode}': "
+             f"{100 * fit.off_share:.0f}% of the depth pixels of {fit.frames} frames miss the mesh by more "
+             f"than the depth noise explains (median |error| {1000 * fit.median_abs_error_m:.0f} mm); "
+             f"{advice}",
+             str(sequence), "registration-fit")
+    if reg.absorbed() is not None:
+        warn(f"{reg.caption()}: that is the depth-scale error of the depth the trajectory was built on "
+             "(RGB-D SLAM); if the poses are exact instead, the scale has moved that much depth error "
+             "into the poses and the grid hides it (--register rigid or none keeps it)", str(sequence),
+             "absorbed-scale")
 
 
 def run_prepared(job: ScanJob, runner: ChunkRunner, *, rec: Any = None,

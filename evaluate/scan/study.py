@@ -119,3 +119,57 @@ def frame_images(caster: MeshCaster, source: FrameSource, trajectory: Trajectory
             return None
         return caster.images(pose, fs.depth, source.info.depth_units_m)
     return None
+
+
+# a posed frame fits the reference when its depth agrees along the rays: a pixel is off when its
+# error exceeds FIT_LIMIT_M or 4x Intel's expected noise (z^2 * 0.08 px / (f B)) at its distance
+FIT_LIMIT_M = 0.02
+FIT_SHARE = 0.15
+SUBPIXEL_PX = 0.08
+
+
+@dataclass(frozen=True)
+class FitCheck:
+    """How well the posed depth lies on the reference along the rays (the study's own measure)."""
+
+    frames: int
+    pixels: int
+    off_share: float         # share of pixels whose |error| exceeds their limit
+    median_abs_error_m: float
+
+    @property
+    def fits(self) -> bool:
+        return self.off_share <= FIT_SHARE
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"frames": self.frames, "pixels": self.pixels, "off_share": self.off_share,
+                "median_abs_error_m": self.median_abs_error_m, "fits": self.fits,
+                "rule": f"a pixel is off when |measured - reference| > max({FIT_LIMIT_M} m, 4 z^2 "
+                        f"{SUBPIXEL_PX} px / (f B)); the trajectory fits when at most {FIT_SHARE:.0%} are"}
+
+
+def fit_check(caster: MeshCaster, source: FrameSource, trajectory: Trajectory, *, frames: int = 10,
+              tolerance_s: float = 0.01) -> FitCheck | None:
+    """Cast `frames` frames spread over the sequence and count the pixels that miss the reference
+    by more than the depth noise explains; None when no frame has a pose."""
+    n = source.frame_count or 0
+    picks = sorted({round(i) for i in np.linspace(0, max(n - 1, 0), frames)}) if n else list(range(frames))
+    intr = caster.intr
+    fb = intr.fx * (source.info.baseline_m or 0.05)
+    off = total = used = 0
+    errors: list[NDArray[np.float32]] = []
+    for k in picks:
+        images = frame_images(caster, source, trajectory, k, tolerance_s)
+        if images is None:
+            continue
+        ok = np.isfinite(images.error_m) & np.isfinite(images.reference_m)
+        z = images.reference_m[ok]
+        err = np.abs(images.error_m[ok])
+        limit = np.maximum(FIT_LIMIT_M, 4 * z * z * SUBPIXEL_PX / fb)
+        off += int(np.count_nonzero(err > limit))
+        total += int(err.size)
+        errors.append(err[:: max(1, err.size // 20000)])
+        used += 1
+    if used == 0 or total == 0:
+        return None
+    return FitCheck(used, total, off / total, float(np.median(np.concatenate(errors))))
