@@ -49,6 +49,8 @@ class FrameResult:
     origin: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     moments: dict[str, NDArray[np.float64]] = field(default_factory=dict)  # 'all', 'black', 'white'
     temperature_c: float = float("nan")
+    corner_ids: NDArray[np.int64] | None = None      # the board corners seen (Board.corner_points order)
+    corners_px: NDArray[np.float32] | None = None    # their colour-image positions, N x 2
 
     @property
     def ok(self) -> bool:
@@ -156,6 +158,8 @@ class FrameEvaluator:
         if self._check_every_frame or not self._colours_checked:
             det, pose = self._check_colours(fs.color, det, pose)
         res.corners = len(det.ids)
+        res.corner_ids = np.asarray(det.ids, dtype=np.int64)
+        res.corners_px = np.asarray(det.image_points, dtype=np.float32)
         res.corner_shift_px = self._corner_shift(det)
         res.reprojection_px = pose.reprojection_px
         if pose.reprojection_px > self.max_reprojection_px:

@@ -29,7 +29,9 @@ COLUMNS = ("standpoint", "frames", "frames_read", "distance_m", "inclination_deg
            "noise_black_white_p", "noise_black_white_paired_p", "accuracy_black_white_p",
            "accuracy_black_white_paired_p", "accuracy_frame_pose_m", "reprojection_px",
            "corner_shift_px", "pixels_per_frame", "corner_noise_px", "inclination_std_deg",
-           "inclination_frame_std_deg", "reference_plane")
+           "inclination_frame_std_deg", "reference_plane",
+           "distance_m_u95", "inclination_deg_u95", "noise_m_u95", "accuracy_m_u95",
+           "corner_random_px", "corner_static_px")
 FRAME_COLUMNS = ("standpoint", "index", "timestamp_ns", "status", "corners", "reprojection_px",
                  "corner_shift_px", "reference_distance_m", "board_pixels", "valid_pixels",
                  "fill_rate", "noise_m", "noise_black_m", "noise_white_m", "accuracy_m",
@@ -99,6 +101,14 @@ def summary(results: list[StandpointResult], board: Board, inputs: list[str],
                        "inclination = ray to centre vs board normal; noise = RMS orthogonal "
                        "residual to the frame's SVD plane; accuracy = mean signed orthogonal "
                        "distance to the reference plane, positive = behind it (too far).",
+        "expanded_uncertainty": "<figure>_u95 = k u_c, k = t(0.975, frames - 1) (GUM): distance and "
+                                "inclination from the pose's random corner noise (corner_random_px, "
+                                "averaged over the frames) and a static corner error (corner_static_px "
+                                "from the mean residuals, at least 0.01 px) through the corners' "
+                                "Jacobian; inclination near 0 deg as a folded magnitude (Rayleigh "
+                                "bound); noise from the frames' scatter plus 0.4 % for the estimator; "
+                                "accuracy from the frames' scatter plus the reference plane's offset "
+                                "uncertainty. See docs/checkerboard-study.md.",
         "pose_uncertainty": "inclination_std_deg = Cramer-Rao std of the averaged pose's normal "
                             "(worse tilt axis) from the mean per-frame corner noise (corner_noise_px, "
                             "from reprojection residuals) over the frames used; "

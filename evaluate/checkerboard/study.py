@@ -21,6 +21,15 @@ from depthstation.evaluate.checkerboard.frame import FrameEvaluator, FramePixels
 from depthstation.evaluate.checkerboard.mask import BLACK, WHITE
 from depthstation.evaluate.checkerboard.metrics import plane_distance_stats
 from depthstation.evaluate.checkerboard.pose import normal_std_deg
+from depthstation.evaluate.checkerboard.uncertainty import (
+    NOISE_TYPE_B,
+    STATIC_FLOOR_PX,
+    corner_errors,
+    coverage_factor,
+    folded_angle,
+    pose_covariance,
+    propagate,
+)
 
 FrameCallback = Callable[[FrameSet, FrameResult], None]
 
@@ -149,6 +158,39 @@ def pose_uncertainty(ok: list[FrameResult], board: Board, intr: Intrinsics,
         f["inclination_std_deg"] = float("nan")
     f["inclination_frame_std_deg"] = _mean_std([frame_inclination_deg(r, board) for r in ok])[1]
     return f
+
+
+def expanded_uncertainties(ok: list[FrameResult], board: Board, info: StreamInfo,
+                           camera_in_board: NDArray[np.float64], f: dict[str, float],
+                           use_frame: bool) -> dict[str, float]:
+    """U95 of distance, inclination, noise and accuracy (see `uncertainty.py` for the sources)."""
+    intr = _colour_intrinsics(info)
+    n = len(ok)
+    k = coverage_factor(n)
+    d2c = np.eye(4) if info.depth_aligned_to_color else info.depth_to_color.matrix
+    pose_c = np.asarray(np.linalg.inv(camera_in_board), dtype=np.float64)  # board -> colour
+    seen = [r for r in ok
+            if r.corner_ids is not None and r.corners_px is not None and r.pose_color is not None]
+    ce = corner_errors([r.corner_ids for r in seen], [r.corners_px for r in seen],  # type: ignore[misc]
+                       [r.pose_color for r in seen], board, intr)  # type: ignore[misc]
+    out: dict[str, float] = {"corner_random_px": ce.random_px, "corner_static_px": ce.static_px}
+    nan = float("nan")
+    if not (np.isfinite(ce.random_px) and np.isfinite(ce.static_px)):
+        return {**out, "distance_m_u95": nan, "inclination_deg_u95": nan, "noise_m_u95": nan,
+                "accuracy_m_u95": nan}
+    static = max(ce.static_px, STATIC_FLOOR_PX)
+    rnd = propagate(pose_c, d2c, board, pose_covariance(pose_c, board, intr, ce.random_px) / n)
+    sta = propagate(pose_c, d2c, board, pose_covariance(pose_c, board, intr, static))
+    d_emp = f["reference_distance_std_m"] / np.sqrt(n) if n > 1 else nan
+    u_d = np.sqrt(max(rnd["distance_var"], d_emp ** 2 if np.isfinite(d_emp) else 0.0) + sta["distance_var"])
+    _, u_inc = folded_angle(rnd["tilt"], rnd["tilt_cov"] + sta["tilt_cov"], k)
+    u_noise = np.sqrt(f["noise_std_m"] ** 2 / n + (NOISE_TYPE_B * f["noise_m"]) ** 2) if n > 1 else nan
+    # the reference plane: with the averaged pose its random error is not in the frames' scatter
+    acc_a = f["accuracy_std_m"] / np.sqrt(n) if n > 1 else nan
+    u_acc = np.sqrt(acc_a ** 2 + sta["offset_var"] + (0.0 if use_frame else rnd["offset_var"]))
+    out.update(distance_m_u95=float(k * u_d), inclination_deg_u95=float(u_inc),
+               noise_m_u95=float(k * u_noise), accuracy_m_u95=float(k * u_acc))
+    return out
 
 
 def colour_tests(black: list[float], white: list[float]) -> tuple[float, float]:
@@ -298,6 +340,7 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
     f["accuracy_frame_pose_m"] = _mean_std([r.accuracy_own_m for r in ok])[0]
     f["corner_shift_px"] = shift
     f["pixels_per_frame"] = _mean_std([float(r.valid_pixels) for r in ok])[0]
+    f.update(expanded_uncertainties(ok, board, info, out.camera_in_board, f, use_frame))
     out.figures = f
     if abs(f["accuracy_m"]) > BOARD_SCALE_TOLERANCE * f["distance_m"]:
         # the pose's distance scales with the board's printed size: a wrong square length moves the
