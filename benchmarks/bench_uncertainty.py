@@ -30,6 +30,7 @@ from depthstation.core.board import Board
 from depthstation.core.board_pose import pose_metrics
 from depthstation.core.camera_model import pixel_rays
 from depthstation.core.geometry import look_at, rodrigues
+from depthstation.core.protocol import Plan, Protocol, Streams
 from depthstation.evaluate.checkerboard.study import StandpointResult, evaluate_frames
 from depthstation.simulate.checkerboard_session import render_frames, stream_info_for
 from depthstation.simulate.model import SensorModel, load_model
@@ -77,8 +78,8 @@ def truth(renderer: ViewRenderer, model: SensorModel, cam_to_board: np.ndarray,
             "accuracy_m": float(np.mean((bias * along)[on]))}
 
 
-def run(n: int, frames: int, width: int, height: int, seed: int, head_on_share: float) -> list[dict[str, Any]]:
-    from depthstation.core.protocol import Plan, Protocol, Streams
+def run(n: int, frames: int, width: int, height: int, seed: int,
+        head_on_share: float) -> list[dict[str, Any]]:
 
     model = load_model("d455")
     proto = Protocol("coverage", board=BOARD, streams=Streams(width=width, height=height),
@@ -92,9 +93,8 @@ def run(n: int, frames: int, width: int, height: int, seed: int, head_on_share: 
         pose = random_pose(rng, head_on)
         renderer.set_pose(pose)
         t = truth(renderer, model, pose)
-        res: StandpointResult = evaluate_frames(f"sp{k:03d}", render_frames(renderer, frames, seed=seed * 1000 + k,
-                                                                            start_ns=0, fps=30.0),
-                                                info, BOARD, frames_requested=frames)
+        rendered = render_frames(renderer, frames, seed=seed * 1000 + k, start_ns=0, fps=30.0)
+        res: StandpointResult = evaluate_frames(f"sp{k:03d}", rendered, info, BOARD, frames_requested=frames)
         f = res.figures
         row: dict[str, Any] = {"standpoint": k, "head_on": head_on, "frames_used": res.frames_used,
                                "reference_plane": res.reference_plane, "figures": dict(f)}
@@ -118,15 +118,18 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
         err = est[ok] - tru[ok]
         covered = np.abs(err) <= u[ok]
         spread = 1.96 * float(np.sqrt(np.mean(err ** 2))) if err.size else float("nan")
-        out[name] = {"standpoints": int(ok.sum()), "coverage": float(covered.mean()) if ok.any() else float("nan"),
+        out[name] = {"standpoints": int(ok.sum()),
+                     "coverage": float(covered.mean()) if ok.any() else float("nan"),
                      "median_u95": float(np.median(u[ok])) if ok.any() else float("nan"),
                      "error_spread_95": spread,
-                     "median_u95_over_spread": float(np.median(u[ok]) / spread) if spread > 0 else float("nan")}
+                     "median_u95_over_spread": (float(np.median(u[ok]) / spread) if spread > 0
+                                                else float("nan"))}
     return out
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--standpoints", type=int, default=100)
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--width", type=int, default=1280)

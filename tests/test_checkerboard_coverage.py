@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_uncertainty import FIGURES, run, summarise  # noqa: E402
+from bench_uncertainty import FIGURES, run, summarise
 
 
 def test_u95_covers_the_truth_and_is_not_inflated() -> None:

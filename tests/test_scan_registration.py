@@ -9,6 +9,7 @@ back the grid still shows the bias; a trajectory in another frame is said not to
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -107,8 +108,8 @@ def test_similarity_reports_the_depth_scale_error_it_absorbs(walk: dict[str, Any
     lo, hi = absorbed["depth_scale_error_band95"]
     assert lo < absorbed["depth_scale_error"] < hi and hi - lo < 2e-3
     said = [w for w in found if w.code == "absorbed-scale"]
-    assert len(said) == 1 and "absorbs a depth-scale error of +0.4" in said[0].message or \
-        "absorbs a depth-scale error of +0.5" in said[0].message
+    assert len(said) == 1
+    assert re.search(r"absorbs a depth-scale error of \+0\.(4[6-9]|5[0-4])", said[0].message), said[0].message
     assert "absorbs" in s["registration_caption"]
     # the scale put the SLAM trajectory back on the true poses: the grid shows the depth error, a
     # bias growing as 0.5 % of the distance (a registration good to ~0.01 % leaves mm at grazing

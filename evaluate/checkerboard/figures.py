@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from depthstation.core.board import Board
+from depthstation.core.heatmaps import POSITIVE, SIGNED, colormap, robust_limits
 from depthstation.evaluate.checkerboard.study import StandpointResult
 
 
@@ -20,7 +21,7 @@ def _plt() -> Any:
     return plt
 
 
-def fig1_poses(path: Path, results: list[StandpointResult], board: Board) -> Path:
+def fig1_poses(path: Path, results: list[StandpointResult], board: Board, caption: str = "") -> Path:
     """Averaged colour-camera poses around the board (axes x, y, z in red, green, blue; 20 cm)."""
     plt = _plt()
     fig = plt.figure(figsize=(8, 7))
@@ -46,7 +47,8 @@ def fig1_poses(path: Path, results: list[StandpointResult], board: Board) -> Pat
     ax.set_ylabel("board y (m)")
     ax.set_zlabel("board z (m)")
     ax.invert_zaxis()
-    ax.set_title("Fig. 1: averaged camera poses in the board frame (axis length 20 cm)")
+    ax.set_title("Fig. 1: averaged camera poses in the board frame (axis length 20 cm)"
+                 + (f"\n{caption}" if caption else ""), fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -57,7 +59,7 @@ def _usable(results: list[StandpointResult]) -> list[StandpointResult]:
     return [r for r in results if r.usable]
 
 
-def fig4_reference_std(path: Path, results: list[StandpointResult]) -> Path:
+def fig4_reference_std(path: Path, results: list[StandpointResult], caption: str = "") -> Path:
     """Spread of the per-frame reference distances, and the reference pose's own tilt uncertainty.
 
     Left: std of the per-frame reference distances (the paper's Fig. 4). Right: the inclination's
@@ -97,14 +99,15 @@ def fig4_reference_std(path: Path, results: list[StandpointResult]) -> Path:
     ax2.set_title("reference pose tilt from random corner noise (no static bias)")
     ax2.legend(fontsize=7)
     ax2.grid(alpha=0.3, which="both")
-    fig.suptitle("Fig. 4: uncertainty of the reference pose per standpoint")
+    fig.suptitle("Fig. 4: uncertainty of the reference pose per standpoint"
+                 + (f" ({caption})" if caption else ""))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
 
 
-def fig5_pixels(path: Path, r: StandpointResult) -> Path | None:
+def fig5_pixels(path: Path, r: StandpointResult, caption: str = "") -> Path | None:
     """Per-pixel noise (to the frame's plane) and accuracy (to the reference plane) of one frame."""
     if r.example is None:
         return None
@@ -116,15 +119,15 @@ def fig5_pixels(path: Path, r: StandpointResult) -> Path | None:
     for ax, img, title in ((axes[0], ex.noise_map_m, "noise: distance to fitted plane"),
                            (axes[1], ex.accuracy_map_m, "accuracy: distance to reference plane")):
         mm = img * 1000
-        lim = float(np.nanpercentile(np.abs(mm), 99)) if np.isfinite(mm).any() else 1.0
-        im = ax.imshow(mm, cmap="RdBu_r", vmin=-lim, vmax=lim, extent=extent)
+        lo, hi = robust_limits(mm, 99.0, symmetric=True)
+        im = ax.imshow(np.ma.masked_invalid(mm), cmap=colormap(SIGNED), vmin=lo, vmax=hi, extent=extent)
         fig.colorbar(im, ax=ax, label="signed orthogonal distance (mm), + = behind")
         ax.set_xlabel("depth pixel u (px)")
         ax.set_ylabel("depth pixel v (px)")
         ax.set_title(title)
     f = r.figures
     fig.suptitle(f"Fig. 5: {r.name}, frame {ex.index} ({f['distance_m']:.2f} m, "
-                 f"{f['inclination_deg']:.1f} deg)")
+                 f"{f['inclination_deg']:.1f} deg)" + (f"; {caption}" if caption else ""))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -132,8 +135,8 @@ def fig5_pixels(path: Path, r: StandpointResult) -> Path | None:
 
 
 def fig_over_grid(path: Path, results: list[StandpointResult], key: str, label: str,
-                  number: int) -> Path:
-    """Mean and std over frames of one figure, per standpoint, over distance x inclination."""
+                  number: int, caption: str = "") -> Path:
+    """Mean (with U95) and std over frames of one figure, per standpoint, over distance x inclination."""
     plt = _plt()
     rs = _usable(results)
     d = np.array([r.figures["distance_m"] for r in rs])
@@ -141,26 +144,32 @@ def fig_over_grid(path: Path, results: list[StandpointResult], key: str, label: 
     fig, axes = plt.subplots(1, 2, figsize=(13, 5))
     for ax, suffix, what in ((axes[0], "_m", "mean"), (axes[1], "_std_m", "std over frames")):
         vals = np.array([r.figures.get(key + suffix, np.nan) for r in rs]) * 1000
-        cmap = "RdBu_r" if key.startswith("accuracy") and what == "mean" else "viridis"
-        lim = float(np.nanmax(np.abs(vals))) if np.isfinite(vals).any() else 1.0
-        kw = {"vmin": -lim, "vmax": lim} if cmap == "RdBu_r" else {}
-        sc = ax.scatter(d, inc, c=vals, cmap=cmap, s=120, edgecolors="k", **kw)
-        for x, y, v in zip(d, inc, vals, strict=True):
-            ax.annotate(f"{v:.1f}", (x, y), fontsize=7, xytext=(6, 6), textcoords="offset points")
-        fig.colorbar(sc, ax=ax, label=f"{label} {what} (mm)")
+        u95 = np.array([r.figures.get(key + "_m_u95", np.nan) for r in rs]) * 1000
+        signed = key.startswith("accuracy") and what == "mean"
+        lo, hi = robust_limits(vals, 98.0, symmetric=signed)
+        if not signed:
+            lo = min(lo, 0.0)
+        sc = ax.scatter(d, inc, c=vals, cmap=colormap(SIGNED if signed else POSITIVE), s=120,
+                        edgecolors="k", vmin=lo, vmax=hi)
+        for x, y, v, u in zip(d, inc, vals, u95, strict=True):
+            text = f"{v:.2f}" + (f" ± {u:.2f}" if what == "mean" and np.isfinite(u) else "")
+            ax.annotate(text, (x, y), fontsize=7, xytext=(6, 6), textcoords="offset points")
+        fig.colorbar(sc, ax=ax, label=f"{label} {what} (mm)" + (" ± U95" if what == "mean" else ""),
+                     extend="both" if signed else "max")
         ax.set_xlabel("distance (m)")
         ax.set_ylabel("inclination (deg)")
         ax.set_ylim(-3, 93)
         ax.grid(alpha=0.3)
         ax.set_title(f"{label}: {what}")
-    fig.suptitle(f"Fig. {number}: {label} per standpoint over distance x inclination")
+    fig.suptitle(f"Fig. {number}: {label} per standpoint over distance x inclination"
+                 + (f" ({caption})" if caption else ""))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
 
 
-def fig_colours(path: Path, results: list[StandpointResult]) -> Path:
+def fig_colours(path: Path, results: list[StandpointResult], caption: str = "") -> Path:
     """Black versus white squares: noise and accuracy with their std over frames."""
     plt = _plt()
     rs = _usable(results)
@@ -176,26 +185,29 @@ def fig_colours(path: Path, results: list[StandpointResult]) -> Path:
         ax.set_xlabel("standpoint")
         ax.legend()
         ax.grid(alpha=0.3)
-    fig.suptitle("Black vs white squares (p-values in standpoints.csv)")
+    fig.suptitle("Black vs white squares (p-values in standpoints.csv)"
+                 + (f"; {caption}" if caption else ""))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
 
 
-def write_figures(out: Path, results: list[StandpointResult], board: Board) -> list[Path]:
-    """All figures of the study; those without data (no usable standpoint) are left out."""
+def write_figures(out: Path, results: list[StandpointResult], board: Board,
+                  caption: str = "") -> list[Path]:
+    """All figures of the study; those without data (no usable standpoint) are left out.
+    `caption` (stream resolution, frames) goes into every title."""
     paths: list[Path] = []
     if not _usable(results):
         return paths
-    paths.append(fig1_poses(out / "fig1_poses.png", results, board))
-    paths.append(fig4_reference_std(out / "fig4_reference_distance_std.png", results))
+    paths.append(fig1_poses(out / "fig1_poses.png", results, board, caption))
+    paths.append(fig4_reference_std(out / "fig4_reference_distance_std.png", results, caption))
     best = min(_usable(results), key=lambda r: abs(r.figures["distance_m"] - 1.7)
                + abs(r.figures["inclination_deg"] - 42.5) / 50)
-    p5 = fig5_pixels(out / "fig5_pixels.png", best)
+    p5 = fig5_pixels(out / "fig5_pixels.png", best, caption)
     if p5 is not None:
         paths.append(p5)
-    paths.append(fig_over_grid(out / "fig6_noise.png", results, "noise", "noise", 6))
-    paths.append(fig_over_grid(out / "fig7_accuracy.png", results, "accuracy", "accuracy", 7))
-    paths.append(fig_colours(out / "fig_black_white.png", results))
+    paths.append(fig_over_grid(out / "fig6_noise.png", results, "noise", "noise", 6, caption))
+    paths.append(fig_over_grid(out / "fig7_accuracy.png", results, "accuracy", "accuracy", 7, caption))
+    paths.append(fig_colours(out / "fig_black_white.png", results, caption))
     return paths

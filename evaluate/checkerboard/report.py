@@ -119,7 +119,8 @@ def summary(results: list[StandpointResult], board: Board, inputs: list[str],
 
 
 def write_study(out: Path, results: list[StandpointResult], board: Board, inputs: list[str],
-                parameters: dict[str, Any], device: dict[str, Any], figures: bool = True) -> list[Path]:
+                parameters: dict[str, Any], device: dict[str, Any], figures: bool = True,
+                caption: str = "") -> list[Path]:
     """Write the whole result folder; returns the figure files."""
     out.mkdir(parents=True, exist_ok=True)
     write_tables(out, results, board)
@@ -127,7 +128,7 @@ def write_study(out: Path, results: list[StandpointResult], board: Board, inputs
     pngs: list[Path] = []
     if figures:
 
-        pngs = write_figures(out, results, board)
+        pngs = write_figures(out, results, board, caption)
     samples = [r for r in results if r.samples is not None]
     if samples:
         arrays: dict[str, Any] = {}

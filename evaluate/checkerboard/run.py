@@ -55,6 +55,15 @@ class CheckerboardJob:
         return {"board": self.board_source, "frames": o.frames, "reference": o.reference,
                 "margin_m": o.margin_m, "pose": POSE_METHOD}
 
+    def caption(self, results: list[StandpointResult]) -> str:
+        """What every figure title says of the data: stream resolution and frames used."""
+        i = self.recordings[0].info.depth_intrinsics
+        used = [r.frames_used for r in results if r.usable]
+        if not used:
+            return f"depth {i.width}x{i.height}, no usable frame"
+        frames = f"{min(used)}-{max(used)}" if min(used) != max(used) else str(used[0])
+        return f"depth {i.width}x{i.height}, {frames} frames per standpoint"
+
     @property
     def device(self) -> dict[str, Any]:
         first = self.recordings[0]
@@ -109,7 +118,8 @@ def finish_checkerboard(job: CheckerboardJob, results: list[StandpointResult],
     """Write the result folder of finished standpoints; the rows of standpoints.csv."""
     say_warnings(results)
     check_usable(job, results)
-    write_study(out, results, job.board, [str(p) for p in job.inputs], job.parameters, job.device)
+    write_study(out, results, job.board, [str(p) for p in job.inputs], job.parameters, job.device,
+                caption=job.caption(results))
     return [standpoint_row(x) for x in results]
 
 
