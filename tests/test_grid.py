@@ -9,6 +9,7 @@ import pytest
 
 from depthstation.core.errors import InputError
 from depthstation.core.grid import Grid
+from depthstation.evaluate.scan.figures import display_grid
 
 
 def _samples(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -93,3 +94,31 @@ def test_masked_views_hide_thin_cells() -> None:
     assert not mean.mask[0, 0] and mean.mask[1, 0]
     assert std[0, 0] == pytest.approx(np.std(np.arange(12.0), ddof=1))
     assert count[1, 0] == 3
+
+
+def test_coarsened_equals_binning_at_the_coarse_bins() -> None:
+    """Merging 2 x 3 blocks of cells gives the grid binned directly at the coarse size."""
+    fine = Grid.empty(distance_bin_m=0.05, inclination_bin_deg=5.0, distance_max_m=1.0)
+    coarse = Grid.empty(distance_bin_m=0.1, inclination_bin_deg=15.0, distance_max_m=1.0)
+    d, a, x = _samples(20000, 7)
+    fine.add(d, a, x)
+    coarse.add(d, a, x)
+    c = fine.coarsened(2, 3)
+    np.testing.assert_array_equal(c.count, coarse.count)
+    np.testing.assert_allclose(c.mean_m, coarse.mean_m, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(c.std, coarse.std, rtol=1e-9)
+    with pytest.raises(ValueError, match="divide"):
+        fine.coarsened(3, 1)
+
+
+def test_display_grid_coarsens_a_sparse_grid_only_as_far_as_needed() -> None:
+    g = Grid.empty(distance_bin_m=0.01, inclination_bin_deg=1.0, distance_max_m=1.0)
+    d, a, x = _samples(4000, 3)  # ~0.4 samples per fine cell
+    g.add(d, a, x)
+    shown, (fd, fi) = display_grid(g, min_count=10)
+    assert (fd, fi) != (1, 1)
+    held = shown.count[shown.count >= 10].sum()
+    assert held >= 0.5 * g.total and shown.total == g.total
+    dense = Grid.empty(distance_bin_m=0.1, inclination_bin_deg=10.0, distance_max_m=1.0)
+    dense.add(d, a, x)  # ~44 per cell: shown as analysed
+    assert display_grid(dense, min_count=10)[1] == (1, 1)

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from depthstation.core.grid import Grid
-from depthstation.core.heatmaps import colormap
+from depthstation.core.heatmaps import COUNTS, POSITIVE, SIGNED, colormap, robust_limits
 from depthstation.evaluate.scan.raycast import FrameImages
 
 
@@ -55,40 +55,66 @@ def frame_figure(images: FrameImages, path: Path, title: str = "") -> Path:
     return Path(path)
 
 
+DISPLAY_FACTORS = (1, 2, 5, 10, 20)  # coarser display bins tried, per axis
+DISPLAY_SHARE = 0.5                  # of the samples that shown cells must hold
+
+
+def display_grid(grid: Grid, min_count: int) -> tuple[Grid, tuple[int, int]]:
+    """The grid at the finest display bins where cells of >= min_count samples hold at least half of
+    all samples (a short sequence spread over 1 million cells of 5 mm x 0.1 deg would show almost
+    nothing); the factors (distance, inclination) used, the more balanced first at equal size."""
+    nd, ni = grid.shape
+    total = max(grid.total, 1)
+    best = (grid, (1, 1))
+    for f in sorted({(a, b) for a in DISPLAY_FACTORS for b in DISPLAY_FACTORS if nd % a == 0 and ni % b == 0},
+                    key=lambda ab: (ab[0] * ab[1], max(ab), ab)):
+        g = grid if f == (1, 1) else grid.coarsened(*f)
+        if g.count[g.count >= min_count].sum() >= DISPLAY_SHARE * total:
+            return g, f
+        best = (g, f)
+    return best
+
+
 def grid_figure(grid: Grid, path: Path, min_count: int, title: str = "") -> Path:
-    """Count, mean error and std per distance x inclination cell (Fig. 9 / Fig. 10)."""
+    """Count, mean error and std per distance x inclination cell (Fig. 9 / Fig. 10), at display bins
+    coarse enough for the data; a panel without cells of min_count samples says so."""
     plt = _plt()
     from matplotlib.colors import LogNorm
 
-    count, mean, std = grid.masked(min_count)
-    de, ie = grid.distance_edges_m, grid.inclination_edges_deg
-    used = np.nonzero(grid.count.sum(axis=1))[0]
+    shown, (fd, fi) = display_grid(grid, min_count)
+    count, mean, std = shown.masked(min_count)
+    de, ie = shown.distance_edges_m, shown.inclination_edges_deg
+    used = np.nonzero(shown.count.sum(axis=1))[0]
     dmax = float(de[used[-1] + 1]) if used.size else float(de[-1])
     extent = (float(de[0]), float(de[-1]), float(ie[0]), float(ie[-1]))
-    fig, axes = plt.subplots(1, 3, figsize=(17, 5), constrained_layout=True)
+    fig, axes = plt.subplots(1, 3, figsize=(17, 5.3), constrained_layout=True)
     mean_mm = mean * 1000.0
     std_mm = std * 1000.0
-    lim = float(np.percentile(np.abs(mean_mm.compressed()), 98)) if mean_mm.count() else 1.0
-    smax = float(np.percentile(std_mm.compressed(), 98)) if std_mm.count() else 1.0
-    cmax = max(int(grid.count.max()), 2)
+    lo, hi = robust_limits(mean_mm, 98.0, symmetric=True)
+    _, smax = robust_limits(std_mm, 98.0)
+    cmax = max(int(shown.count.max()), 2)
+    bins = (f"{1000 * (de[1] - de[0]):.0f} mm x {ie[1] - ie[0]:.1f} deg cells"
+            + (f" (display: {fd} x {fi} analysis cells)" if (fd, fi) != (1, 1) else ""))
     panels = [
-        (count, "(a) samples per cell", "count", "viridis", LogNorm(vmin=1, vmax=cmax)),
-        (mean_mm, f"(b) mean error (cells with >= {min_count} samples)", "mean error (mm)",
-         "RdBu_r", plt.Normalize(-lim, lim)),
-        (std_mm, f"(c) std of error (cells with >= {min_count} samples)", "std (mm)", "magma",
-         plt.Normalize(0.0, smax)),
+        (count, "(a) samples per cell", "count", COUNTS, LogNorm(vmin=1, vmax=cmax)),
+        (mean_mm, f"(b) mean error, cells with >= {min_count} samples", "mean error (mm)",
+         SIGNED, plt.Normalize(lo, hi)),
+        (std_mm, f"(c) std of error, cells with >= {min_count} samples", "std (mm)", POSITIVE,
+         plt.Normalize(0.0, max(smax, 1e-9))),
     ]
     for ax, (data, name, unit, cmap, norm) in zip(axes, panels, strict=True):
-        cm = colormap(cmap)
-        im = ax.imshow(data.T, origin="lower", aspect="auto", extent=extent, cmap=cm, norm=norm,
+        im = ax.imshow(data.T, origin="lower", aspect="auto", extent=extent, cmap=colormap(cmap), norm=norm,
                        interpolation="nearest")
         ax.set_xlim(float(de[0]), dmax)
         ax.set_title(name)
         ax.set_xlabel("distance: reference z-depth (m)")
         ax.set_ylabel("inclination (deg)")
         fig.colorbar(im, ax=ax, label=unit)
-    if title:
-        fig.suptitle(title)
+        if data is not count and not np.ma.count(data):
+            ax.text(0.5, 0.5, f"no cell holds {min_count} samples\n(lower --min-count-* or use more frames)",
+                    transform=ax.transAxes, ha="center", va="center", fontsize=10,
+                    bbox={"facecolor": "white", "alpha": 0.8})
+    fig.suptitle((title + "\n" if title else "") + bins, fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)

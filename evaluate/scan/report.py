@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from depthstation.core.grid import GRID_FILE
 from depthstation.core.results import SUMMARY_FILE, inside, write_json, write_result_info
+from depthstation.core.run_warnings import warn
 from depthstation.evaluate.scan.figures import frame_figure, grid_figure
 from depthstation.evaluate.scan.raycast import MeshCaster
 from depthstation.evaluate.scan.study import ChunkResult, StudyConfig, evaluate_chunk, frame_images
@@ -27,6 +28,8 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
     figures: dict[str, str] = {}
     fig_index = (opt.figure_frame if opt.figure_frame is not None
                  else sorted(result.used)[len(result.used) // 2])
+    intr = source.info.depth_intrinsics
+    stream = f"depth {intr.width}x{intr.height}"
     caster = MeshCaster(job.mesh_path, source.info.depth_intrinsics)
     images = frame_images(caster, source, job.posed, fig_index, opt.tolerance_s)
     if images is not None:
@@ -34,11 +37,16 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
                                 tolerance_s=opt.tolerance_s)
         one = evaluate_chunk(caster, source, job.posed, frame_cfg, fig_index, 1)
         figures["frame"] = frame_figure(images, out / "fig8_frame.png",
-                                        f"frame {fig_index}: measured vs reference").name
+                                        f"Fig. 8: frame {fig_index} of {source.name} ({stream}): "
+                                        "measured vs reference").name
         figures["frame_grid"] = grid_figure(one.grid, out / "fig9_frame_grid.png", opt.min_count_frame,
-                                            f"frame {fig_index}").name
+                                            f"Fig. 9: frame {fig_index} of {source.name} ({stream})").name
     figures["sequence_grid"] = grid_figure(grid, out / "fig10_sequence_grid.png", opt.min_count_sequence,
-                                           f"{source.name}: all frames; {job.registration.caption()}").name
+                                           f"Fig. 10: {source.name} ({stream}, {len(result.used)} frames); "
+                                           f"{job.registration.caption()}").name
+    if not (grid.count >= opt.min_count_sequence).any():
+        warn(f"no cell of the grid holds {opt.min_count_sequence} samples (--min-count-sequence): too few "
+             "frames for these bins; Fig. 10 draws coarser display cells", str(job.sequence), "sparse-grid")
     job.seconds["figures"] = time.perf_counter() - t0
     reg = job.registration
     summary = {
