@@ -19,6 +19,7 @@ from depthstation.app.compare import (
 from depthstation.core import rerun_bridge as viz
 from depthstation.core.errors import InputError
 from depthstation.core.grid import GRID_FILE, Grid
+from depthstation.core.heatmaps import SIGNED, colormap, robust_limits
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.core.results import (
@@ -50,7 +51,8 @@ def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 
 
 def _standpoint_figure(path: Path, cmp: StandpointComparison, label: str) -> None:
-    """Per standpoint, difference of noise and accuracy (mm) placed over inclination x distance."""
+    """Per standpoint, difference of noise and accuracy (mm) placed over distance x inclination (the
+    axes of the evaluation figures)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -65,22 +67,24 @@ def _standpoint_figure(path: Path, cmp: StandpointComparison, label: str) -> Non
         key = f"{col}[{label} - {ref}]"
         diff = np.array([r.get(key, np.nan) for r in cmp.rows], dtype=float) * 1e3
         ok = np.isfinite(diff)
-        lim = float(np.max(np.abs(diff[ok]))) if ok.any() else 1.0
-        lim = lim if lim > 0 else 1e-3
-        sc = ax.scatter(incl[ok], dist[ok], c=diff[ok], cmap="RdBu_r", vmin=-lim, vmax=lim, s=160,
+        lo, hi = robust_limits(diff, 100.0, symmetric=True)
+        sc = ax.scatter(dist[ok], incl[ok], c=diff[ok], cmap=colormap(SIGNED), vmin=lo, vmax=hi, s=160,
                         edgecolors="k")
-        ax.scatter(incl[~ok], dist[~ok], marker="x", c="grey", label="unmatched")
-        fig.colorbar(sc, ax=ax, label=f"{title}: {label} - {ref} [mm]")
-        ax.set_xlabel("inclination [deg]")
-        ax.set_ylabel("distance [m]")
+        if (~ok).any():
+            ax.scatter(dist[~ok], incl[~ok], marker="x", c="grey", label="unmatched")
+            ax.legend(loc="best")
+        fig.colorbar(sc, ax=ax, label="difference [mm]")
+        ax.set_xlabel("distance [m]")
+        ax.set_ylabel("inclination [deg]")
         ax.set_title(f"{title} difference per standpoint")
         ax.grid(alpha=0.3)
+    fig.suptitle(f"{label} - {ref}: {int(ok.sum())} of {len(cmp.rows)} standpoints matched", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
 def _grid_figure(path: Path, diff: GridDifference, label: str, ref: str) -> None:
-    """Heatmaps of the mean and std differences (mm) over inclination x distance, cropped to data."""
+    """Heatmaps of the mean and std differences (mm) over distance x inclination, cropped to data."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -92,18 +96,18 @@ def _grid_figure(path: Path, diff: GridDifference, label: str, ref: str) -> None
     cols = np.flatnonzero(diff.mask.any(axis=0))
     for ax, arr, title in zip(axes, (diff.mean_diff_m, diff.std_diff_m),
                                   ("mean error", "std of error"), strict=True):
-        mm = arr * 1e3
-        ok = np.isfinite(mm)
-        lim = float(np.max(np.abs(mm[ok]))) if ok.any() else 1.0
-        lim = lim if lim > 0 else 1e-3
-        mesh = ax.pcolormesh(ie, de, np.ma.masked_invalid(mm), cmap="RdBu_r", vmin=-lim, vmax=lim,
-                             shading="flat")
-        fig.colorbar(mesh, ax=ax, label=f"{title}: {label} - {ref} [mm]")
+        mm = np.ma.masked_invalid(arr * 1e3)
+        lo, hi = robust_limits(mm, 98.0, symmetric=True)
+        mesh = ax.pcolormesh(de, ie, mm.T, cmap=colormap(SIGNED), vmin=lo, vmax=hi, shading="flat")
+        fig.colorbar(mesh, ax=ax, label="difference [mm]")
         if rows.size and cols.size:
-            ax.set_ylim(de[rows[0]], de[rows[-1] + 1])
-            ax.set_xlim(ie[cols[0]], ie[cols[-1] + 1])
-        ax.set_xlabel("inclination [deg]")
-        ax.set_ylabel("distance [m]")
+            ax.set_xlim(de[rows[0]], de[rows[-1] + 1])
+            ax.set_ylim(ie[cols[0]], ie[cols[-1] + 1])
+        else:
+            ax.text(0.5, 0.5, f"no cell holds {diff.min_count} samples in both", transform=ax.transAxes,
+                    ha="center", va="center")
+        ax.set_xlabel("distance [m]")
+        ax.set_ylabel("inclination [deg]")
         ax.set_title(f"{title} difference (cells with >= {diff.min_count} samples in both)")
     fig.savefig(path, dpi=110)
     plt.close(fig)
