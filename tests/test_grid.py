@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from depthstation.core.errors import InputError
-from depthstation.core.grid import Grid
-from depthstation.evaluate.scan.figures import display_grid
+from depthstation.core.grid import Grid, display_grid
 
 
 def _samples(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

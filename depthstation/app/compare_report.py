@@ -18,7 +18,7 @@ from depthstation.app.compare import (
 )
 from depthstation.core import rerun_bridge as viz
 from depthstation.core.errors import InputError
-from depthstation.core.grid import GRID_FILE, Grid
+from depthstation.core.grid import GRID_FILE, Grid, display_grid
 from depthstation.core.heatmaps import SIGNED, colormap, robust_limits
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
@@ -31,6 +31,7 @@ from depthstation.core.results import (
     write_json,
     write_result_info,
 )
+from depthstation.core.run_warnings import warn
 
 COMPARE_CSV = "standpoints_compare.csv"
 
@@ -83,7 +84,19 @@ def _standpoint_figure(path: Path, cmp: StandpointComparison, label: str) -> Non
     plt.close(fig)
 
 
-def _grid_figure(path: Path, diff: GridDifference, label: str, ref: str) -> None:
+def _display_difference(ref: Grid, other: Grid, min_count: int) -> tuple[GridDifference, tuple[int, int]]:
+    """The difference at display cells coarse enough that cells with min_count samples in both grids
+    hold most of the samples (the same rule as Fig. 9/10); the factors used."""
+    both = Grid(ref.distance_edges_m, ref.inclination_edges_deg, np.minimum(ref.count, other.count),
+                np.zeros(ref.shape), np.zeros(ref.shape))
+    f = display_grid(both, min_count)[1]
+    if f == (1, 1):
+        return compare_grids(ref, other, min_count), f
+    return compare_grids(ref.coarsened(*f), other.coarsened(*f), min_count), f
+
+
+def _grid_figure(path: Path, diff: GridDifference, label: str, ref: str,
+                 factors: tuple[int, int] = (1, 1)) -> None:
     """Heatmaps of the mean and std differences (mm) over distance x inclination, cropped to data."""
     import matplotlib
 
@@ -109,6 +122,9 @@ def _grid_figure(path: Path, diff: GridDifference, label: str, ref: str) -> None
         ax.set_xlabel("distance [m]")
         ax.set_ylabel("inclination [deg]")
         ax.set_title(f"{title} difference (cells with >= {diff.min_count} samples in both)")
+    cells = (f"{1000 * (de[1] - de[0]):.0f} mm x {ie[1] - ie[0]:.1f} deg cells"
+             + (f" (display: {factors[0]} x {factors[1]} analysis cells)" if factors != (1, 1) else ""))
+    fig.suptitle(f"{label} - {ref}: {cells}", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -206,14 +222,18 @@ def _compare(dirs: list[Path], out: Path, *, min_count: int, match: str, max_off
     else:
         grids = [Grid.load(f.path / GRID_FILE) for f in folders]
         diffs: dict[str, GridDifference] = {}
-        for lab, g in zip(labels[1:], grids[1:], strict=True):
+        for lab, path, g in zip(labels[1:], dirs[1:], grids[1:], strict=True):
             d = compare_grids(grids[0], g, min_count)
             diffs[lab] = d
             stem = f"grid_diff_{safe_name(lab)}"
             np.savez(out / f"{stem}.npz", distance_edges_m=d.distance_edges_m,
                      inclination_edges_deg=d.inclination_edges_deg, mask=d.mask,
                      mean_diff_m=d.mean_diff_m, std_diff_m=d.std_diff_m, z_mean=d.z_mean)
-            _grid_figure(out / f"{stem}.png", d, lab, labels[0])
+            if not d.mask.any():
+                warn(f"no cell holds {min_count} samples in both {labels[0]} and {lab} (--min-count); "
+                     "the figure compares coarser display cells", str(path), "sparse-grid")
+            shown, factors = _display_difference(grids[0], g, min_count)
+            _grid_figure(out / f"{stem}.png", shown, lab, labels[0], factors)
             files += [f"{stem}.npz", f"{stem}.png"]
         summary["grids"] = {lab: d.summary() for lab, d in diffs.items()}
         if not quiet:

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from depthstation.core.grid import Grid
+from depthstation.core.grid import Grid, display_grid
 from depthstation.core.heatmaps import COUNTS, POSITIVE, SIGNED, colormap, robust_limits
 from depthstation.evaluate.scan.raycast import FrameImages
 
@@ -53,26 +53,6 @@ def frame_figure(images: FrameImages, path: Path, title: str = "") -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
-
-
-DISPLAY_FACTORS = (1, 2, 5, 10, 20)  # coarser display bins tried, per axis
-DISPLAY_SHARE = 0.5                  # of the samples that shown cells must hold
-
-
-def display_grid(grid: Grid, min_count: int) -> tuple[Grid, tuple[int, int]]:
-    """The grid at the finest display bins where cells of >= min_count samples hold at least half of
-    all samples (a short sequence spread over 1 million cells of 5 mm x 0.1 deg would show almost
-    nothing); the factors (distance, inclination) used, the more balanced first at equal size."""
-    nd, ni = grid.shape
-    total = max(grid.total, 1)
-    best = (grid, (1, 1))
-    for f in sorted({(a, b) for a in DISPLAY_FACTORS for b in DISPLAY_FACTORS if nd % a == 0 and ni % b == 0},
-                    key=lambda ab: (ab[0] * ab[1], max(ab), ab)):
-        g = grid if f == (1, 1) else grid.coarsened(*f)
-        if g.count[g.count >= min_count].sum() >= DISPLAY_SHARE * total:
-            return g, f
-        best = (g, f)
-    return best
 
 
 def grid_figure(grid: Grid, path: Path, min_count: int, title: str = "") -> Path:
