@@ -345,7 +345,8 @@ def _prepare_checkerboard(item: BatchItem) -> ItemJob:
         raise InputError(None, f"{item.name}: unknown checkerboard options {', '.join(unknown)} "
                                f"(known: {', '.join(sorted(known))})")
     paths = [Path(p) for p in (raw if isinstance(raw, list) else [raw])]
-    options = StandpointOptions(frames=int(item.options.get("frames", 150)),
+    frames = item.options.get("frames")
+    options = StandpointOptions(frames=None if frames is None else int(frames),
                                 reference=str(item.options.get("reference", "auto")))
     job = prepare_checkerboard(paths, Path(item.inputs["board"]), options)
 

@@ -10,8 +10,10 @@ from depthstation.core.board import Board
 from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
 from depthstation.core.frames import FrameSet
 from depthstation.core.geometry import rodrigues
+from depthstation.core.run_warnings import collecting
 from depthstation.evaluate.checkerboard.errors import BoardMismatchError
 from depthstation.evaluate.checkerboard.metrics import fit_plane_moments, moment_matrix, svd_plane_rms
+from depthstation.evaluate.checkerboard.run import say_warnings
 from depthstation.evaluate.checkerboard.study import evaluate_frames
 
 INTR = Intrinsics(640, 360, 320.0, 320.0, 319.5, 179.5)
@@ -90,6 +92,18 @@ def test_frames_without_board_are_counted_and_short_recording_noted() -> None:
     assert r.frames_used == 2
     assert r.rejected == {"board not found": 1}
     assert any("fewer frames than asked" in n for n in r.notes)
+
+
+def test_a_standpoint_cut_short_is_warned_without_frames_asked() -> None:
+    """No --frames: a standpoint with far fewer frames than its siblings is warned of, others not."""
+    board = Board()
+    pose = pose_for(board, 1.0, 10.0)
+    results = [evaluate_frames(name, still_frames(board, pose, ALIGNED, n), ALIGNED, board)
+               for name, n in (("a", 6), ("b", 6), ("c", 2))]
+    assert all(r.frames_requested is None and not r.notes for r in results)
+    with collecting() as said:
+        say_warnings(results)
+    assert [(w.where, w.code) for w in said] == [("c", "fewer-frames")]
 
 
 def test_standpoint_without_board_is_reported_not_fatal() -> None:

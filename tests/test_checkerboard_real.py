@@ -68,6 +68,8 @@ def test_cli_on_real_set(charuco_dir: Path, tmp_path: Path) -> None:
     assert summary["board"]["type"] == "charuco"
     info = json.loads((out / "result.json").read_text())
     assert info["kind"] == "checkerboard"
+    # 3 frames each and no --frames: nothing was asked that they fall short of
+    assert not [w for w in info["warnings"] if w["code"] == "fewer-frames"], info["warnings"]
     for name in ("fig1_poses.png", "fig4_reference_distance_std.png", "fig5_pixels.png",
                  "fig6_noise.png", "fig7_accuracy.png"):
         assert (out / name).stat().st_size > 10_000

@@ -27,7 +27,7 @@ REFERENCES = ("auto", "average", "frame")
 class StandpointOptions:
     """How each standpoint is evaluated (the keyword options of `evaluate_recording`)."""
 
-    frames: int = 150
+    frames: int | None = None  # asked for (short standpoints warned); None: up to DEFAULT_FRAMES
     reference: str = "auto"
     collect_samples: bool = False
     sample_stride: int = 1

@@ -14,7 +14,9 @@ def checkerboard(
     inputs: list[Path] = typer.Argument(..., help="Session dirs, .mcap/.bag/.db3 files, PNG folders."),
     board: Path = typer.Option(..., "--board", help="Board JSON or protocol TOML."),
     out: Path = typer.Option(..., "--out", help="Result folder (created)."),
-    frames: int = typer.Option(150, "--frames", min=1, help="First N frames per standpoint."),
+    frames: int | None = typer.Option(None, "--frames", min=1,
+                                      help="First N frames per standpoint; a standpoint with fewer is "
+                                           "warned of. Default: up to 150 (the paper's), no warning."),
     reference: str = typer.Option("auto", "--reference",
                                   help="Accuracy against the 'average' pose, each 'frame' pose, or "
                                        "'auto' (average unless the camera moved)."),

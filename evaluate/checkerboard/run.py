@@ -11,6 +11,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from depthstation.core.board import Board, load_board
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs
@@ -30,7 +32,7 @@ from depthstation.evaluate.checkerboard.chunks import (
 )
 from depthstation.evaluate.checkerboard.frame import FrameResult
 from depthstation.evaluate.checkerboard.report import standpoint_row, write_study
-from depthstation.evaluate.checkerboard.study import StandpointResult
+from depthstation.evaluate.checkerboard.study import DEFAULT_FRAMES, StandpointResult
 
 POSE_METHOD = "EPnP + LM (IPPE fallback)"
 
@@ -77,7 +79,7 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
     opt = options or StandpointOptions()
     if opt.reference not in REFERENCES:
         raise InputError(None, f"--reference must be auto, average or frame, not '{opt.reference}'")
-    if opt.frames < 1:
+    if opt.frames is not None and opt.frames < 1:
         raise InputError(None, f"--frames must be at least 1, not {opt.frames}")
     brd = board if isinstance(board, Board) else load_board(board)
     source = f"{brd.type} {brd.squares_x}x{brd.squares_y}, {brd.square_length_m} m squares (given)" \
@@ -111,6 +113,12 @@ def say_warnings(results: list[StandpointResult]) -> None:
             for status, n in sorted(r.rejected.items()):
                 code = "board-not-found" if status == "board not found" else "frames-rejected"
                 warn(f"{status} in {n} of {r.frames_read} frames", r.name, code)
+    read = [r.frames_read for r in results if r.frames_requested is None]
+    typical = float(np.median(read)) if read else 0.0
+    for r in results:  # no number asked: a standpoint much shorter than its siblings was cut short
+        if r.frames_requested is None and r.frames_read < 0.5 * typical:
+            warn(f"{r.frames_read} frames where the standpoints of this set hold a median of {typical:.0f} "
+                 "(a capture cut short?)", r.name, "fewer-frames")
 
 
 def finish_checkerboard(job: CheckerboardJob, results: list[StandpointResult],
@@ -123,7 +131,7 @@ def finish_checkerboard(job: CheckerboardJob, results: list[StandpointResult],
     return [standpoint_row(x) for x in results]
 
 
-def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames: int = 150,
+def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames: int | None = None,
                      reference: str = "auto", target: RerunTarget | None = None,
                      collect_samples: bool = False, workers: int = 1,
                      cluster: str | None = None, force: bool = False) -> list[dict[str, Any]]:
@@ -142,7 +150,7 @@ def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames:
 
 def _run(job: CheckerboardJob, out: Path, target: RerunTarget, workers: int,
          cluster: str | None) -> list[dict[str, Any]]:
-    frames = job.options.frames
+    frames = job.options.frames or DEFAULT_FRAMES
     recs = job.recordings
     with ChunkRunner(workers, cluster) as runner, \
             recording("depthstation_checkerboard", target, rerun_log.study_blueprint(),

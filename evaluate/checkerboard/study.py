@@ -37,6 +37,8 @@ FrameCallback = Callable[[FrameSet, FrameResult], None]
 BOARD_SCALE_TOLERANCE = 0.05
 
 
+DEFAULT_FRAMES = 150  # the paper's frames per standpoint: read at most this many unless told
+
 @dataclass
 class PixelSamples:
     """Per-pixel samples of a standpoint (contract 3, for explain); one entry per valid board pixel."""
@@ -77,7 +79,7 @@ class StandpointResult:
 
     name: str
     path: str
-    frames_requested: int
+    frames_requested: int | None  # None: the user asked for no number (up to DEFAULT_FRAMES read)
     frames_read: int
     frames: list[FrameResult]
     rejected: dict[str, int]
@@ -209,7 +211,7 @@ def colour_tests(black: list[float], white: list[float]) -> tuple[float, float]:
 
 
 def evaluate_frames(name: str, frames: Iterable[FrameSet], info: StreamInfo, board: Board, *,
-                    frames_requested: int = 150, collect_samples: bool = False,
+                    frames_requested: int | None = None, collect_samples: bool = False,
                     sample_stride: int = 1, refine: bool = True, margin_m: float = 0.01,
                     path: str = "", on_frame: FrameCallback | None = None,
                     reference: str = "auto") -> StandpointResult:
@@ -236,16 +238,17 @@ def evaluate_frames(name: str, frames: Iterable[FrameSet], info: StreamInfo, boa
                      kept=kept if collect_samples else None, example=example, reference=reference)
 
 
-def evaluate_recording(rec: Recording, board: Board, *, frames: int = 150,
+def evaluate_recording(rec: Recording, board: Board, *, frames: int | None = None,
                        collect_samples: bool = False, sample_stride: int = 1, refine: bool = True,
                        margin_m: float = 0.01, on_frame: FrameCallback | None = None,
                        reference: str = "auto") -> StandpointResult:
-    """Contract 3: the checkerboard study of one recording (its first `frames` frames).
+    """Contract 3: the checkerboard study of one recording (its first `frames` frames, or up to
+    DEFAULT_FRAMES when none were asked for: then a short recording is not warned of here).
 
     reference: 'average' (the standpoint's averaged pose, the paper's method), 'frame' (each
     frame's own pose) or 'auto' (average unless the camera moved during the standpoint).
     """
-    result = evaluate_frames(rec.name, rec.frames(limit=frames), rec.info, board,
+    result = evaluate_frames(rec.name, rec.frames(limit=frames or DEFAULT_FRAMES), rec.info, board,
                              frames_requested=frames, collect_samples=collect_samples,
                              sample_stride=sample_stride, refine=refine, margin_m=margin_m,
                              path=str(rec.path), on_frame=on_frame, reference=reference)
@@ -256,7 +259,7 @@ def evaluate_recording(rec: Recording, board: Board, *, frames: int = 150,
 
 
 def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Board, *,
-              frames_requested: int, path: str = "",
+              frames_requested: int | None, path: str = "",
               kept: list[tuple[FrameResult, FramePixels]] | None = None,
               example: tuple[FrameResult, FramePixels] | None = None, reference: str = "auto",
               max_corner_shift_px: float = 2.0) -> StandpointResult:
@@ -268,8 +271,8 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
     """
     rejected = Counter(r.status for r in results if not r.ok)
     out = StandpointResult(name, path, frames_requested, len(results), results, dict(rejected))
-    if len(results) < frames_requested:
-        out.note("fewer-frames", f"fewer frames than asked: {len(results)} of {frames_requested}")
+    if frames_requested is not None and len(results) < frames_requested:
+        out.note("fewer-frames", f"fewer frames than asked: {len(results)} of {frames_requested} (--frames)")
     ok = [r for r in results if r.ok]
     posed = [r for r in results if r.pose_depth is not None]
     if not ok:
