@@ -45,6 +45,7 @@ class CaptureInterrupted(CaptureError):
     exit_code = 130
 
 
+MAX_FAULTS_PER_STANDPOINT = 5  # disconnects / stalls of one standpoint before the capture gives up
 END_OF_RANGE_FRAMES = 10  # consecutive frames with a collapsed fill rate before we call it
 MAX_POSE_STRIDE = 5  # during recording the board pose is measured on every 5th frame at most
 
@@ -146,6 +147,7 @@ class GuidedCapture:
         self.skipped: dict[str, str] = {}
         self.dropped = 0
         self.retakes = 0  # takes discarded because the camera moved while recording
+        self.faults: dict[str, int] = {}  # disconnects and stalls per standpoint
         self._t0_ns: int | None = None
         self._last_temp_ns = 0
 
@@ -308,6 +310,7 @@ class GuidedCapture:
                 self._emit(state)
             except CameraDisconnected as exc:
                 what = "stalled" if isinstance(exc, CameraStalled) else "disconnected"
+                self.faults[sp.name] = self.faults.get(sp.name, 0) + 1
                 self._camera_events(sp.name)
                 self.events.append({"event": what, "standpoint": sp.name, "during": state.phase,
                                     "frames_recorded": state.recorded, "error": str(exc),
@@ -317,6 +320,10 @@ class GuidedCapture:
                     self.session.discard(sp.name, f"camera {what} after {state.recorded} frames")
                 self._save_log()
                 state.recorded = 0
+                if self.faults[sp.name] > MAX_FAULTS_PER_STANDPOINT:
+                    msg = (f"{sp.name}: the camera {what} {self.faults[sp.name]} times: check its cable and "
+                           "USB 3 port, then --resume")
+                    raise CameraError(msg) from exc
                 self._reconnect(state, exc)
                 state.phase = "guiding"
 

@@ -18,10 +18,12 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
+import itertools
+
 import fake_realsense as frs
 from test_acquire_loop import render_board
 
-from depthstation.acquire.calibrate import IMPROVABLE, REQUIRED, TARE_OFF, TARE_SMALL, GOOD, run_calibration
+from depthstation.acquire.calibrate import GOOD, IMPROVABLE, REQUIRED, TARE_OFF, TARE_SMALL, run_calibration
 from depthstation.acquire.guided_capture import GuidedCapture, LiveState
 from depthstation.acquire.live_camera import LiveCamera
 from depthstation.acquire.warmup import run_warmup
@@ -142,7 +144,7 @@ def test_on_chip_health_is_one_value_on_intels_bands(fake: Any, health: float, l
                                                           (0.001, TARE_SMALL, False)])
 def test_tare_health_is_a_relative_depth_error(fake: Any, bias: float, level: str, recommend: bool) -> None:
     """Tare returns (Z / GT - 1) before and after: a 20 % error is not 'good' (the on-chip bands)."""
-    world, unit = fake(depth_bias=bias)
+    _world, _unit = fake(depth_bias=bias)
     cam = camera()
     said: list[str] = []
     rec = run_calibration(cam, Calibration(on_chip=False, tare=True, tare_distance_m=1.0),
@@ -175,7 +177,7 @@ def test_tare_ground_truth_is_measured_from_the_depth_origin(fake: Any) -> None:
 def test_a_table_kept_in_ram_is_set_again_after_a_replug(fake: Any) -> None:
     """On-chip yes, tare no: the tare's table (left active by the run) is undone, the on-chip one is
     held in RAM; a replug reverts the device to flash, and the next start sets it again."""
-    world, unit = fake(depth_bias=0.01)
+    _world, unit = fake(depth_bias=0.01)
     flash = list(unit.flash)
     cam = camera()
     cam.start(PROTO_STREAMS)
@@ -199,7 +201,8 @@ def test_a_table_kept_in_ram_is_set_again_after_a_replug(fake: Any) -> None:
 def test_write_burns_the_table_to_flash(fake: Any) -> None:
     world, unit = fake()
     cam = camera()
-    rec = run_calibration(cam, Calibration(on_chip=True), confirm=lambda q: True, say=lambda s: None, write=True)
+    rec = run_calibration(cam, Calibration(on_chip=True), confirm=lambda q: True, say=lambda s: None,
+                          write=True)
     assert rec["applied_to"] == "flash" and not rec["reapplied_after_reconnect"]
     assert bytes(unit.flash) == base64.b64decode(rec["steps"][0]["table_new_b64"])
     assert world.names().index("write_calibration") > world.names().index("set_calibration_table")
@@ -209,7 +212,8 @@ def test_write_burns_the_table_to_flash(fake: Any) -> None:
 @pytest.mark.parametrize(("unit", "needle"), [
     ({"name": "RealSense D435", "product_id": "0B07"}, "'RealSense D435'"),
     ({"name": "RealSense D455F"}, "'RealSense D455F'"),
-    ({"usb": "2.1"}, "USB 2.1 offers no depth 1280x720 z16 at 30 fps, color 1280x720 rgb8 at 30 fps: connect"),
+    ({"usb": "2.1"}, "USB 2.1 offers no depth 1280x720 z16 at 30 fps, color 1280x720 rgb8 at 30 fps: "
+                     "connect"),
 ])
 def test_model_and_usb_are_checked_before_streaming(fake: Any, unit: dict[str, Any], needle: str) -> None:
     world, _ = fake(**unit)
@@ -245,7 +249,8 @@ def test_a_preset_without_advanced_mode_is_refused_in_one_line(fake: Any, tmp_pa
     assert code.value.code == 1
     assert "Enable it now?" in err  # the question was asked (stdin answered no)
     line = err[err.index("depthstation: error:"):]
-    assert line.count("\n") == 1 and line.startswith("depthstation: error: advanced mode is off on RealSense D455")
+    assert line.count("\n") == 1
+    assert line.startswith("depthstation: error: advanced mode is off on RealSense D455")
     assert "streams.preset 'High Accuracy'" in line and "realsense-viewer" in line
     assert "pipeline.start" not in world.names() and unit.pipeline is None
     assert not [c for c in world.calls if c[0] == "set_option" and c[1]["option"] == "visual_preset"]
@@ -294,7 +299,8 @@ def test_warmup_on_whole_degree_readings(fake: Any) -> None:
 
 # -- frames and faults during a take ---------------------------------------------------------------
 def run_take(world: frs.FakeRealSense, unit: frs.FakeUnit, tmp_path: Path, on_recording: Any,
-             frames: int = 8, table: bytes | None = None, **cam_kw: Any) -> tuple[Session, list[str], LiveCamera]:
+             frames: int = 8, table: bytes | None = None,
+             **cam_kw: Any) -> tuple[Session, list[str], LiveCamera]:
     proto = one_standpoint(frames)
     unit.scene = board_scene(proto.board, 1.0)
     cam = camera(**cam_kw)
@@ -343,7 +349,7 @@ def test_repeated_frames_are_never_recorded_and_gaps_are_counted(fake: Any, tmp_
 
 
 def test_without_frame_metadata_gaps_cannot_be_seen(fake: Any) -> None:
-    world, unit = fake(metadata=False)
+    _world, unit = fake(metadata=False)
     cam = camera()
     cam.start(PROTO_STREAMS)
     cam.wait_for_frames(1.0)
@@ -394,12 +400,12 @@ def test_a_fast_replug_is_noticed_even_when_frames_resume(fake: Any, tmp_path: P
     assert events[-2:] == ["calibration_reapplied", "reconnected"]
     assert bytes(unit.active_table()) == session_table
     sets = [c for c in world.calls if c[0] == "set_option"]
-    assert sets[-2:] == [("set_option", {"option": "visual_preset", "value": 1.0, "streams": PROTO_PROFILE}),
-                         ("set_option", {"option": "emitter_enabled", "value": 1.0, "streams": PROTO_PROFILE})]
+    assert [(v["option"], v["value"], v["streams"]) for _, v in sets[-2:]] == [
+        ("visual_preset", 1.0, PROTO_PROFILE), ("emitter_enabled", 1.0, PROTO_PROFILE)]
 
 
 def test_a_camera_back_on_usb2_is_told_to_move_and_waited_for(fake: Any, tmp_path: Path) -> None:
-    world, unit = fake()
+    _world, unit = fake()
     armed = [False]
     moved = [False]
 
@@ -453,7 +459,7 @@ def test_the_session_streams_from_warmup_through_calibration_into_capture(fake: 
     calls = [k for k, _ in world.calls if k in ("pipeline.start", "pipeline.stop")]
     # every stop but the last is followed at once by a start: the device never idles
     assert calls[0] == "pipeline.start" and calls[-1] == "pipeline.stop"
-    assert all(b == "pipeline.start" for a, b in zip(calls, calls[1:], strict=False) if a == "pipeline.stop")
+    assert all(b == "pipeline.start" for a, b in itertools.pairwise(calls) if a == "pipeline.stop")
     assert starts(world) == [PROTO_PROFILE, CAL_PROFILE, PROTO_PROFILE]
     data = Session.open(tmp_path / "s").data
     assert data["standpoints"][0]["status"] == "complete"

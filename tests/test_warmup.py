@@ -92,7 +92,8 @@ def test_whole_degree_readings_settle_only_below_the_tolerance() -> None:
                 slope = amp / tau * np.exp(-t / tau) * 60.0
                 quantise = np.round if k % 2 else np.trunc  # int8 conversion: either way
                 readings = quantise(true + sigma * rng.standard_normal(t.size))
-                samples = [WarmupSample(float(a), {"asic": float(b)}) for a, b in zip(t, readings, strict=True)]
+                samples = [WarmupSample(float(a), {"asic": float(b)})
+                           for a, b in zip(t, readings, strict=True)]
                 settled = None
                 for i in range(30, t.size, 3):  # decide every 30 s from the minimum time on
                     d = warmup_decision(samples[:i + 1], rule)
