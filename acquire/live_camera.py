@@ -397,8 +397,11 @@ class LiveCamera:
             ds.set_option(rs.option.visual_preset, preset_value(ds, streams.preset))
             value = float(ds.get_option(rs.option.visual_preset))
             self._preset = str(ds.get_option_value_description(rs.option.visual_preset, value))
-        else:
+        elif streams.preset.strip().lower() == "default":
             self._preset = "Default (firmware defaults: advanced mode off)"
+        else:
+            raise CameraUnsuitable(f"advanced mode is off on {self._label()}: streams.preset "
+                                   f"'{streams.preset}' cannot be set")
         if ds.supports(rs.option.emitter_enabled):
             ds.set_option(rs.option.emitter_enabled, 1.0 if streams.emitter else 0.0)
         self._apply_held_table()

@@ -348,6 +348,19 @@ def test_repeated_frames_are_never_recorded_and_gaps_are_counted(fake: Any, tmp_
     assert frames["framesets_skipped"] == {"repeated": 2, "stale_color": 1, "duplicate_index": 0}
 
 
+def test_a_take_admits_no_frame_twice() -> None:
+    """The capture's own guard, for any camera: the same frame number is never written twice, and
+    a camera without the live metadata has its gaps read from the frame numbers."""
+    from depthstation.acquire.guided_capture import FrameAccounting
+    from depthstation.core.frames import FrameSet
+
+    acc = FrameAccounting()
+    admitted = [acc.admit(FrameSet(i, i)) for i in (10, 11, 11, 14, 15, 15, 16)]
+    assert admitted == [True, True, False, True, True, False, True]
+    assert acc.summary() == {"frame_counter": "index", "device_frames_lost": {"depth": 2, "color": 0},
+                             "framesets_skipped": {"repeated": 0, "stale_color": 0, "duplicate_index": 2}}
+
+
 def test_without_frame_metadata_gaps_cannot_be_seen(fake: Any) -> None:
     _world, unit = fake(metadata=False)
     cam = camera()
