@@ -76,32 +76,36 @@ def test_maximum_time_ends_a_drifting_camera() -> None:
 
 
 def test_whole_degree_readings_settle_only_below_the_tolerance() -> None:
-    """A D4xx reports whole degrees. Fed exponential warm-ups (time constants 3 to 60 min, 6 to 20
+    """A D4xx reports whole degrees. Fed exponential warm-ups (time constants 3 to 400 min, 6 to 25
     degrees) with sensor noise (0 to 0.3 C) rounded or truncated to whole degrees, the rule declares
-    "settled" only when the true slope is within its tolerance, and every curve settles before the
-    maximum time. The old rule (least squares over 5 min) settled while the true slope was 0.08-0.11."""
+    "settled" only when the true slope is within its tolerance, and every curve with a time constant
+    up to an hour settles before the maximum time. The old rule (least squares over 5 min) said
+    settled at 60-64 min with the true slope at 0.07-0.10 C/min; a least-squares slope even over the
+    stretched 40-min window says so at 0.051 on the slowest curves here."""
     rule = Warmup(min_minutes=5.0, max_slope_c_per_min=0.05, window_minutes=5.0, max_minutes=240.0)
     t = np.arange(0.0, rule.max_minutes * 60.0 + 1.0, 10.0)
+    cases = [(tau, amp, sigma) for tau in np.geomspace(3.0, 60.0, 6) for amp in (6.0, 20.0)
+             for sigma in (0.0, 0.15, 0.3)]
+    cases += [(tau, amp, sigma) for tau in (240.0, 400.0) for amp in (15.0, 25.0) for sigma in (0.0, 0.15)]
     ratios = []
-    for k, tau_min in enumerate(np.geomspace(3.0, 60.0, 8)):
-        for amp in (6.0, 20.0):
-            for sigma in (0.0, 0.15, 0.3):
-                rng = np.random.default_rng([k, int(amp), int(100 * sigma)])
-                tau = 60.0 * tau_min
-                true = 20.0 + 10.0 * rng.random() + amp * (1.0 - np.exp(-t / tau))
-                slope = amp / tau * np.exp(-t / tau) * 60.0
-                quantise = np.round if k % 2 else np.trunc  # int8 conversion: either way
-                readings = quantise(true + sigma * rng.standard_normal(t.size))
-                samples = [WarmupSample(float(a), {"asic": float(b)})
-                           for a, b in zip(t, readings, strict=True)]
-                settled = None
-                for i in range(30, t.size, 3):  # decide every 30 s from the minimum time on
-                    d = warmup_decision(samples[:i + 1], rule)
-                    if d.done:
-                        settled = i
-                        break
-                assert settled is not None and "settled" in d.reason, (tau_min, amp, sigma)
-                assert d.resolution_c == 1.0 and d.window_s == pytest.approx(2400.0)
-                assert slope[settled] <= rule.max_slope_c_per_min, (tau_min, amp, sigma, slope[settled])
-                ratios.append(slope[settled] / rule.max_slope_c_per_min)
-    assert len(ratios) == 48 and max(ratios) < 1.0
+    for k, (tau_min, amp, sigma) in enumerate(cases):
+        rng = np.random.default_rng([k, int(amp), int(100 * sigma)])
+        tau = 60.0 * tau_min
+        true = 20.0 + 10.0 * rng.random() + amp * (1.0 - np.exp(-t / tau))
+        slope = amp / tau * np.exp(-t / tau) * 60.0
+        quantise = np.round if k % 2 else np.trunc  # the int8 conversion, either way
+        readings = quantise(true + sigma * rng.standard_normal(t.size))
+        samples = [WarmupSample(float(a), {"asic": float(b)}) for a, b in zip(t, readings, strict=True)]
+        settled = None
+        for i in range(30, t.size, 6):  # decide every minute from the minimum time on
+            d = warmup_decision(samples[:i + 1], rule)
+            if d.done and "settled" in d.reason:
+                settled = i
+                break
+        assert d.resolution_c == 1.0 and d.window_s == pytest.approx(2400.0)
+        if settled is None:
+            assert tau_min > 60.0, (tau_min, amp, sigma)  # only the slowest may run to the maximum time
+            continue
+        assert slope[settled] <= rule.max_slope_c_per_min, (tau_min, amp, sigma, slope[settled])
+        ratios.append(slope[settled] / rule.max_slope_c_per_min)
+    assert len(ratios) >= 36 and max(ratios) < 1.0
