@@ -298,9 +298,11 @@ def test_warmup_on_whole_degree_readings(fake: Any) -> None:
 
 
 # -- frames and faults during a take ---------------------------------------------------------------
-def run_take(world: frs.FakeRealSense, unit: frs.FakeUnit, tmp_path: Path, on_recording: Any,
+def run_take(world: frs.FakeRealSense, unit: frs.FakeUnit, tmp_path: Path, hook: Any,
              frames: int = 8, table: bytes | None = None,
              **cam_kw: Any) -> tuple[Session, list[str], LiveCamera]:
+    """One standpoint through the live camera and the guided loop; `hook(state)` sees every state
+    (and injects the faults)."""
     proto = one_standpoint(frames)
     unit.scene = board_scene(proto.board, 1.0)
     cam = camera(**cam_kw)
@@ -312,8 +314,7 @@ def run_take(world: frs.FakeRealSense, unit: frs.FakeUnit, tmp_path: Path, on_re
 
     def on_state(st: LiveState) -> None:
         messages.append(st.message)
-        if st.phase == "recording":
-            on_recording(st)
+        hook(st)
 
     cap = GuidedCapture(cam, proto, session, on_state=on_state, max_guidance_s=20, frame_timeout_s=0.3,
                         reconnect_timeout_s=10.0, sleep=time.sleep)
@@ -327,7 +328,7 @@ def test_repeated_frames_are_never_recorded_and_gaps_are_counted(fake: Any, tmp_
     armed = [False]
 
     def inject(st: LiveState) -> None:
-        if st.recorded == 2 and not armed[0]:
+        if st.phase == "recording" and st.recorded == 2 and not armed[0]:
             armed[0] = True
             unit.inject(repeat="color")          # a frameset with a stale colour frame
             unit.inject(drop={"depth": 3, "color": 3})  # the device lost 3 of each
@@ -379,7 +380,7 @@ def test_a_stall_is_reset_and_the_take_redone_with_the_table_set_again(fake: Any
     armed = [False]
 
     def stall(st: LiveState) -> None:
-        if st.recorded == 3 and not armed[0]:
+        if st.phase == "recording" and st.recorded == 3 and not armed[0]:
             armed[0] = True
             unit.stall()
 
@@ -402,7 +403,7 @@ def test_a_fast_replug_is_noticed_even_when_frames_resume(fake: Any, tmp_path: P
     armed = [False]
 
     def replug(st: LiveState) -> None:
-        if st.recorded == 3 and not armed[0]:
+        if st.phase == "recording" and st.recorded == 3 and not armed[0]:
             armed[0] = True
             unit.unplug(0.05, resume=True)
 
@@ -418,34 +419,22 @@ def test_a_fast_replug_is_noticed_even_when_frames_resume(fake: Any, tmp_path: P
 
 
 def test_a_camera_back_on_usb2_is_told_to_move_and_waited_for(fake: Any, tmp_path: Path) -> None:
-    _world, unit = fake()
-    armed = [False]
-    moved = [False]
+    world, unit = fake()
+    armed = [False, False]
 
-    def unplug(st: LiveState) -> None:
-        if st.recorded == 3 and not armed[0]:
+    def replug(st: LiveState) -> None:
+        if st.phase == "recording" and st.recorded == 3 and not armed[0]:
             armed[0] = True
             unit.unplug(0.05, usb="2.1")
-
-    proto = one_standpoint()
-    unit.scene = board_scene(proto.board, 1.0)
-    cam = camera()
-    session = Session.create(tmp_path / "s", protocol=proto)
-    messages: list[str] = []
-
-    def on_state(st: LiveState) -> None:
-        messages.append(st.message)
-        if st.phase == "recording":
-            unplug(st)
-        if "USB 2.1" in st.message and not moved[0]:
-            moved[0] = True
+        if "USB 2.1" in st.message and not armed[1]:
+            armed[1] = True
             unit.unplug(0.05, usb="3.2")  # the operator moves it to a USB 3 port
 
-    out = GuidedCapture(cam, proto, session, on_state=on_state, max_guidance_s=20, frame_timeout_s=0.3,
-                        reconnect_timeout_s=10.0).run()
-    assert [o.status for o in out] == ["complete"]
+    s, messages, _ = run_take(world, unit, tmp_path, replug)
     hint = [m for m in messages if "USB 2.1" in m]
-    assert hint and "connect it to a USB 3 port" in hint[0]
+    assert hint and "offers no depth 640x360 z16 at 30 fps" in hint[0]
+    assert "connect it to a USB 3 port" in hint[0]
+    assert [e["status"] for e in s.standpoints] == ["discarded", "complete"]
 
 
 def test_the_session_streams_from_warmup_through_calibration_into_capture(fake: Any, tmp_path: Path) -> None:
