@@ -465,3 +465,27 @@ def test_the_session_streams_from_warmup_through_calibration_into_capture(fake: 
     assert starts(world) == [PROTO_PROFILE, CAL_PROFILE, PROTO_PROFILE]
     data = Session.open(tmp_path / "s").data
     assert data["standpoints"][0]["status"] == "complete"
+
+
+@pytest.mark.hardware
+def test_a_real_d455_behaves_as_the_double_assumes() -> None:
+    """On a real camera: what the double copies (identity, the calibration mode on USB 3, whole
+    degrees only while streaming, the firmware frame counter) holds for this unit and SDK."""
+    import pyrealsense2 as rs
+
+    cam = LiveCamera(model="D455")
+    info = cam.start(PROTO_STREAMS)
+    try:
+        ident = cam.device_info()
+        assert ident["model"] == "D455" and ident["product_id"] == "0B5C"
+        fs = cam.wait_for_frames(5.0)
+        temps = cam.temperatures()
+        assert temps and all(v == int(v) for v in temps.values())
+        assert fs.metadata["frame_counter"] in ("device", "host") and info.depth_units_m > 0
+        dev = rs.context().query_devices()[0]
+        if ident["usb_type_descriptor"].startswith("3."):
+            assert ("depth", 256, 144, "z16", 90) in cam._offered(dev)
+    finally:
+        cam.stop()
+    with pytest.raises(RuntimeError, match="streaming"):
+        rs.context().query_devices()[0].first_depth_sensor().get_option(rs.option.asic_temperature)
