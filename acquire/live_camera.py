@@ -464,6 +464,8 @@ class LiveCamera:
                     raise CameraDisconnected(f"{self._label()} disconnected")
                 raise CameraStalled(f"{self._label()}: no frame within {timeout_s:g} s while it stays "
                                     "connected (a stalled stream)")
+            if self._removed.is_set():
+                raise CameraDisconnected(f"{self._label()} was unplugged or reset (device-change event)")
             depth = fs.get_depth_frame()
             color = fs.get_color_frame()
             frames = {k: f for k, f in (("depth", depth), ("color", color)) if f}
