@@ -51,14 +51,11 @@ def parse_camera(spec: str) -> CameraSpec:
                            f"({', '.join(RECORDING_SUFFIXES)}), got {spec!r}")
 
 
-def open_camera(spec: CameraSpec, **sim_options: Any) -> Any:
-    """The camera object for a spec (not started)."""
+def open_camera(spec: CameraSpec, **options: Any) -> Any:
+    """The camera object for a spec (not started); `options` go to the live or simulated camera."""
     if spec.kind == "live":
-
-        return LiveCamera(spec.serial)
+        return LiveCamera(spec.serial, **options)
     if spec.kind == "file":
-
         assert spec.path is not None
         return PlaybackCamera(spec.path)
-
-    return SimulatedCamera(spec.model or "d455", **sim_options)
+    return SimulatedCamera(spec.model or "d455", **options)

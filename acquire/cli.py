@@ -2,11 +2,13 @@
 
 Thin commands: parse the options, then call the station's workflows (`acquire.station`), which the
 demo calls too. Every command takes `--camera live|PATH|sim[:MODEL]`, `--protocol`, `--session DIR`,
-`--resume`, `--yes` and the rerun options.
+`--resume`, `--yes` and the rerun options. `--yes` also lets a live camera enable advanced mode
+(it resets once); without it the operator is asked.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import typer
@@ -34,6 +36,19 @@ def _ask(question: str) -> bool:
     return typer.confirm(question, default=False, err=True)
 
 
+def _ask_distance(question: str, default: float) -> float:
+    return float(typer.prompt(question, default=default, type=float, err=True))
+
+
+def _consent(yes: bool) -> Callable[[str], bool]:
+    """The operator's yes to a question the camera asks (enable advanced mode): --yes or a prompt."""
+    return (lambda question: True) if yes else _ask
+
+
+WriteOpt = typer.Option(False, "--write", help="also write an applied table to the device's flash "
+                        "(else it lives in RAM and is set again after every reconnect)")
+
+
 def _target(rrd: Path | None, spawn: bool, serve: bool) -> RerunTarget:
     return RerunTarget(rrd, spawn, serve)
 
@@ -47,19 +62,24 @@ def warmup(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: Path =
                                             help="simulated camera only: run the clock this much faster"),
            ) -> None:
     """Stream until the temperature settles (protocol's warm-up rule); the curve goes into the session."""
-    st = Station(camera, protocol, session, resume, seed, real_time)
-    do_warmup(st, interval, accelerate, _target(rrd, spawn, serve))
+    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes))
+    try:
+        do_warmup(st, interval, accelerate, _target(rrd, spawn, serve))
+    finally:
+        st.close()
 
 
 @app.command()
 def calibrate(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: Path = SessionOpt,
               resume: bool = ResumeOpt, yes: bool = YesOpt, rrd: Path | None = RrdOpt, spawn: bool = SpawnOpt,
               serve: bool = ServeOpt, seed: int = SeedOpt, real_time: bool = RealTimeOpt,
-              write: bool = typer.Option(False, "--write", help="also write an applied table to the EEPROM")
-              ) -> None:
+              write: bool = WriteOpt) -> None:
     """On-chip and tare calibration; shows the health values, applies a table only when confirmed."""
-    st = Station(camera, protocol, session, resume, seed, real_time)
-    do_calibrate(st, yes, write, ask=_ask)
+    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes))
+    try:
+        do_calibrate(st, yes, write, ask=_ask, ask_distance=_ask_distance)
+    finally:
+        st.close()
 
 
 @app.command()
@@ -70,8 +90,11 @@ def capture(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: Path 
                                                       help="give up a standpoint after this many seconds")
             ) -> None:
     """Guided standpoints: follow the instructions; each standpoint is recorded into one MCAP."""
-    st = Station(camera, protocol, session, resume, seed, real_time)
-    do_capture(st, _target(rrd, spawn, serve), max_guidance)
+    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes))
+    try:
+        do_capture(st, _target(rrd, spawn, serve), max_guidance)
+    finally:
+        st.close()
 
 
 @app.command("session")
@@ -85,15 +108,20 @@ def session_cmd(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: P
                 skip_warmup: bool = typer.Option(False, "--skip-warmup", help="camera is warm already"),
                 max_guidance: float | None = typer.Option(
                     None, "--max-guidance", help="give up a standpoint after this many seconds"),
+                write: bool = WriteOpt,
                 ) -> None:
-    """Warm-up, calibration and capture in order; with --resume, the steps done already are skipped."""
-    st = Station(camera, protocol, session, resume, seed, real_time)
+    """Warm-up, calibration and capture in order, streaming throughout; with --resume, the steps
+    done already are skipped."""
+    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes))
     target = _target(rrd, spawn, serve)
-    if st.session.data.get("warmup") is None and not skip_warmup:
-        if st.spec.kind == "file":
-            st.session.set("warmup", {"done": False, "reason": "recording: no warm-up possible"})
-        else:
-            do_warmup(st, interval, accelerate, target)
-    if st.session.data.get("calibration") is None:
-        do_calibrate(st, yes, write=False, ask=_ask)
-    do_capture(st, target, max_guidance)
+    try:
+        if st.session.data.get("warmup") is None and not skip_warmup:
+            if st.spec.kind == "file":
+                st.session.set("warmup", {"done": False, "reason": "recording: no warm-up possible"})
+            else:
+                do_warmup(st, interval, accelerate, target)
+        if st.session.data.get("calibration") is None:
+            do_calibrate(st, yes, write=write, ask=_ask, ask_distance=_ask_distance)
+        do_capture(st, target, max_guidance)
+    finally:
+        st.close()

@@ -3,8 +3,11 @@
 One standpoint = one MCAP in the session (written by the capture helper's
 `Session.standpoint_writer`, `.partial` until closed). Faults lose nothing: a device that drops
 off mid-standpoint is reported, its partial file discarded, the camera reopened and the standpoint
-re-done; Ctrl-C closes the open file properly and leaves the standpoint incomplete for `--resume`;
-a killed process leaves every finished standpoint readable.
+re-done; a stream that stalls while the device stays connected is recovered by a hardware reset
+(where the camera has one) and the standpoint re-done; Ctrl-C closes the open file properly and
+leaves the standpoint incomplete for `--resume`; a killed process leaves every finished standpoint
+readable. A take never records the same frame twice, and its metadata says how many frames the
+device lost (gaps in the frame numbers) and how many framesets were skipped as repeats.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from depthstation.acquire.board_detection import BoardPose, board_mask, board_po
 from depthstation.acquire.guidance import Guidance, StillnessTracker, end_of_range, guide, points_agree
 from depthstation.core.board_pose import pose_metrics
 from depthstation.core.camera_model import StreamInfo
+from depthstation.core.device import CameraStalled, CameraUnsuitable
 from depthstation.core.errors import CameraDisconnected, CameraError, CaptureError
 from depthstation.core.frames import FrameSet
 from depthstation.core.geometry import average_poses
@@ -41,6 +45,7 @@ class CaptureInterrupted(CaptureError):
     exit_code = 130
 
 
+MAX_FAULTS_PER_STANDPOINT = 5  # disconnects / stalls of one standpoint before the capture gives up
 END_OF_RANGE_FRAMES = 10  # consecutive frames with a collapsed fill rate before we call it
 MAX_POSE_STRIDE = 5  # during recording the board pose is measured on every 5th frame at most
 
@@ -67,6 +72,45 @@ class LiveState:
     done: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     message: str = ""
+
+
+@dataclass
+class FrameAccounting:
+    """What the frame numbers of one take say. A live camera reports, per frameset, the frames its
+    firmware counter skipped and the framesets it dropped as repeats since the previous one; other
+    cameras are judged by the gaps in `FrameSet.index`. The first frame's history (before the take)
+    does not count. `admit` refuses a frameset that repeats the last one: it is never written."""
+
+    counter: str = "index"  # 'device' (firmware frame counter), 'host' (no gaps visible) or 'index'
+    lost: dict[str, int] = field(default_factory=lambda: {"depth": 0, "color": 0})
+    skipped: dict[str, int] = field(default_factory=lambda: {"repeated": 0, "stale_color": 0})
+    duplicates: int = 0
+    last_index: int | None = None
+
+    def admit(self, fs: FrameSet) -> bool:
+        first = self.last_index is None
+        if not first and fs.index == self.last_index:
+            self.duplicates += 1
+            return False
+        meta = fs.metadata or {}
+        if "frame_counter" in meta:
+            self.counter = str(meta["frame_counter"])
+            if not first:
+                for k, v in (meta.get("frames_lost_before") or {}).items():
+                    self.lost[k] = self.lost.get(k, 0) + int(v)
+                for k, v in (meta.get("framesets_skipped_before") or {}).items():
+                    self.skipped[k] = self.skipped.get(k, 0) + int(v)
+        elif not first and self.last_index is not None and fs.index > self.last_index + 1:
+            self.lost["depth"] += fs.index - self.last_index - 1
+        self.last_index = fs.index
+        return True
+
+    def summary(self) -> dict[str, Any]:
+        """The take's `frames` record: device-side losses per stream (None where the frame numbers
+        come from a host counter and cannot show them), framesets skipped as repeats."""
+        return {"frame_counter": self.counter,
+                "device_frames_lost": None if self.counter == "host" else dict(self.lost),
+                "framesets_skipped": {**self.skipped, "duplicate_index": self.duplicates}}
 
 
 @dataclass
@@ -103,6 +147,7 @@ class GuidedCapture:
         self.skipped: dict[str, str] = {}
         self.dropped = 0
         self.retakes = 0  # takes discarded because the camera moved while recording
+        self.faults: dict[str, int] = {}  # disconnects and stalls per standpoint
         self._t0_ns: int | None = None
         self._last_temp_ns = 0
 
@@ -111,22 +156,45 @@ class GuidedCapture:
         self.info = self.camera.start(self.protocol.streams)
         return self.info
 
-    def _reconnect(self, state: LiveState) -> None:
-        """Stop, then retry starting the camera until it answers or the timeout passes."""
+    def _camera_events(self, standpoint: str | None) -> None:
+        """The device's own events (reset, re-enumeration, calibration re-applied) into the log."""
+        take = getattr(self.camera, "take_events", None)
+        if callable(take):
+            self.events.extend({**e, "standpoint": standpoint} for e in take())
+
+    def _reconnect(self, state: LiveState, cause: CameraError | None = None) -> None:
+        """Stop; after a stall, reset the device where it can; then retry starting the camera until
+        it answers or the timeout passes (a camera back in an unsuitable state, e.g. on USB 2, is
+        said on screen and waited for)."""
         state.phase = "reconnecting"
-        state.message = "camera disconnected: reconnect it (waiting)"
+        stalled = isinstance(cause, CameraStalled)
+        state.message = ("camera stalled (no frames while connected): resetting it" if stalled
+                         else "camera disconnected: reconnect it (waiting)")
         self._emit(state)
         with contextlib.suppress(CameraError):
             self.camera.stop()
+        reset = getattr(self.camera, "hardware_reset", None)
+        if stalled and callable(reset):
+            try:
+                reset()
+            except CameraError as exc:
+                state.message = f"{exc} (waiting)"
+                self._emit(state)
+        self._camera_events(state.standpoint.name)
         t_end = time.monotonic() + self.reconnect_timeout_s
+        said = state.message
         while True:
             try:
                 self._start()
+                self._camera_events(state.standpoint.name)
                 self.events.append({"event": "reconnected", "standpoint": state.standpoint.name,
                                     "time_ns": time.time_ns()})
                 self._save_log()
                 return
             except CameraError as exc:
+                if isinstance(exc, CameraUnsuitable) and str(exc) != said:
+                    said = state.message = str(exc)
+                    self._emit(state)
                 if time.monotonic() > t_end:
                     raise CameraError(f"camera did not come back within {self.reconnect_timeout_s:g} s: "
                                       f"{exc}") from exc
@@ -180,6 +248,7 @@ class GuidedCapture:
         plan = self.protocol.plan.standpoints()
         outcomes: list[StandpointOutcome] = []
         self._start()
+        self._camera_events(None)
         try:
             ended_trajectories: set[int] = set()
             for i, sp in enumerate(plan):
@@ -240,15 +309,22 @@ class GuidedCapture:
                 state.message = notice = MOVED_MESSAGE
                 self._emit(state)
             except CameraDisconnected as exc:
-                self.events.append({"event": "disconnected", "standpoint": sp.name, "during": state.phase,
+                what = "stalled" if isinstance(exc, CameraStalled) else "disconnected"
+                self.faults[sp.name] = self.faults.get(sp.name, 0) + 1
+                self._camera_events(sp.name)
+                self.events.append({"event": what, "standpoint": sp.name, "during": state.phase,
                                     "frames_recorded": state.recorded, "error": str(exc),
                                     "time_ns": time.time_ns()})
                 if state.phase == "recording":
                     # the writer closed the file as 'partial'; move it aside (never deleted)
-                    self.session.discard(sp.name, f"camera disconnected after {state.recorded} frames")
+                    self.session.discard(sp.name, f"camera {what} after {state.recorded} frames")
                 self._save_log()
                 state.recorded = 0
-                self._reconnect(state)
+                if self.faults[sp.name] > MAX_FAULTS_PER_STANDPOINT:
+                    msg = (f"{sp.name}: the camera {what} {self.faults[sp.name]} times: check its cable and "
+                           "USB 3 port, then --resume")
+                    raise CameraError(msg) from exc
+                self._reconnect(state, exc)
                 state.phase = "guiding"
 
     def _guide_until_ready(self, sp: Standpoint, state: LiveState, notice: str = "") -> str:
@@ -307,9 +383,12 @@ class GuidedCapture:
         stride = pose_stride(n)
         poses: list[np.ndarray] = []
         centres: list[np.ndarray] = []
+        frames = FrameAccounting()
         with self.session.standpoint_writer(sp.name, self.info, meta) as writer:
             while state.recorded < n:
                 fs = self._frame()
+                if not frames.admit(fs):
+                    continue  # the same frame again: never recorded twice
                 if writer.write(fs) is False:
                     state.message = f"writer queue full: frame {fs.index} dropped"
                 state.recorded += 1
@@ -337,6 +416,7 @@ class GuidedCapture:
                     self.on_guidance(state.guidance, fs, self._t_s(fs))
             measured = self._measured(poses, n)
             meta["measured"] = measured
+            meta["frames"] = frames.summary()
             writer.set_metadata("standpoint", meta)
             truth = getattr(self.camera, "truth", None)
             if callable(truth):  # a simulated camera knows where it was: the evaluation's reference

@@ -6,6 +6,8 @@ The `acquire` commands and the demo both call these; the commands only parse opt
 
 from __future__ import annotations
 
+import base64
+import contextlib
 import sys
 import time
 from collections.abc import Callable
@@ -25,7 +27,8 @@ from depthstation.acquire.guided_capture import (
 from depthstation.acquire.views import BOARD_HELP, RerunView, TerminalPanel, blueprint
 from depthstation.acquire.warmup import WarmupDecision, WarmupSample, run_warmup
 from depthstation.core.capture.session import SESSION_FILE, Session
-from depthstation.core.errors import InputError
+from depthstation.core.device import CalibratableCamera
+from depthstation.core.errors import CameraError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress, stderr_console
 from depthstation.core.protocol import load_protocol, protocol_from_dict
@@ -42,10 +45,16 @@ GuidanceHook = Callable[[Guidance, FrameSet, float], None]
 
 
 class Station:
-    """The objects one command works on: protocol, camera spec, camera, session."""
+    """The objects one command works on: protocol, camera spec, camera, session.
+
+    The camera keeps streaming from the warm-up through calibration into the capture (a device that
+    stops streaming cools while the operator reads the prompts); `close` stops it. A live camera is
+    checked against the protocol's `[device] model`; `confirm(question)` may let it enable advanced
+    mode. A resumed session whose calibration table lives only in the device's RAM has it set again.
+    """
 
     def __init__(self, camera: str, protocol: str, session: Path, resume: bool, seed: int,
-                 real_time: bool) -> None:
+                 real_time: bool, confirm: Callable[[str], bool] | None = None) -> None:
         self.spec = parse_camera(camera)
         if resume:
             self.session = Session.open(session)
@@ -62,10 +71,34 @@ class Station:
         options: dict[str, Any] = {}
         if self.spec.kind == "sim":
             options = {"seed": seed, "real_time": real_time}
+        elif self.spec.kind == "live":
+            cal = self.protocol.calibration
+            options = {"model": self.protocol.device.model, "consent": confirm,
+                       "needs_advanced_mode": ("tare calibration (it runs with the High Accuracy preset)"
+                                               if cal.tare and self.session.data.get("calibration") is None
+                                               else None)}
         self.camera = open_camera(self.spec, **options)
         if self.spec.kind == "file" and real_time:
             self.camera.real_time = True
         self.seed = seed
+        self._hold_session_calibration()
+
+    def _hold_session_calibration(self) -> None:
+        """A table the session applied to RAM only is gone after a power cycle: set it again."""
+        rec = self.session.data.get("calibration")
+        hold = getattr(self.camera, "hold_calibration", None)
+        if isinstance(rec, dict) and rec.get("applied_to") == "ram" and rec.get("table_after_b64") \
+                and callable(hold):
+            hold(base64.b64decode(rec["table_after_b64"]))
+
+    def start(self) -> Any:
+        """Stream the protocol's profile (kept running when it runs already); its StreamInfo."""
+        return self.camera.start(self.protocol.streams)
+
+    def close(self) -> None:
+        """Stop streaming (the end of a command)."""
+        with contextlib.suppress(CameraError):
+            self.camera.stop()
 
     def attach_operator(self) -> GuidanceHook | None:
         """With a simulated camera nobody holds it: a simulated operator follows the guidance."""
@@ -138,22 +171,31 @@ def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTa
 
             result = run_warmup(st.camera, rule, info.depth_units_m, interval_s=interval_s, clock=clock,
                                 sleep=sleep, on_sample=on_sample)
+    except BaseException:
+        st.close()
+        raise
     finally:
-        st.camera.stop()
         if accelerate > 1.0 and hasattr(st.camera, "set_clock"):
             st.camera.set_clock(None)  # back to frame time for what follows
+    # the camera keeps streaming into calibration and capture: it must not cool meanwhile
     summary = result.summary()
     summary["interval_s"] = interval_s
     summary["accelerated"] = accelerate > 1.0
+    take = getattr(st.camera, "take_events", None)
+    if callable(take) and (events := take()):
+        summary["device_events"] = events
     st.session.set("warmup", summary)
     say(f"warm-up done: {summary['reason']}")
     return summary
 
 
-def do_calibrate(st: Station, yes: bool, write: bool,
-                 ask: Callable[[str], bool] | None = None) -> dict[str, Any]:
+def do_calibrate(st: Station, yes: bool, write: bool, ask: Callable[[str], bool] | None = None,
+                 ask_distance: Callable[[str, float], float] | None = None) -> dict[str, Any]:
     """On-chip / tare as the protocol asks; a new table is applied only when the operator agrees
-    (`yes`: always, for scripts; else `ask(question)`; without `ask`, never)."""
+    (`yes`: always, for scripts; else `ask(question)`; without `ask`, never). `ask_distance` lets
+    the operator enter the tare target's measured distance from the front glass (not with `yes`).
+    The camera streams the protocol's profile before and after (a live one switches to the
+    calibration mode for each run)."""
 
     def confirm(question: str) -> bool:
         if yes:
@@ -161,12 +203,19 @@ def do_calibrate(st: Station, yes: bool, write: bool,
             return True
         return ask(question) if ask is not None else False
 
-    st.camera.start(st.protocol.streams)
-    try:
-        record = run_calibration(st.camera, st.protocol.calibration, confirm=confirm, say=say,
-                                 write=write)
-    finally:
-        st.camera.stop()
+    if isinstance(st.camera, CalibratableCamera):  # a recording is not started just to be skipped
+        try:
+            st.start()
+            record = run_calibration(st.camera, st.protocol.calibration, confirm=confirm, say=say,
+                                     write=write, ask_distance=None if yes else ask_distance)
+        except BaseException:
+            st.close()
+            raise
+    else:
+        record = run_calibration(st.camera, st.protocol.calibration, confirm=confirm, say=say, write=write)
+    take = getattr(st.camera, "take_events", None)
+    if callable(take) and (events := take()):
+        record["device_events"] = events
     st.session.set("calibration", record)
     return record
 

@@ -1,8 +1,25 @@
 """Warm-up: stream until the device temperature settles (the thermal drift of depth dies down).
 
 The rule is pure (`warmup_decision`): at least the protocol's minimum time, and the temperature
-slope over the last window below the threshold; where the camera reports no temperature it falls
-back to the minimum time; the maximum time always ends it (with a warning in the summary).
+settled over the last window; where the camera reports no temperature it falls back to the minimum
+time; the maximum time always ends it (with a warning in the summary).
+
+A D4xx reports whole degrees (int8 in the firmware, librealsense `ds-options.cpp`). Over a window
+in which the temperature moves by less than a degree, a least-squares slope of such readings
+measures where the steps fall, not the slope (a single step gives anything from 0.04 to 0.3 C/min
+over 5 min). For whole-degree readings the rule therefore bounds the slope instead: for a warm-up
+that approaches its steady state monotonically with a slope that only shrinks (a first-order
+model, or several time constants of one sign), the slope now is at most the mean slope between
+the two ends of the window, and the readings' means at the ends are within one step of the true
+means, so
+
+    |slope now| <= (|mean(last sixth) - mean(first sixth)| + q + 3 (se_first + se_last)) / dt
+
+with q the reading step (1 C), se the standard errors of the two means (noise) and dt the time
+between the two ends' mean times. The window is stretched to at least 2 q / max_slope (40 min
+for 0.05 C/min): a flat reading proves the bound only over more than q / max_slope, and the margin
+lets noisy readings (flicker between two degrees) prove it too. Readings with
+fractions (the simulator) keep the least-squares slope over the protocol's window.
 The loop (`run_warmup`) takes its clock from the caller so a simulated camera can run it
 accelerated.
 """
@@ -17,6 +34,11 @@ from typing import Any
 import numpy as np
 
 from depthstation.core.protocol import Warmup
+
+# whole-degree readings: the window spans at least this many reading steps per max slope
+QUANTISED_WINDOW_STEPS = 2.0
+END_SHARE = 1.0 / 6.0  # each end of the window averaged for the bound
+NOISE_Z = 3.0  # standard errors of each end's mean added to the bound
 
 
 @dataclass(frozen=True)
@@ -44,6 +66,9 @@ class WarmupDecision:
     elapsed_s: float
     slope_c_per_min: float | None
     has_temperature: bool
+    resolution_c: float = 0.0  # step of the readings: 1.0 for whole degrees, 0.0 for fractions
+    window_s: float | None = None  # the window the rule used (stretched for whole degrees)
+    slope_bound_c_per_min: float | None = None  # upper bound on |slope now| (whole-degree readings)
 
 
 def temperature_slope(t_s: np.ndarray[Any, Any], temp_c: np.ndarray[Any, Any],
@@ -63,6 +88,40 @@ def temperature_slope(t_s: np.ndarray[Any, Any], temp_c: np.ndarray[Any, Any],
     return slope_per_s * 60.0
 
 
+def reading_resolution_c(temp_c: np.ndarray[Any, Any]) -> float:
+    """1.0 when every reading is a whole number of degrees (a D4xx's int8), else 0.0 (fractions)."""
+    y = np.asarray(temp_c, dtype=np.float64)
+    return 1.0 if y.size >= 3 and bool(np.all(y == np.round(y))) else 0.0
+
+
+def rule_window_s(rule: Warmup, resolution_c: float) -> float:
+    """The protocol's window, stretched for stepped readings to 2 steps per max slope."""
+    w = rule.window_minutes * 60.0
+    if resolution_c > 0:
+        w = max(w, QUANTISED_WINDOW_STEPS * resolution_c / rule.max_slope_c_per_min * 60.0)
+    return w
+
+
+def temperature_slope_bound(t_s: np.ndarray[Any, Any], temp_c: np.ndarray[Any, Any], window_s: float,
+                            resolution_c: float) -> float | None:
+    """Upper bound (degrees C per minute) on |slope now| from readings stepped by `resolution_c`
+    (module docstring); None until the samples span the window."""
+    t = np.asarray(t_s, dtype=np.float64)
+    y = np.asarray(temp_c, dtype=np.float64)
+    if t.size < 6 or t[-1] - t[0] < window_s:
+        return None
+    sel = t >= t[-1] - window_s
+    t, y = t[sel], y[sel]
+    end = END_SHARE * (t[-1] - t[0])
+    a, b = t <= t[0] + end, t >= t[-1] - end
+    if int(a.sum()) < 2 or int(b.sum()) < 2:
+        return None
+    dt = float(t[b].mean() - t[a].mean())
+    se = sum(float(y[m].std(ddof=1)) / np.sqrt(int(m.sum())) for m in (a, b))
+    rise = abs(float(y[b].mean() - y[a].mean()))
+    return float((rise + resolution_c + NOISE_Z * se) / dt * 60.0)
+
+
 def warmup_decision(samples: list[WarmupSample], rule: Warmup) -> WarmupDecision:
     """Whether warm-up is over, and why (the sentence the operator reads)."""
     if not samples:
@@ -70,29 +129,46 @@ def warmup_decision(samples: list[WarmupSample], rule: Warmup) -> WarmupDecision
     elapsed = samples[-1].t_s  # sample times count from the start of the warm-up
     pts = [(s.t_s, s.temperature_c) for s in samples if s.temperature_c is not None]
     has_temp = len(pts) > 0
-    slope = None
+    slope = bound = None
+    q = 0.0
+    window_s = rule.window_minutes * 60.0
     if has_temp:
         arr = np.asarray(pts, dtype=np.float64)
-        slope = temperature_slope(arr[:, 0], arr[:, 1], rule.window_minutes * 60.0)
+        q = reading_resolution_c(arr[:, 1])
+        window_s = rule_window_s(rule, q)
+        slope = temperature_slope(arr[:, 0], arr[:, 1], window_s)
+        if q > 0:
+            bound = temperature_slope_bound(arr[:, 0], arr[:, 1], window_s, q)
+
+    def decide(done: bool, why: str) -> WarmupDecision:
+        return WarmupDecision(done, why, elapsed, slope, has_temp, q, window_s if has_temp else None, bound)
+
     min_s, max_s = rule.min_minutes * 60.0, rule.max_minutes * 60.0
     if elapsed >= max_s:
         why = (f"maximum time of {rule.max_minutes:g} min reached"
                + ("" if slope is None else f" (slope still {slope:+.3f} °C/min)"))
-        return WarmupDecision(True, why, elapsed, slope, has_temp)
+        return decide(True, why)
     if elapsed < min_s:
-        return WarmupDecision(False, f"minimum time: {elapsed / 60:.1f} of {rule.min_minutes:g} min",
-                              elapsed, slope, has_temp)
+        return decide(False, f"minimum time: {elapsed / 60:.1f} of {rule.min_minutes:g} min")
     if not has_temp:
-        return WarmupDecision(True, f"minimum time of {rule.min_minutes:g} min reached "
-                              "(camera reports no temperature: time rule only)", elapsed, None, False)
+        return decide(True, f"minimum time of {rule.min_minutes:g} min reached "
+                      "(camera reports no temperature: time rule only)")
+    tol = rule.max_slope_c_per_min
+    if q > 0:
+        if bound is None:
+            return decide(False, f"collecting the temperature window ({window_s / 60:g} min for "
+                          f"{q:g} °C readings)")
+        if bound <= tol:
+            return decide(True, f"temperature settled: |slope| <= {bound:.3f} °C/min <= {tol:g} "
+                          f"(bound from {q:g} °C readings over {window_s / 60:g} min)")
+        return decide(False, f"temperature drifting: |slope| up to {bound:.3f} °C/min > {tol:g} "
+                      f"({q:g} °C readings over {window_s / 60:g} min)")
     if slope is None:
-        return WarmupDecision(False, "collecting the temperature window", elapsed, None, True)
-    if abs(slope) <= rule.max_slope_c_per_min:
-        return WarmupDecision(True, f"temperature settled: slope {slope:+.3f} °C/min <= "
-                              f"{rule.max_slope_c_per_min:g} over {rule.window_minutes:g} min",
-                              elapsed, slope, True)
-    return WarmupDecision(False, f"temperature drifting: slope {slope:+.3f} °C/min > "
-                          f"{rule.max_slope_c_per_min:g}", elapsed, slope, True)
+        return decide(False, "collecting the temperature window")
+    if abs(slope) <= tol:
+        return decide(True, f"temperature settled: slope {slope:+.3f} °C/min <= "
+                      f"{tol:g} over {rule.window_minutes:g} min")
+    return decide(False, f"temperature drifting: slope {slope:+.3f} °C/min > {tol:g}")
 
 
 @dataclass
@@ -109,6 +185,9 @@ class WarmupResult:
             "elapsed_s": None if d is None else d.elapsed_s,
             "final_slope_c_per_min": None if d is None else d.slope_c_per_min,
             "has_temperature": bool(d and d.has_temperature),
+            "resolution_c": None if d is None else d.resolution_c,
+            "window_s": None if d is None else d.window_s,
+            "final_slope_bound_c_per_min": None if d is None else d.slope_bound_c_per_min,
             "curve": [{"t_s": s.t_s, "depth_m": s.depth_m,
                        **{f"{k}_c": v for k, v in s.temperatures_c.items()}} for s in self.samples],
         }

@@ -3,7 +3,9 @@
 It renders the board scene at the pose a simulated operator sets, warms up like a device (an
 exponential approach of the temperatures to steady state on an injectable, accelerable clock),
 drifts with temperature, carries calibration errors that on-chip and tare calibration reduce
-(reporting Intel-style health values), and can drop off the bus after N frames.
+(reporting health values on the device's scales: Intel's on-chip health, tare's relative depth
+error as a fraction), and can drop off the bus after N frames. Its temperatures are continuous
+(the physics); the device's whole-degree readings are in the fake pyrealsense2 of the tests.
 """
 
 from __future__ import annotations
@@ -151,7 +153,10 @@ class SimulatedCamera:
 
     # -- Camera protocol ------------------------------------------------------------------------
     def start(self, streams: Streams | None = None) -> StreamInfo:
+        """Stream `streams`; the same streams already running keep running (as the live camera)."""
         streams = streams or self._streams or Streams()
+        if self._renderer is not None and self.info is not None and streams == self._streams:
+            return self.info
         if self._disconnected and self._starts_refused < self.failed_reconnects:
             self._starts_refused += 1
             raise CameraError("simulated camera: no device (still unplugged)")
@@ -356,24 +361,26 @@ class SimulatedCamera:
                                  {"health_after": self.on_chip_health(new), "simulated": True})
 
     def run_tare_calibration(self, ground_truth_m: float, timeout_s: float = 30.0) -> CalibrationResult:
-        """Match the depth at a known distance: the disparity offset shrinks. Health = depth error in %."""
+        """Match the depth at a known distance from the depth origin: the disparity offset shrinks.
+        Health = (before, after), the relative depth error at the ground truth as a fraction
+        (Z / GT - 1), the device's scale."""
         self._require_streaming()
         if not 0.2 < ground_truth_m < 10.0:
             raise InputError(None, f"tare ground truth must be a distance in metres, got {ground_truth_m}")
         assert self.info is not None
         fb = self.info.depth_intrinsics.fx * self.base_model.camera.baseline_m
 
-        def err_pct(errors: dict[str, dict[str, float]]) -> float:
+        def rel_error(errors: dict[str, dict[str, float]]) -> float:
             off = errors.get("disparity_offset", {}).get("offset_px", 0.0)
             z = fb / (fb / ground_truth_m + off)
-            return 100.0 * (z - ground_truth_m) / ground_truth_m
+            return (z - ground_truth_m) / ground_truth_m
 
         new = {k: dict(v) for k, v in self.errors.items()}
         if "disparity_offset" in new:
             off = new["disparity_offset"]["offset_px"]
             new["disparity_offset"] = {"offset_px": off * self.calibration_residual
                                        * (1 + 0.2 * float(self._rng.standard_normal()))}
-        return CalibrationResult("tare", self._table(new), (err_pct(self.errors), err_pct(new)),
+        return CalibrationResult("tare", self._table(new), (rel_error(self.errors), rel_error(new)),
                                  {"ground_truth_m": ground_truth_m, "simulated": True})
 
     def set_calibration_table(self, table: bytes) -> None:

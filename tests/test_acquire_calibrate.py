@@ -1,4 +1,5 @@
-"""Calibration flow: health bands (Intel), apply only on confirmation, tables recorded; live helpers."""
+"""Calibration flow: health bands (Intel) for on-chip, the relative depth error for tare, apply only
+on confirmation (else the previous table is put back), tables recorded; live helpers."""
 
 from __future__ import annotations
 
@@ -6,7 +7,17 @@ import base64
 
 import pytest
 
-from depthstation.acquire.calibrate import GOOD, IMPROVABLE, REQUIRED, health_verdict, run_calibration
+from depthstation.acquire.calibrate import (
+    GOOD,
+    IMPROVABLE,
+    REQUIRED,
+    TARE_NOT_IMPROVED,
+    TARE_OFF,
+    TARE_SMALL,
+    health_verdict,
+    run_calibration,
+    tare_verdict,
+)
 from depthstation.acquire.live_camera import LiveCamera, read_options, read_temperatures
 from depthstation.core.device import CalibrationResult
 from depthstation.core.errors import InputError
@@ -14,7 +25,8 @@ from depthstation.core.protocol import Calibration
 
 
 class FakeDevice:
-    """A device-side calibration engine: new tables differ from the current one by a counter."""
+    """A device-side calibration engine: new tables differ from the current one by a suffix, and a
+    run leaves its table active (as the device does)."""
 
     def __init__(self, health: float) -> None:
         self.table = b"factory"
@@ -25,10 +37,12 @@ class FakeDevice:
         return self.table
 
     def run_on_chip_calibration(self, timeout_s: float = 30.0) -> CalibrationResult:
-        return CalibrationResult("on_chip", self.table + b"+occ", (self.health, 0.0))
+        self.table += b"+occ"
+        return CalibrationResult("on_chip", self.table, (self.health,))
 
     def run_tare_calibration(self, ground_truth_m: float, timeout_s: float = 30.0) -> CalibrationResult:
-        return CalibrationResult("tare", self.table + b"+tare", (self.health,),
+        self.table += b"+tare"
+        return CalibrationResult("tare", self.table, (self.health, 0.0001),
                                  {"ground_truth_m": ground_truth_m})
 
     def set_calibration_table(self, table: bytes) -> None:
@@ -42,6 +56,14 @@ class FakeDevice:
                                                    (0.74, IMPROVABLE, True), (1.2, REQUIRED, True)])
 def test_health_bands(h: float, level: str, apply: bool) -> None:
     v = health_verdict(h)
+    assert v.level == level and v.recommend_apply == apply
+
+
+@pytest.mark.parametrize(("before", "after", "level", "apply"), [
+    (0.001, 0.0001, TARE_SMALL, False), (-0.012, 0.001, TARE_OFF, True), (0.2, 0.0002, TARE_OFF, True),
+    (0.01, 0.02, TARE_NOT_IMPROVED, False)])
+def test_tare_verdict_on_the_relative_error(before: float, after: float, level: str, apply: bool) -> None:
+    v = tare_verdict(before, after, min_error=0.002)
     assert v.level == level and v.recommend_apply == apply
 
 
@@ -78,7 +100,7 @@ def test_live_option_and_temperature_readers_on_a_software_sensor() -> None:
     opts = read_options(sensor)
     assert opts["depth_units"] == pytest.approx(0.001) and opts["asic_temperature"] == pytest.approx(41.5)
     bare = dev.add_sensor("RGB Camera")
-    assert read_temperatures(bare, {"temperature": 38.0}) == {"sensor": 38.0}
+    assert read_temperatures(bare) == {}  # the D400 has no temperature metadata to fall back on
 
 
 def test_live_camera_imports_without_device() -> None:

@@ -19,6 +19,40 @@ from depthstation.simulate.operator import OperatorSettings, SimulatedOperator, 
 INTR = Intrinsics(640, 360, 320.0, 320.0, 319.5, 179.5)
 
 
+def render_board(board: Board, cam_to_board: np.ndarray, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Flat-shaded board on its plate (colour, RGB) and the plate's exact plane (depth, mm), the
+    same optics for both."""
+    import cv2
+
+    b2c = np.linalg.inv(cam_to_board)
+    r, t = b2c[:3, :3], b2c[:3, 3]
+    img = np.full((intr.height, intr.width, 3), 90, np.uint8)
+    depth = np.zeros((intr.height, intr.width), np.uint16)
+    s = board.square_length_m
+    w, h = board.size_m
+    m = 0.04
+    plate = np.array([[-m, -m, 0], [w + m, -m, 0], [w + m, h + m, 0], [-m, h + m, 0]])
+    uv = np.round(project(intr, plate @ r.T + t) * 16).astype(np.int32)
+    cv2.fillConvexPoly(img, uv, (255, 255, 255), cv2.LINE_AA, 4)
+    mask = np.zeros(depth.shape, np.uint8)
+    cv2.fillConvexPoly(mask, uv, 1, cv2.LINE_8, 4)
+    for j in range(board.squares_y):
+        for i in range(board.squares_x):
+            if (i + j) % 2 == 0:
+                q = np.array([[i * s, j * s, 0], [(i + 1) * s, j * s, 0],
+                              [(i + 1) * s, (j + 1) * s, 0], [i * s, (j + 1) * s, 0]])
+                uvq = np.round(project(intr, q @ r.T + t) * 16).astype(np.int32)
+                cv2.fillConvexPoly(img, uvq, (0, 0, 0), cv2.LINE_AA, 4)
+    # plane depth: z along each ray hitting n.p = n.p0 (camera frame)
+    n = r[:, 2]
+    p0 = t
+    v, u = np.mgrid[0:intr.height, 0:intr.width]
+    d = np.stack([(u - intr.ppx) / intr.fx, (v - intr.ppy) / intr.fy, np.ones_like(u, float)], -1)
+    z = (n @ p0) / (d @ n)
+    depth[mask > 0] = np.clip(z[mask > 0] * 1000, 0, 65535).astype(np.uint16)
+    return depth, img
+
+
 class RenderedBoardCamera:
     """Flat-shaded board (colour) and its exact plane (depth) at the pose an operator holds;
     depth and colour share the optics. `fail_at` frame numbers raise CameraDisconnected once."""
@@ -44,8 +78,6 @@ class RenderedBoardCamera:
         self.started = False
 
     def wait_for_frames(self, timeout_s: float = 5.0) -> FrameSet:
-        import cv2
-
         if not self.started:
             raise CameraError("not started")
         self.n += 1
@@ -53,32 +85,7 @@ class RenderedBoardCamera:
             self.fail_at.discard(self.n)
             self.started = False
             raise CameraDisconnected("simulated unplug")
-        b2c = np.linalg.inv(self.cam_to_board)
-        r, t = b2c[:3, :3], b2c[:3, 3]
-        img = np.full((INTR.height, INTR.width, 3), 90, np.uint8)
-        depth = np.zeros((INTR.height, INTR.width), np.uint16)
-        s = self.board.square_length_m
-        w, h = self.board.size_m
-        m = 0.04
-        plate = np.array([[-m, -m, 0], [w + m, -m, 0], [w + m, h + m, 0], [-m, h + m, 0]])
-        uv = np.round(project(INTR, plate @ r.T + t) * 16).astype(np.int32)
-        cv2.fillConvexPoly(img, uv, (255, 255, 255), cv2.LINE_AA, 4)
-        mask = np.zeros(depth.shape, np.uint8)
-        cv2.fillConvexPoly(mask, uv, 1, cv2.LINE_8, 4)
-        for j in range(self.board.squares_y):
-            for i in range(self.board.squares_x):
-                if (i + j) % 2 == 0:
-                    q = np.array([[i * s, j * s, 0], [(i + 1) * s, j * s, 0],
-                                  [(i + 1) * s, (j + 1) * s, 0], [i * s, (j + 1) * s, 0]])
-                    uvq = np.round(project(INTR, q @ r.T + t) * 16).astype(np.int32)
-                    cv2.fillConvexPoly(img, uvq, (0, 0, 0), cv2.LINE_AA, 4)
-        # plane depth: z along each ray hitting n.p = n.p0 (camera frame)
-        n = r[:, 2]
-        p0 = t
-        v, u = np.mgrid[0:INTR.height, 0:INTR.width]
-        d = np.stack([(u - INTR.ppx) / INTR.fx, (v - INTR.ppy) / INTR.fy, np.ones_like(u, float)], -1)
-        z = (n @ p0) / (d @ n)
-        depth[mask > 0] = np.clip(z[mask > 0] * 1000, 0, 65535).astype(np.uint16)
+        depth, img = render_board(self.board, self.cam_to_board, INTR)
         return FrameSet(self.n, int(1.7e18) + int(self.n * 1e9 / self.fps), depth, img, None, {})
 
     def temperatures(self) -> dict[str, float]:

@@ -114,7 +114,11 @@ def test_no_dropped_frame_at_real_time(tmp_path: Path) -> None:
 
 @pytest.mark.hardware
 def test_live_session_smoke(tmp_path: Path) -> None:
+    """On-chip (no), the tare target's distance from the glass (the protocol's), tare (no); a camera
+    with advanced mode off is asked first whether to enable it (no: the run stops in one line)."""
     r = subprocess.run([EXE, "acquire", "calibrate", "--camera", "live", "--protocol", "demo-d455",
-                        "--session", str(tmp_path / "s")], input="n\nn\n", capture_output=True, text=True,
-                       timeout=300)
+                        "--session", str(tmp_path / "s")], input="n\n\nn\n", capture_output=True,
+                       text=True, timeout=300)
     assert r.returncode == 0, r.stderr
+    cal = json.loads((tmp_path / "s" / "session.json").read_text())["calibration"]
+    assert [s["kind"] for s in cal["steps"]] == ["on_chip", "tare"] and not cal["changed"]

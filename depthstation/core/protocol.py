@@ -84,8 +84,18 @@ class Warmup:
 class Calibration:
     on_chip: bool = True
     tare: bool = False
-    tare_distance_m: float | None = None
-    min_health: float = 0.25  # |health| above this suggests applying the new table
+    tare_distance_m: float | None = None  # from the camera's front glass to the flat target
+    min_health: float = 0.25  # on-chip: |health| above this suggests applying the new table
+    # tare: apply when the relative depth error before exceeds this (fraction) and the new table
+    # lowers it; our choice (Intel gives no tare bands): about a tape measure's 2 mm at 1 m
+    tare_min_error: float = 0.002
+
+
+@dataclass(frozen=True)
+class Device:
+    """The camera model the protocol is written for; a live camera of another model is refused."""
+
+    model: str = "D455"
 
 
 @dataclass(frozen=True)
@@ -99,6 +109,7 @@ class Protocol:
     warmup: Warmup = field(default_factory=Warmup)
     calibration: Calibration = field(default_factory=Calibration)
     source: str | None = None
+    device: Device = field(default_factory=Device)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -169,7 +180,8 @@ def _positive(source: Path | None, table: Any, key: str, names: tuple[str, ...],
 
 def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Protocol:
     """Validate a parsed protocol; every error names the key."""
-    known = {"name", "description", "board", "streams", "plan", "tolerances", "warmup", "calibration"}
+    known = {"name", "description", "board", "streams", "plan", "tolerances", "warmup", "calibration",
+             "device"}
     for k in data:
         if k not in known:
             raise ProtocolError(source, f"unknown key '{k}'")
@@ -193,6 +205,7 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
         warmup=_table(Warmup, data.get("warmup"), "warmup", source),
         calibration=_table(Calibration, data.get("calibration"), "calibration", source),
         source=None if source is None else str(source),
+        device=_table(Device, data.get("device"), "device", source),
     )
     p = proto.plan
     if p.frames_per_standpoint < 1:
