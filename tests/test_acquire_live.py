@@ -31,7 +31,7 @@ from depthstation.core.board import Board
 from depthstation.core.camera_model import Intrinsics
 from depthstation.core.capture.session import Session
 from depthstation.core.device import CameraUnsuitable
-from depthstation.core.protocol import Calibration, Plan, Protocol, Streams, Tolerances, Warmup
+from depthstation.core.protocol import PROTOCOL_DIR, Calibration, Plan, Protocol, Streams, Tolerances, Warmup
 from depthstation.simulate.poses import standpoint_pose
 
 PROTO_STREAMS = Streams(width=640, height=360, fps=30)
@@ -239,7 +239,8 @@ def test_a_preset_without_advanced_mode_is_refused_in_one_line(fake: Any, tmp_pa
 
     world, unit = fake(advanced_mode=False)
     proto = tmp_path / "ha.toml"
-    proto.write_text('name = "ha"\n[streams]\nwidth = 640\nheight = 360\npreset = "High Accuracy"\n')
+    demo = (PROTOCOL_DIR / "demo-d455.toml").read_text()
+    proto.write_text(demo.replace("[streams]\n", '[streams]\npreset = "High Accuracy"\n', 1))
     monkeypatch.setattr(sys, "argv", ["depthstation", "acquire", "warmup", "--camera", "live", "--protocol",
                                       str(proto), "--session", str(tmp_path / "s")])
     monkeypatch.setattr(sys, "stdin", io.StringIO("n\n"))  # the operator declines to enable it
@@ -445,8 +446,10 @@ def test_the_session_streams_from_warmup_through_calibration_into_capture(fake: 
 
     world, unit = fake()
     proto = tmp_path / "p.toml"
-    proto.write_text('name = "p"\n[streams]\nwidth = 640\nheight = 360\n[plan]\nframes_per_standpoint = 4\n'
-                     'start_distance_m = 1.0\nmax_distance_m = 1.0\ninclinations_deg = [0.0]\n'
+    proto.write_text('name = "p"\n[board]\ntype = "checkerboard"\nsquares_x = 7\nsquares_y = 5\n'
+                     'square_length_m = 0.095\n[streams]\nwidth = 640\nheight = 360\nfps = 30\n'
+                     '[plan]\nframes_per_standpoint = 4\n'
+                     'start_distance_m = 1.0\nstep_m = 0.2\nmax_distance_m = 1.0\ninclinations_deg = [0.0]\n'
                      '[tolerances]\nstill_seconds = 0.2\n[warmup]\nmin_minutes = 0.01\nmax_minutes = 0.02\n'
                      '[calibration]\non_chip = true\n[device]\nmodel = "D455"\n')
     unit.scene = board_scene(Board(), 1.0)

@@ -19,7 +19,7 @@ from depthstation.core.geometry import (
     rodrigues,
     rotation_angle_deg,
 )
-from depthstation.core.protocol import load_protocol
+from depthstation.core.protocol import PROTOCOL_DIR, load_protocol
 
 
 def test_project_deproject_round_trip() -> None:
@@ -94,7 +94,7 @@ def test_real_board_json_loads(charuco_dir: Path) -> None:
 
 def test_board_errors_name_the_key(tmp_path: Path) -> None:
     p = tmp_path / "board.json"
-    p.write_text('{"type": "circles"}')
+    p.write_text('{"type": "circles", "squares_x": 7, "squares_y": 5, "square_length_m": 0.05}')
     with pytest.raises(InputError, match=r"board\.type"):
         load_board(p)
 
@@ -107,15 +107,21 @@ def test_protocols_load_and_plan() -> None:
     assert proto.board.square_length_m == 0.095
 
 
-@pytest.mark.parametrize(("text", "key"), [
-    ('name = "x"\n[plan]\nstep_m = "far"\n', "plan.step_m"),
-    ('name = "x"\n[plan]\nstepp = 1\n', "plan.stepp"),
-    ('name = "x"\n[streams]\nfps = -1\n', "streams.fps"),
-    ('[plan]\nstep_m = 0.4\n', "name"),
+_DEMO = (PROTOCOL_DIR / "demo-d455.toml").read_text()
+
+
+@pytest.mark.parametrize(("change", "key"), [
+    (("step_m = 0.8", 'step_m = "far"'), "plan.step_m"),
+    (("[plan]\n", "[plan]\nstepp = 1\n"), "plan.stepp"),
+    (("fps = 30", "fps = -1"), "streams.fps"),
+    (('name = "demo-d455"\n', ""), "missing key 'name'"),
+    (("[board]", "[boardx]"), "board"),
 ])
-def test_protocol_errors_name_the_key(tmp_path: Path, text: str, key: str) -> None:
+def test_protocol_errors_name_the_key(tmp_path: Path, change: tuple[str, str], key: str) -> None:
+    """A complete protocol with one fault: the error names that key."""
+    assert change[0] in _DEMO
     p = tmp_path / "p.toml"
-    p.write_text(text)
+    p.write_text(_DEMO.replace(*change, 1))
     with pytest.raises(ProtocolError, match=key.replace(".", r"\.")):
         load_protocol(p)
 
