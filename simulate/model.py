@@ -158,6 +158,10 @@ def model_from_dict(data: dict[str, Any], name: str, source: Path | None = None)
         if not isinstance(params, dict):
             raise InputError(source, f"model: [effects.{ename}] must be a table")
         spec = EFFECTS[ename].PARAMS if ename in EFFECTS else {}
+        unknown = [k for k in params if k not in spec]
+        if spec and unknown:  # a misspelt name first: else it would read as the right one missing
+            raise InputError(source, f"model: unknown parameter 'effects.{ename}.{unknown[0]}' "
+                                     f"(known: {', '.join(spec)})")
         missing = [k for k in spec if k not in params]
         if missing:  # an effect named without its value would run at a default nobody chose
             _, unit, meaning = spec[missing[0]]

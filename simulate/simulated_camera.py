@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from depthstation.core.board import Board
 from depthstation.core.board_pose import pose_metrics
-from depthstation.core.camera_model import StreamInfo
+from depthstation.core.camera_model import StreamInfo, pixel_rays
 from depthstation.core.device import CalibrationResult
 from depthstation.core.errors import CameraDisconnected, CameraError, InputError
 from depthstation.core.frames import FrameSet
@@ -311,8 +311,11 @@ class SimulatedCamera:
                    & (p[..., 1] < h - margin_m) & (np.abs(p[..., 2]) < 1e-4))
         ctx = r.context(*(self._ctx_temp[::-1] if self._ctx_temp else (0.0, 40.0)))
         var = np.broadcast_to(r.model.variance_m2(ctx), g.z_m.shape)
-        cos = np.cos(np.radians(g.inclination_deg))
-        noise = float(np.sqrt(np.mean((var * cos * cos)[on_grid]))) if on_grid.any() else float("nan")
+        # a z-depth error dz moves the point along its ray by dz |ray| (ray with z = 1), which is
+        # dz |ray| cos(inclination) orthogonal to the board
+        ray_norm = np.linalg.norm(pixel_rays(r.info.depth_intrinsics), axis=-1)
+        orth = ray_norm * np.cos(np.radians(g.inclination_deg))
+        noise = float(np.sqrt(np.mean((var * orth * orth)[on_grid]))) if on_grid.any() else float("nan")
         return {"source": "simulated camera", "board_to_depth": b2c.tolist(),
                 "distance_m": d, "inclination_deg": inc, "azimuth_deg": az,
                 "noise_m": noise, "board_pixels": int(on_grid.sum()), "seed": self.seed}
