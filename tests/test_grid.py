@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from depthstation.core.errors import InputError
-from depthstation.core.grid import Grid, display_grid
+from depthstation.core.grid import Grid, display_grid, pack_grid, unpack_grid
 
 
 def _samples(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -121,3 +121,67 @@ def test_display_grid_coarsens_a_sparse_grid_only_as_far_as_needed() -> None:
     dense = Grid.empty(distance_bin_m=0.1, inclination_bin_deg=10.0, distance_max_m=1.0)
     dense.add(d, a, x)  # ~44 per cell: shown as analysed
     assert display_grid(dense, min_count=10)[1] == (1, 1)
+
+
+def _clustered_grid(rng: np.random.Generator, frames: int, bias: float) -> Grid:
+    """One cell seen by `frames` frames: each frame moves all its pixels by a common offset
+    (pose error, exposure) on top of independent pixel noise; 20-400 pixels per frame."""
+    g = Grid.empty(distance_bin_m=1.0, inclination_bin_deg=90.0, distance_max_m=1.0).with_frame_moments()
+    frame = g.like()
+    for _ in range(frames):
+        n = int(rng.integers(20, 400))
+        x = bias + rng.normal(0.0, 0.002) + rng.normal(0.0, 0.003, n)
+        frame.add(np.full(n, 0.5), np.full(n, 10.0), x)
+        g.add_frame(frame)
+    return g
+
+
+def test_frame_clustered_standard_error_covers_the_cell_mean() -> None:
+    """Pixels of a frame share its error: sqrt(var / n) covers the true mean in few cells, the
+    frame-clustered U95 (t with effective frames - 1 dof) in about 95%, and is not inflated."""
+    rng = np.random.default_rng(11)
+    bias, frames, trials = 0.004, 8, 400
+    hits_naive = hits = 0
+    u95, errors = [], []
+    for _ in range(trials):
+        g = _clustered_grid(rng, frames, bias)
+        err = abs(g.mean[0, 0] - bias)
+        assert g.frames is not None and g.frames[0, 0] == frames
+        hits_naive += err <= 1.96 * g.stderr[0, 0]
+        hits += err <= g.u95_m[0, 0]
+        u95.append(g.u95_m[0, 0])
+        errors.append(g.mean[0, 0] - bias)
+    assert hits_naive / trials < 0.5           # the independent-pixel error bar misleads
+    assert 0.93 <= hits / trials <= 0.99
+    spread = 1.96 * np.std(errors)
+    assert 0.8 < np.median(u95) / spread < 2.0  # honest, not inflated
+
+
+def test_frame_moments_survive_merge_pack_and_file(tmp_path: Path) -> None:
+    """Two chunks of frames merged give the moments of one pass; pack/unpack and grid.npz keep them."""
+    rng = np.random.default_rng(5)
+    one = Grid.empty(distance_bin_m=0.1, inclination_bin_deg=10.0, distance_max_m=1.0).with_frame_moments()
+    halves = [one.like().with_frame_moments(), one.like().with_frame_moments()]
+    frame = one.like()
+    for k in range(12):
+        d, a, x = _samples(3000, 100 + k)
+        x = x + rng.normal(0.0, 0.001)  # a frame-wide offset
+        for g in (one, halves[k % 2]):
+            frame.add(d, a, x)
+            g.add_frame(frame)
+        assert frame.total == 0
+    merged = unpack_grid(pack_grid(halves[0])).merge(unpack_grid(pack_grid(halves[1])))
+    assert merged.frames is not None and one.frames is not None
+    np.testing.assert_array_equal(merged.frames, one.frames)
+    np.testing.assert_allclose(merged.se_m, one.se_m, rtol=1e-9)
+    back = Grid.load(merged.save(tmp_path / "grid.npz"))
+    np.testing.assert_allclose(back.se_m, one.se_m, rtol=1e-9)
+    with np.load(tmp_path / "grid.npz") as z:
+        assert {"frames", "se_m"} <= set(z.files)
+    ok = one.frames > 1
+    assert (one.design_effect[ok] > 1.5).mean() > 0.5  # the frame offset shows as a design effect
+    # without frame moments the independent-sample error is all there is
+    plain = Grid.empty(distance_bin_m=0.1, inclination_bin_deg=10.0, distance_max_m=1.0)
+    plain.add(*_samples(3000, 1))
+    assert plain.frames is None
+    np.testing.assert_array_equal(plain.se_m, plain.stderr)

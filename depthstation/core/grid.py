@@ -7,7 +7,7 @@ across frames, chunks or workers (Chan et al.) to the same result up to float ro
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -99,6 +99,49 @@ def _uniform_edges(lo: float, hi: float, step: float) -> NDArray[np.float64]:
 
 
 @dataclass
+class FrameMoments:
+    """Per cell, the frames that saw it and moments of their per-frame cell means m_f weighted by
+    n_f^2 (n_f the frame's samples in the cell): what the standard error of a cell mean needs.
+
+    Why: the pixels of one frame are not independent (one pose error, one exposure, spatially
+    correlated stereo matching move them together), so sqrt(var / n) over pixels understates the
+    uncertainty of a cell mean by the square root of the design effect. Frames as clusters give the
+    cluster-robust (sandwich) variance  F / (F - 1) * sum n_f^2 (m_f - mean)^2 / N^2, exact to add
+    frame by frame and to merge across chunks (the sums add).
+    """
+
+    frames: NDArray[np.int64]
+    n2: NDArray[np.float64]        # sum over frames of n_f^2
+    n2_mean: NDArray[np.float64]   # sum of n_f^2 m_f
+    n2_mean2: NDArray[np.float64]  # sum of n_f^2 m_f^2
+
+    @classmethod
+    def zeros(cls, shape: tuple[int, int]) -> FrameMoments:
+        return cls(np.zeros(shape, np.int64), np.zeros(shape), np.zeros(shape), np.zeros(shape))
+
+    def copy(self) -> FrameMoments:
+        return FrameMoments(self.frames.copy(), self.n2.copy(), self.n2_mean.copy(), self.n2_mean2.copy())
+
+    def add_cells(self, cells: NDArray[np.integer[Any]], n: ArrayLike, mean: ArrayLike) -> None:
+        """One frame's cells (flat indices, each once), its sample counts and means there."""
+        nf = np.asarray(n, dtype=np.float64)
+        mf = np.asarray(mean, dtype=np.float64)
+        w = nf * nf
+        self.frames.ravel()[cells] += 1
+        self.n2.ravel()[cells] += w
+        self.n2_mean.ravel()[cells] += w * mf
+        self.n2_mean2.ravel()[cells] += w * mf * mf
+
+    def merge(self, other: FrameMoments) -> FrameMoments:
+        """Fold in the moments of other frames (never the same frames twice); returns self."""
+        self.frames += other.frames
+        self.n2 += other.n2
+        self.n2_mean += other.n2_mean
+        self.n2_mean2 += other.n2_mean2
+        return self
+
+
+@dataclass
 class Grid:
     """count/mean/M2 over (distance bin, inclination bin); bins are uniform and half-open, the last
     one closed (6.0 m and 90 deg are kept).
@@ -112,6 +155,9 @@ class Grid:
     count: NDArray[np.int64]
     mean: NDArray[np.float64]
     m2: NDArray[np.float64]
+    # frame-clustered moments for the standard error of the cell means; None where frames are
+    # not known (grids of single samples, coarsened display grids, old files)
+    moments: FrameMoments | None = field(default=None, compare=False)
 
     @classmethod
     def empty(cls, distance_bin_m: float = DEFAULT_DISTANCE_BIN_M,
@@ -139,7 +185,15 @@ class Grid:
 
     def copy(self) -> Grid:
         return Grid(self.distance_edges_m.copy(), self.inclination_edges_deg.copy(),
-                    self.count.copy(), self.mean.copy(), self.m2.copy())
+                    self.count.copy(), self.mean.copy(), self.m2.copy(),
+                    None if self.moments is None else self.moments.copy())
+
+    def with_frame_moments(self) -> Grid:
+        """Start keeping frame-clustered moments (an empty grid: every frame must be added)."""
+        if self.total:
+            raise ValueError("frame moments must start with an empty grid")
+        self.moments = FrameMoments.zeros(self.shape)
+        return self
 
     # -- bin geometry used by the fused kernels ------------------------------------------------
     @property
@@ -180,11 +234,33 @@ class Grid:
                 and np.allclose(self.distance_edges_m, other.distance_edges_m)
                 and np.allclose(self.inclination_edges_deg, other.inclination_edges_deg))
 
+    def add_frame(self, frame: Grid) -> Grid:
+        """Merge one frame's partial grid, keeping its frame moments; `frame` is emptied (where it
+        holds samples) for the next frame. Returns self."""
+        if not self.compatible(frame):
+            raise ValueError("cannot merge grids with different bins")
+        cells = np.flatnonzero(frame.count)
+        n, m = frame.count.ravel()[cells], frame.mean.ravel()[cells]
+        if self.moments is not None:
+            self.moments.add_cells(cells, n, m)
+        _chan_merge(self.count, self.mean, self.m2, frame.count, frame.mean, frame.m2)
+        for a in (frame.count, frame.mean, frame.m2):
+            a.ravel()[cells] = 0
+        return self
+
     def merge(self, other: Grid) -> Grid:
-        """Fold another grid into this one (Chan's parallel formula); returns self."""
+        """Fold another grid into this one (Chan's parallel formula); returns self. Frame moments
+        survive only when both grids keep them."""
         if not self.compatible(other):
             raise ValueError("cannot merge grids with different bins")
+        had = self.total > 0
         _chan_merge(self.count, self.mean, self.m2, other.count, other.mean, other.m2)
+        if self.moments is not None and other.moments is not None:
+            self.moments.merge(other.moments)
+        elif self.moments is None and other.moments is not None and not had:
+            self.moments = other.moments.copy()
+        elif other.moments is None and other.total:
+            self.moments = None
         return self
 
     # -- read-outs ------------------------------------------------------------------------------
@@ -217,9 +293,59 @@ class Grid:
 
     @property
     def stderr(self) -> NDArray[np.float64]:
-        """Standard error of the cell mean, sqrt(var / n)."""
+        """Standard error of the cell mean as if every sample were independent, sqrt(var / n)."""
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.sqrt(self.var / self.count)
+
+    @property
+    def frames(self) -> NDArray[np.int64] | None:
+        """Frames with samples in each cell (None without frame moments)."""
+        return None if self.moments is None else self.moments.frames
+
+    @property
+    def se_m(self) -> NDArray[np.float64]:
+        """Standard error of the cell mean with the frames as clusters (FrameMoments), NaN below two
+        frames; without frame moments, the independent-sample stderr (an underestimate)."""
+        fm = self.moments
+        if fm is None:
+            return self.stderr
+        out = np.full(self.shape, np.nan)
+        ok = fm.frames > 1
+        mu = self.mean[ok]
+        ss = fm.n2_mean2[ok] - 2.0 * mu * fm.n2_mean[ok] + mu * mu * fm.n2[ok]
+        f = fm.frames[ok].astype(np.float64)
+        n = self.count[ok].astype(np.float64)
+        out[ok] = np.sqrt(np.maximum(ss, 0.0) * f / (f - 1.0)) / n
+        return out
+
+    @property
+    def effective_frames(self) -> NDArray[np.float64] | None:
+        """Kish's effective number of frames N^2 / sum n_f^2 per cell (frames of unequal weight count
+        less): the degrees of freedom of se_m are effective_frames - 1."""
+        fm = self.moments
+        if fm is None:
+            return None
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(fm.n2 > 0, self.count.astype(np.float64) ** 2 / fm.n2, np.nan)
+
+    @property
+    def u95_m(self) -> NDArray[np.float64]:
+        """Expanded uncertainty (95%) of the cell mean: t(0.975, dof) se_m with dof = effective frames
+        - 1 (at least 1), which covers the true mean in ~95% of cells even for frames of very unequal
+        size (tests/test_grid.py); without frame moments, 1.96 stderr (an underestimate)."""
+        from scipy import stats
+
+        feff = self.effective_frames
+        if feff is None:
+            return 1.96 * self.stderr
+        dof = np.maximum(np.nan_to_num(feff, nan=2.0) - 1.0, 1.0)
+        return np.asarray(stats.t.ppf(0.975, dof) * self.se_m, dtype=np.float64)
+
+    @property
+    def design_effect(self) -> NDArray[np.float64]:
+        """(se_m / stderr)^2 per cell: how many pixels count as one independent sample."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return (self.se_m / self.stderr) ** 2
 
     def coarsened(self, fd: int, fi: int) -> Grid:
         """The same samples in cells fd x fi times larger (exact: Chan's merge within each block);
@@ -264,9 +390,14 @@ class Grid:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".tmp.npz")
         saver = np.savez_compressed if compressed else np.savez
-        saver(tmp, distance_edges_m=self.distance_edges_m,
-              inclination_edges_deg=self.inclination_edges_deg, count=self.count,
-              mean_m=self.mean_m, var_m2=self.var, m2_m2=self.m2)
+        arrays: dict[str, Any] = {
+            "distance_edges_m": self.distance_edges_m, "inclination_edges_deg": self.inclination_edges_deg,
+            "count": self.count, "mean_m": self.mean_m, "var_m2": self.var, "m2_m2": self.m2}
+        if self.moments is not None:
+            fm = self.moments
+            arrays |= {"frames": fm.frames, "se_m": self.se_m, "u95_m": self.u95_m, "frame_n2": fm.n2,
+                       "frame_n2_mean": fm.n2_mean, "frame_n2_mean2": fm.n2_mean2}
+        saver(tmp, **arrays)
         tmp.replace(path)
         return path
 
@@ -288,8 +419,13 @@ class Grid:
             m2 = data["m2_m2"].astype(np.float64)
         else:
             m2 = np.nan_to_num(data["var_m2"]) * np.maximum(count - 1, 0)
+        moments = None
+        if all(k in data for k in ("frames", "frame_n2", "frame_n2_mean", "frame_n2_mean2")):
+            moments = FrameMoments(data["frames"].astype(np.int64), data["frame_n2"].astype(np.float64),
+                                   data["frame_n2_mean"].astype(np.float64),
+                                   data["frame_n2_mean2"].astype(np.float64))
         g = cls(data["distance_edges_m"].astype(np.float64),
-                data["inclination_edges_deg"].astype(np.float64), count, mean, m2)
+                data["inclination_edges_deg"].astype(np.float64), count, mean, m2, moments)
         if count.shape != g.shape:
             raise InputError(path, f"count shape {count.shape} does not match the edges {g.shape}")
         for name, e in (("distance", g.distance_edges_m), ("inclination", g.inclination_edges_deg)):
@@ -311,11 +447,13 @@ class PackedGrid:
     count: NDArray[np.int64]
     mean: NDArray[np.float64]
     m2: NDArray[np.float64]
+    moments: tuple[NDArray[Any], ...] | None = None  # FrameMoments' arrays at the cells
 
     @property
     def nbytes(self) -> int:
-        return sum(a.nbytes for a in (self.distance_edges_m, self.inclination_edges_deg, self.cells,
-                                      self.count, self.mean, self.m2))
+        parts: list[NDArray[Any]] = [self.distance_edges_m, self.inclination_edges_deg, self.cells,
+                                     self.count, self.mean, self.m2, *(self.moments or ())]
+        return sum(a.nbytes for a in parts)
 
 
 DISPLAY_FACTORS = (1, 2, 5, 10, 20)  # coarser display bins tried, per axis
@@ -342,8 +480,11 @@ def display_grid(grid: Grid, min_count: int) -> tuple[Grid, tuple[int, int]]:
 def pack_grid(grid: Grid) -> PackedGrid:
     """Keep only the cells with samples (exact: the same floats come back)."""
     cells = np.flatnonzero(grid.count).astype(np.int32)
+    fm = grid.moments
+    moments = None if fm is None else (fm.frames.ravel()[cells], fm.n2.ravel()[cells],
+                                       fm.n2_mean.ravel()[cells], fm.n2_mean2.ravel()[cells])
     return PackedGrid(grid.distance_edges_m, grid.inclination_edges_deg, cells,
-                      grid.count.ravel()[cells], grid.mean.ravel()[cells], grid.m2.ravel()[cells])
+                      grid.count.ravel()[cells], grid.mean.ravel()[cells], grid.m2.ravel()[cells], moments)
 
 
 def unpack_grid(packed: PackedGrid) -> Grid:
@@ -351,4 +492,8 @@ def unpack_grid(packed: PackedGrid) -> Grid:
     grid.count.ravel()[packed.cells] = packed.count
     grid.mean.ravel()[packed.cells] = packed.mean
     grid.m2.ravel()[packed.cells] = packed.m2
+    if packed.moments is not None:
+        fm = grid.moments = FrameMoments.zeros(grid.shape)
+        for a, v in zip((fm.frames, fm.n2, fm.n2_mean, fm.n2_mean2), packed.moments, strict=True):
+            a.ravel()[packed.cells] = v
     return grid
