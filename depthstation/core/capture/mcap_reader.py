@@ -18,7 +18,7 @@ from mcap.stream_reader import StreamReader
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture import mcap_writer as mw
 from depthstation.core.capture import rosmsgs
-from depthstation.core.capture.recording import Recording, log
+from depthstation.core.capture.recording import NotThisFormat, Recording, log
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 
@@ -198,6 +198,8 @@ def open_mcap(path: Path) -> McapRecording:
                         break
             except Exception:
                 pass
+    if "streams" not in meta and summary is not None:
+        raise NotThisFormat(path, "is no depthstation recording (no 'streams' metadata record)")
     if "streams" not in meta:
         raise InputError(path, "is no depthstation recording (no 'streams' metadata record)")
     if mw.DEPTH_TOPIC not in topics.values():
