@@ -15,6 +15,7 @@ from pathlib import Path
 from depthstation.core.board import Board
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_recording
+from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner, ProgressFn
 from depthstation.evaluate.checkerboard.frame import FrameResult
@@ -33,6 +34,7 @@ class StandpointOptions:
     sample_stride: int = 1
     refine: bool = True
     margin_m: float = 0.01
+    topics: TopicChoice | None = None  # which topics of a ROS recording (None: found automatically)
 
 
 @dataclass(frozen=True)
@@ -54,7 +56,7 @@ def evaluate(rec: Recording, board: Board, options: StandpointOptions,
 
 def checkerboard_chunk(chunk: CheckerboardChunk) -> StandpointResult:
     """StandpointResult of one standpoint, evaluated where it is read."""
-    return evaluate(open_recording(Path(chunk.path)), chunk.board, chunk.options)
+    return evaluate(open_recording(Path(chunk.path), topics=chunk.options.topics), chunk.board, chunk.options)
 
 
 StandpointCallback = Callable[[int, StandpointResult], None]

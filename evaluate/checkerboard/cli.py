@@ -6,6 +6,7 @@ from pathlib import Path
 
 import typer
 
+from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, topic_choice
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.evaluate.checkerboard.run import run_checkerboard
 
@@ -25,8 +26,12 @@ def checkerboard(
                                 help="Local worker processes (standpoints in parallel)."),
     cluster: str | None = typer.Option(None, "--cluster",
                                        help="Address of a Dask distributed scheduler (tcp://host:8786)."),
+    depth_topic: DepthTopic = None,
+    color_topic: ColorTopic = None,
+    infrared_topic: InfraredTopic = None,
 ) -> None:
     """The checkerboard study (paper Section 3.1): noise and accuracy per standpoint."""
     rows = run_checkerboard(inputs, board, out, frames=frames, reference=reference,
-                            target=RerunTarget(rrd, spawn, serve), workers=workers, cluster=cluster)
+                            target=RerunTarget(rrd, spawn, serve), workers=workers, cluster=cluster,
+                            topics=topic_choice(depth_topic, color_topic, infrared_topic))
     typer.echo(f"{len(rows)} standpoints -> {out / 'standpoints.csv'}")

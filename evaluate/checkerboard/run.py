@@ -14,6 +14,7 @@ from typing import Any
 from depthstation.core.board import Board, load_board
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs
+from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
@@ -50,8 +51,11 @@ class CheckerboardJob:
     @property
     def parameters(self) -> dict[str, Any]:
         o = self.options
-        return {"board": self.board_source, "frames": o.frames, "reference": o.reference,
-                "margin_m": o.margin_m, "pose": POSE_METHOD}
+        params: dict[str, Any] = {"board": self.board_source, "frames": o.frames, "reference": o.reference,
+                                  "margin_m": o.margin_m, "pose": POSE_METHOD}
+        if o.topics is not None:
+            params["topics"] = o.topics.to_dict()
+        return params
 
     @property
     def device(self) -> dict[str, Any]:
@@ -71,7 +75,7 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
     brd = board if isinstance(board, Board) else load_board(board)
     source = f"{brd.type} {brd.squares_x}x{brd.squares_y}, {brd.square_length_m} m squares (given)" \
         if isinstance(board, Board) else str(board)
-    recs = open_inputs(inputs)
+    recs = open_inputs(inputs, opt.topics)
     if not recs:
         raise InputError(inputs[0] if inputs else None, "no standpoints found")
     return CheckerboardJob(list(inputs), source, brd, recs, opt)
@@ -97,7 +101,7 @@ def finish_checkerboard(job: CheckerboardJob, results: list[StandpointResult],
 def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames: int = 150,
                      reference: str = "auto", target: RerunTarget | None = None,
                      collect_samples: bool = False, workers: int = 1,
-                     cluster: str | None = None) -> list[dict[str, Any]]:
+                     cluster: str | None = None, topics: TopicChoice | None = None) -> list[dict[str, Any]]:
     """The checkerboard study (paper Section 3.1) of every standpoint in `inputs` into `out`.
 
     With `workers > 1` or a Dask `cluster`, standpoints go out as tasks (each read by the worker
@@ -105,7 +109,8 @@ def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames:
     """
     job = prepare_checkerboard(inputs, board_path, replace(StandpointOptions(), frames=frames,
                                                            reference=reference,
-                                                           collect_samples=collect_samples))
+                                                           collect_samples=collect_samples,
+                                                           topics=topics))
     target = target or RerunTarget()
     recs = job.recordings
     with ChunkRunner(workers, cluster) as runner, \

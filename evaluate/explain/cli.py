@@ -6,6 +6,7 @@ from pathlib import Path
 
 import typer
 
+from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, TopicChoice, topic_choice
 from depthstation.core.errors import InputError
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
@@ -41,6 +42,9 @@ def explain(
     no_resimulate: bool = typer.Option(False, "--no-resimulate", help="Skip the check with the new model."),
     workers: int = typer.Option(1, "--workers", help="Local worker processes for the real-side evaluation."),
     cluster: str | None = typer.Option(None, "--cluster", help="Dask scheduler address (tcp://host:8786)."),
+    depth_topic: DepthTopic = None,
+    color_topic: ColorTopic = None,
+    infrared_topic: InfraredTopic = None,
 ) -> None:
     """Locate where simulation and real data differ, name the missing physics, refit, show the gain."""
 
@@ -49,9 +53,10 @@ def explain(
             raise InputError(p, "not found")
     if out.exists() and any(out.iterdir()):
         raise InputError(out, "is not empty; explain never overwrites results")
+    topics = topic_choice(depth_topic, color_topic, infrared_topic)
     if scan:
         _explain_scan(real, poses, reference, model, out, frames, seed, similarity, icp, block_frames,
-                      not no_resimulate)
+                      not no_resimulate, topics)
         return
     if board is None:
         raise InputError(None, "--board is needed for checkerboard sessions")
@@ -65,7 +70,7 @@ def explain(
         stderr_console.print(f"[bold]explain[/]: {msg}")
 
     data = run_explain(real, board, mdl, out, frames=frames, seed=seed, resimulate=not no_resimulate,
-                       workers=workers, cluster=cluster,
+                       workers=workers, cluster=cluster, topics=topics,
                        parameters={"board": str(board), "model": model, "frames": frames, "seed": seed,
                                    "workers": workers, "cluster": cluster},
                        target=RerunTarget(rrd, spawn, serve), tick=tick)
@@ -76,7 +81,7 @@ def explain(
 
 def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, model: str, out: Path,
                   frames: int, seed: int, similarity: Path | None, icp: bool, block_frames: int,
-                  resimulate: bool) -> None:
+                  resimulate: bool, topics: TopicChoice | None = None) -> None:
     """`explain --scan`: a reference-scan sequence against its simulation along the same trajectory."""
 
     if len(real) != 1:
@@ -94,7 +99,8 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
         stderr_console.print(f"[bold]explain --scan[/]: {msg}")
 
     ex = explain_scan(real[0], poses, reference, mdl, out, frames=frames, block_frames=block_frames,
-                      seed=seed, icp=icp, similarity=similarity, resimulate=resimulate, tick=tick)
+                      seed=seed, icp=icp, similarity=similarity, resimulate=resimulate, tick=tick,
+                      topics=topics)
     data = write_scan_outputs(ex, out, [str(real[0]), str(poses), str(reference)],
                               {"model": model, "frames": frames, "seed": seed, "icp": icp,
                                "block_frames": block_frames,

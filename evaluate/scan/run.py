@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_recording
+from depthstation.core.capture.topics import TopicChoice, topic_choice
 from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.grid import Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn
@@ -58,7 +59,14 @@ class ScanOptions:
     intrinsics: Path | None = None
     poisson_depth: int = 9
     density_quantile: float = 0.05
+    depth_topic: str | None = None      # ROS recordings: topics (None: the realsense-ros layout)
+    color_topic: str | None = None
+    infrared_topic: str | None = None
     target: RerunTarget = field(default_factory=RerunTarget)
+
+    @property
+    def topics(self) -> TopicChoice | None:
+        return topic_choice(self.depth_topic, self.color_topic, self.infrared_topic)
 
     def to_dict(self) -> dict[str, Any]:
         d = {k: v for k, v in self.__dict__.items() if k != "target"}
@@ -132,7 +140,7 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
         if not Path(path).exists():
             raise InputError(path, f"{role} not found")
     out.mkdir(parents=True, exist_ok=True)
-    source = open_recording(Path(sequence), intrinsics=opt.intrinsics)
+    source = open_recording(Path(sequence), intrinsics=opt.intrinsics, topics=opt.topics)
     traj = read_tum(Path(poses))
     similarity = read_similarity(opt.similarity) if opt.similarity is not None else None
     pass_points = read_pass_points(opt.pass_points) if opt.pass_points is not None else None
@@ -149,7 +157,7 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                          nthreads=0 if in_process else 1,
                          per_frame_dir=out / PER_FRAME_DIR if opt.per_frame_grids else None)
     chunks = scan_chunks(Path(sequence), mesh_path, posed, config, chunk_frames=opt.chunk_frames,
-                         intrinsics=opt.intrinsics, source=source)
+                         intrinsics=opt.intrinsics, source=source, topics=opt.topics)
     return ScanJob(Path(sequence), Path(poses), Path(reference), out, opt, source, traj, posed, reg,
                    mesh_path, mesh_info, config, chunks,
                    {"reference": t_mesh - t0, "registration": t_reg - t_mesh})
@@ -183,7 +191,8 @@ def run_prepared(job: ScanJob, runner: ChunkRunner, *, rec: Any = None,
         t0 = time.perf_counter()
         result = run_scan_chunks(job.sequence, job.mesh_path, job.posed, job.config, runner,
                                  chunk_frames=opt.chunk_frames, intrinsics=opt.intrinsics,
-                                 source=job.source, on_frame=on_frame if runner.in_process else None,
+                                 topics=opt.topics, source=job.source,
+                                 on_frame=on_frame if runner.in_process else None,
                                  on_chunk=on_chunk, progress=on_task)
         job.seconds["study"] = time.perf_counter() - t0
     if not result.used:

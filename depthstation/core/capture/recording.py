@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from depthstation.core.camera_model import StreamInfo
+from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 
@@ -21,26 +21,6 @@ log = logging.getLogger("depthstation.core.capture")
 
 class NotThisFormat(InputError):
     """A reader's own layout is missing; the registry tries the next reader of the same suffix."""
-
-
-@dataclass(frozen=True)
-class TopicChoice:
-    """Which topics of a ROS recording hold depth, colour and infrared (`--depth-topic` etc.).
-
-    None: found automatically (the realsense-ros layouts). Travels with a recording's path to the
-    workers that reopen it.
-    """
-
-    depth: str | None = None
-    color: str | None = None
-    infrared: str | None = None
-
-    @property
-    def given(self) -> bool:
-        return any(t is not None for t in (self.depth, self.color, self.infrared))
-
-    def to_dict(self) -> dict[str, str | None]:
-        return {"depth": self.depth, "color": self.color, "infrared": self.infrared}
 
 
 class Recording:

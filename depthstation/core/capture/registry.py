@@ -15,9 +15,10 @@ from pathlib import Path
 from depthstation.core.capture.mcap_reader import MCAP_MAGIC, open_mcap
 from depthstation.core.capture.png_folder import is_png_folder, open_png
 from depthstation.core.capture.realsense_bag import is_rosbag2_folder, open_realsense
-from depthstation.core.capture.recording import NotThisFormat, Recording, TopicChoice
+from depthstation.core.capture.recording import NotThisFormat, Recording
 from depthstation.core.capture.ros_bag import open_ros
 from depthstation.core.capture.session import SESSION_FILE, Session
+from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.capture.tum_folder import is_tum_folder, open_tum_folder
 from depthstation.core.errors import InputError
 

@@ -28,7 +28,8 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
 from depthstation.core.capture import mcap_writer as mw
 from depthstation.core.capture import rosmsgs
-from depthstation.core.capture.recording import Recording, TopicChoice, log
+from depthstation.core.capture.recording import Recording, log
+from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 
