@@ -102,8 +102,9 @@ class BagWriter:
                 self.conns[topic] = self.writer.add_connection(topic, msgtype, typestore=self.ts,
                                                                latching=1 if latched else None)
             else:
-                self.conns[topic] = self.writer.add_connection(
-                    topic, msgtype, typestore=self.ts, offered_qos_profiles=[TF_STATIC_QOS] if latched else [])
+                qos = [TF_STATIC_QOS] if latched else []
+                self.conns[topic] = self.writer.add_connection(topic, msgtype, typestore=self.ts,
+                                                               offered_qos_profiles=qos)
         return self.conns[topic]
 
     def _write(self, topic: str, msgtype: str, msg: Any, t_ns: int, latched: bool = False) -> None:
@@ -115,8 +116,8 @@ class BagWriter:
         T = self.ts.types
         sec, nsec = divmod(int(t_ns), 1_000_000_000)
         extra = {"seq": self.seq} if self.ros == 1 else {}
-        return T["std_msgs/msg/Header"](**extra, stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec),
-                                        frame_id=frame_id)
+        stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
+        return T["std_msgs/msg/Header"](**extra, stamp=stamp, frame_id=frame_id)
 
     def _camera_info(self, intr: Any, t_ns: int, frame_id: str) -> Any:
         T = self.ts.types
@@ -125,7 +126,8 @@ class BagWriter:
         mats = {"D": np.asarray(intr.coeffs, dtype=np.float64), "K": k, "R": np.eye(3).ravel(), "P": p}
         if self.ros == 2:
             mats = {key.lower(): v for key, v in mats.items()}
-        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+        roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                    do_rectify=False)
         return T["sensor_msgs/msg/CameraInfo"](header=self._header(t_ns, frame_id), height=intr.height,
                                                width=intr.width, distortion_model="plumb_bob", binning_x=0,
                                                binning_y=0, roi=roi, **mats)
@@ -210,8 +212,8 @@ class BagWriter:
                       "translation": np.asarray(e.t, dtype=np.float64)}
             if self.ros == 1:
                 fields["header"] = self._header(t_ns, "depth_to_color_extrinsics")
-            self._write(self.ns + "extrinsics/depth_to_color", self.ext_type, T[self.ext_type](**fields), t_ns,
-                        latched=True)
+            msg = T[self.ext_type](**fields)
+            self._write(self.ns + "extrinsics/depth_to_color", self.ext_type, msg, t_ns, latched=True)
 
     def write_frames(self, frames: Iterable[FrameSet]) -> int:
         n = 0
@@ -269,7 +271,8 @@ def rewrite(src: Path, dst: Path, storage: str = "mcap") -> Path:
 
     ts = get_typestore(Stores.ROS2_HUMBLE)
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-    with AnyReader([src], default_typestore=ts) as reader, Writer2(dst, version=8, storage_plugin=plugin) as w:
+    with AnyReader([src], default_typestore=ts) as reader, \
+            Writer2(dst, version=8, storage_plugin=plugin) as w:
         conns = {}
         for c in reader.connections:
             qos = list(getattr(c.ext, "offered_qos_profiles", []) or [])

@@ -122,8 +122,12 @@ def _pick_auto(path: Path, images: dict[str, Any]) -> dict[str, str]:
     if len(spaces) > 1:
         raise InputError(path, f"depth images of several cameras ({', '.join(spaces)}): choose one with "
                                "--depth-topic (and --color-topic / --infrared-topic)")
-    ns = spaces[0]
-    out = {"depth": min(found)[3]}
+    return {"depth": min(found)[3], **_siblings(spaces[0], images)}
+
+
+def _siblings(ns: str, images: dict[str, Any]) -> dict[str, str]:
+    """Colour and infrared image topics of the realsense-ros layout in the camera namespace `ns`."""
+    out: dict[str, str] = {}
     for kind in ("color", "infrared"):
         for pattern in LAYOUT[kind]:
             hit = next((ns + pattern + tr for tr in TRANSPORTS if ns + pattern + tr in images), None)
@@ -135,7 +139,10 @@ def _pick_auto(path: Path, images: dict[str, Any]) -> dict[str, str]:
 
 def _choose_topics(path: Path, conns: list[Any], choice: TopicChoice | None) -> dict[str, str]:
     images = {c.topic: c for c in conns if c.msgtype in IMAGE_TYPES}
-    picked = _pick_auto(path, images) if choice is None or choice.depth is None else {}
+    if choice is None or choice.depth is None:
+        picked = _pick_auto(path, images)
+    else:  # the named depth; colour and infrared of the layout beside it unless named too
+        picked = _siblings(camera_namespace(choice.depth), images)
     if choice is not None:
         for kind, topic in choice.to_dict().items():
             if topic is None:
