@@ -176,6 +176,16 @@ def test_export_rosbag2_and_db3_read_back(tmp_path: Path, capsys: pytest.Capture
     code, _, err = _cli(["capture", "export", str(src), "--to", "rosbag2", "--out", str(tmp_path / "ros")],
                         capsys)
     assert code == 2 and "not empty" in err  # never overwrites
+    # TUM: ORB-SLAM3's associations (rgb first, no comment), the infrared imager as 'rgb'
+    code, _, err = _cli(["capture", "export", str(src), "--to", "tum", "--out", str(tmp_path / "tum")],
+                        capsys)
+    assert code == 0, err
+    lines = (tmp_path / "tum" / "a" / "associations.txt").read_text().splitlines()
+    assert len(lines) == 3 and all(len(x.split()) == 4 and x.split()[1].startswith("rgb/") for x in lines)
+    import cv2
+
+    rgb = cv2.imread(str(tmp_path / "tum" / "a" / lines[0].split()[1]), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(rgb, frames[0].infrared)
     if sys.modules.get("pyrealsense2") is None:
         pytest.importorskip("pyrealsense2")
     code, _, err = _cli(["capture", "export", str(src), "--to", "db3", "--out", str(tmp_path / "rs")], capsys)

@@ -19,30 +19,50 @@ from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSource
 from depthstation.core.geometry import rodrigues, rotation_angle_deg
 from depthstation.core.lazy_open3d import open3d
-from depthstation.evaluate.scan.trajectory import Trajectory, compose_similarity, decompose_similarity
+from depthstation.evaluate.scan.trajectory import (
+    LocalFrames,
+    Trajectory,
+    compose_similarity,
+    decompose_similarity,
+)
 
 F64 = NDArray[np.float64]
 
 
 @dataclass
 class Registration:
-    """p_reference = s R p_trajectory + t, how it was found, and how well it fits."""
+    """p_reference = s R p_trajectory + t, how it was found, and how well it fits.
+
+    `matrix` maps the local frames (`local`: the shifts subtracted from far-away coordinates) the
+    study works in; `to_dict` reports it between the frames as given.
+    """
 
     matrix: F64
     method: str
     mean_c2c_m: float | None = None
     mean_c2m_m: float | None = None
     icp: dict[str, Any] = field(default_factory=dict)
+    local: LocalFrames | None = None
 
     @property
     def scale(self) -> float:
         return decompose_similarity(self.matrix)[0]
 
+    @property
+    def given_matrix(self) -> F64:
+        """The similarity between the trajectory and reference frames as given (shifts undone)."""
+        return self.local.to_given(self.matrix) if self.local is not None else self.matrix
+
     def to_dict(self) -> dict[str, Any]:
-        s, r, t = decompose_similarity(self.matrix)
-        return {"method": self.method, "scale": s, "rotation": r.tolist(), "translation_m": t.tolist(),
-                "matrix": self.matrix.tolist(), "mean_c2c_m": self.mean_c2c_m,
-                "mean_c2m_m": self.mean_c2m_m, "icp": self.icp}
+        m = self.given_matrix
+        s, r, t = decompose_similarity(m)
+        out = {"method": self.method, "scale": s, "rotation": r.tolist(), "translation_m": t.tolist(),
+               "matrix": m.tolist(), "mean_c2c_m": self.mean_c2c_m,
+               "mean_c2m_m": self.mean_c2m_m, "icp": self.icp}
+        if self.local is not None:
+            out["local_shift"] = self.local.to_dict()
+            out["local_matrix"] = self.matrix.tolist()
+        return out
 
 
 def read_similarity(path: Path) -> F64:
@@ -233,17 +253,28 @@ def fit_distances(points: F64, matrix: F64, target: Any, mesh: Any | None) -> tu
     return c2c, c2m
 
 
+def initial_similarity(similarity: F64 | None,
+                       pass_points: tuple[F64, F64] | None) -> tuple[F64, str]:
+    """The starting similarity (trajectory -> reference) and its name: given, pass points, identity."""
+    if similarity is not None:
+        return np.asarray(similarity, dtype=np.float64), "given"
+    if pass_points is not None:
+        return umeyama(*pass_points), "pass_points"
+    return np.eye(4), "identity"
+
+
 def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any, *,
              similarity: F64 | None = None, pass_points: tuple[F64, F64] | None = None,
              icp: bool = True, band_m: tuple[float, float] = (0.5, 2.0), tolerance_s: float = 0.01,
-             every: int = 10) -> Registration:
-    """Initial similarity (given, from pass points, or identity), refined by ICP when asked."""
-    if similarity is not None:
-        init, method = np.asarray(similarity, dtype=np.float64), "given"
-    elif pass_points is not None:
-        init, method = umeyama(*pass_points), "pass_points"
-    else:
-        init, method = np.eye(4), "identity"
+             every: int = 10, local: LocalFrames | None = None) -> Registration:
+    """Initial similarity (given, from pass points, or identity), refined by ICP when asked.
+
+    `local`: the trajectory and mesh are in local frames (far-away coordinates shifted); the
+    similarity and pass points are in the frames as given and are moved along.
+    """
+    init, method = initial_similarity(similarity, pass_points)
+    if local is not None:
+        init = local.to_local(init)
     points = depth_band_cloud(source, trajectory, band_m=band_m, tolerance_s=tolerance_s, every=every)
     info: dict[str, Any] = {"band_m": list(band_m)}
     m = init
@@ -256,4 +287,4 @@ def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any
             info.update(refine_info)
             method += "+mesh"
     c2c, c2m = fit_distances(points, m, target, mesh)
-    return Registration(m, method, c2c, c2m, info)
+    return Registration(m, method, c2c, c2m, info, local)

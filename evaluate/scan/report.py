@@ -10,13 +10,20 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from depthstation.core.grid import GRID_FILE
+from depthstation.core.lazy_open3d import open3d
 from depthstation.core.results import SUMMARY_FILE, write_json, write_result_info
 from depthstation.evaluate.scan.figures import frame_figure, grid_figure
 from depthstation.evaluate.scan.raycast import MeshCaster
+from depthstation.evaluate.scan.reference import appearance_image
 from depthstation.evaluate.scan.study import ChunkResult, StudyConfig, evaluate_chunk, frame_images
 
 if TYPE_CHECKING:
     from depthstation.evaluate.scan.run import ScanJob
+
+
+def _stamp_s(source: Any, index: int) -> float:
+    """Time stamp (s) of frame `index` of the sequence."""
+    return next(fs.timestamp_ns for fs in source.frames(limit=1, start=index)) * 1e-9
 
 
 def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
@@ -34,8 +41,14 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
         frame_cfg = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
                                 tolerance_s=opt.tolerance_s)
         one = evaluate_chunk(caster, source, job.posed, frame_cfg, fig_index, 1)
+        look = job.mesh_info.get("appearance")
+        pose = job.posed.match(_stamp_s(source, fig_index), opt.tolerance_s) if look else None
+        shown = None
+        if pose is not None:
+            mesh = open3d().io.read_triangle_mesh(str(job.mesh_path))
+            shown = appearance_image(mesh, source.info.depth_intrinsics, pose)
         figures["frame"] = str(frame_figure(images, out / "fig8_frame.png",
-                                            f"frame {fig_index}: measured vs reference"))
+                                            f"frame {fig_index}: measured vs reference", shown, look or ""))
         figures["frame_grid"] = str(grid_figure(one.grid, out / "fig9_frame_grid.png", opt.min_count_frame,
                                                 f"frame {fig_index}"))
     figures["sequence_grid"] = str(grid_figure(grid, out / "fig10_sequence_grid.png",
@@ -51,6 +64,8 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
         "trajectory": {"poses": len(job.trajectory), "tolerance_s": opt.tolerance_s},
         "reference_mesh": {"path": str(job.mesh_path), **job.mesh_info},
         "registration": reg.to_dict(),
+        "local_shift": (reg.local.to_dict() if reg.local is not None
+                        else {"reference_m": [0.0, 0.0, 0.0], "trajectory_m": [0.0, 0.0, 0.0]}),
         "frames": {"used": len(result.used), "skipped_no_pose": len(result.no_pose),
                    "skipped_no_depth": len(result.no_depth), "every": opt.every,
                    "figure_frame": fig_index, "no_pose_indices": result.no_pose[:1000]},

@@ -28,10 +28,16 @@ from depthstation.core.rerun_bridge import RerunTarget, recording
 from depthstation.evaluate.scan import rerun_log
 from depthstation.evaluate.scan.chunks import ScanChunk, frames_to_read, run_scan_chunks, scan_chunks
 from depthstation.evaluate.scan.reference import PoissonParams, reference_mesh, sample_reference_points
-from depthstation.evaluate.scan.registration import Registration, read_pass_points, read_similarity, register
+from depthstation.evaluate.scan.registration import (
+    Registration,
+    initial_similarity,
+    read_pass_points,
+    read_similarity,
+    register,
+)
 from depthstation.evaluate.scan.report import write_scan
 from depthstation.evaluate.scan.study import PER_FRAME_DIR, ChunkResult, StudyConfig
-from depthstation.evaluate.scan.trajectory import Trajectory, read_tum
+from depthstation.evaluate.scan.trajectory import LocalFrames, Trajectory, local_shift, read_tum
 
 
 @dataclass
@@ -112,7 +118,7 @@ class ScanJob:
     options: ScanOptions
     source: Recording
     trajectory: Trajectory          # as read (trajectory frame)
-    posed: Trajectory               # camera-to-reference (registration applied)
+    posed: Trajectory               # camera-to-reference (registration applied), local frame
     registration: Registration
     mesh_path: Path
     mesh_info: dict[str, Any]
@@ -141,15 +147,21 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
             raise InputError(path, f"{role} not found")
     out.mkdir(parents=True, exist_ok=True)
     source = open_recording(Path(sequence), intrinsics=opt.intrinsics, topics=opt.topics)
-    traj = read_tum(Path(poses))
+    given = read_tum(Path(poses))
     similarity = read_similarity(opt.similarity) if opt.similarity is not None else None
     pass_points = read_pass_points(opt.pass_points) if opt.pass_points is not None else None
     mesh, mesh_path, mesh_info = reference_mesh(
-        Path(reference), out, PoissonParams(depth=opt.poisson_depth, density_quantile=opt.density_quantile))
+        Path(reference), out, PoissonParams(depth=opt.poisson_depth, density_quantile=opt.density_quantile),
+        viewpoints=camera_centres(given, similarity, pass_points))
+    # far-away coordinates (survey frames) are shifted before anything is registered or cast
+    centres = given.poses[:, :3, 3]
+    local = LocalFrames(np.asarray(mesh_info.get("local_shift_m", [0.0, 0.0, 0.0]), dtype=np.float64),
+                        local_shift(centres.min(axis=0), centres.max(axis=0)))
+    traj = given.translated(-local.trajectory_m)
     t_mesh = time.perf_counter()
     reg = register(source, traj, mesh, sample_reference_points(mesh), similarity=similarity,
                    pass_points=pass_points, icp=opt.icp, band_m=opt.icp_band_m,
-                   tolerance_s=opt.tolerance_s, every=opt.icp_every)
+                   tolerance_s=opt.tolerance_s, every=opt.icp_every, local=local if local.any else None)
     posed = traj.transformed(reg.matrix)
     t_reg = time.perf_counter()
     config = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
@@ -158,9 +170,19 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                          per_frame_dir=out / PER_FRAME_DIR if opt.per_frame_grids else None)
     chunks = scan_chunks(Path(sequence), mesh_path, posed, config, chunk_frames=opt.chunk_frames,
                          intrinsics=opt.intrinsics, source=source, topics=opt.topics)
-    return ScanJob(Path(sequence), Path(poses), Path(reference), out, opt, source, traj, posed, reg,
+    return ScanJob(Path(sequence), Path(poses), Path(reference), out, opt, source, given, posed, reg,
                    mesh_path, mesh_info, config, chunks,
                    {"reference": t_mesh - t0, "registration": t_reg - t_mesh})
+
+
+def camera_centres(trajectory: Trajectory, similarity: NDArray[np.float64] | None,
+                   pass_points: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+                   ) -> NDArray[np.float64]:
+    """The walk's camera centres in the reference frame by the initial registration (to orient a
+    cloud's normals towards where its surfaces were seen from)."""
+    m = initial_similarity(similarity, pass_points)[0]
+    c = trajectory.poses[:, :3, 3]
+    return np.asarray(c @ m[:3, :3].T + m[:3, 3], dtype=np.float64)
 
 
 def run_prepared(job: ScanJob, runner: ChunkRunner, *, rec: Any = None,

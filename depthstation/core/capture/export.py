@@ -5,11 +5,14 @@ they already use) and a RealSense `.db3` for the Viewer.
 rosbag2: one folder per standpoint (MCAP storage, metadata version 8 so Humble plays it), the ROS 2
 wrapper's topics under `/camera/camera/`, CameraInfo with every image, each stream's own stamp as
 log time and header stamp, `/tf_static` and `extrinsics/depth_to_color` at the first frame,
-offered transient-local. TUM: `depth/` 16-bit PNGs at 5000 counts per metre (the TUM and RTAB-Map
-factor), `rgb/` the image registered to the depth camera (the left infrared imager when recorded,
-else the colour image resampled into the depth pixels), `rgb.txt`, `depth.txt`, `associations.txt`
-(rgb first, no comments: ORB-SLAM3's reader), `camera.json` (our reader) and an ORB-SLAM3 settings
-file; the trajectory SLAM writes from it is then the depth camera's, as `evaluate scan` wants.
+offered transient-local.
+
+TUM: `depth/` 16-bit PNGs at 5000 counts per metre (the TUM and RTAB-Map factor; a finer source,
+e.g. 0.1 mm, keeps its own so nothing is lost), `rgb/` the image registered to the depth camera
+(the left infrared imager when recorded, else the colour image resampled into the depth pixels),
+`rgb.txt`, `depth.txt`, `associations.txt` (rgb first, no comments: ORB-SLAM3's reader),
+`camera.json` (our reader) and an ORB-SLAM3 settings file; the trajectory SLAM writes from it is
+then the depth camera's, as `evaluate scan` wants.
 """
 
 from __future__ import annotations
@@ -139,6 +142,15 @@ def color_in_depth(fs: FrameSet, info: StreamInfo) -> NDArray[np.uint8] | None:
     return np.asarray(out, dtype=np.uint8)
 
 
+def tum_factor(depth_units_m: float) -> float:
+    """Depth PNG counts per metre: TUM's 5000 when the source's counts map onto it exactly (1 mm:
+    x5), else the source's own (0.1 mm: 10000), so the export loses no depth resolution."""
+    k = depth_units_m * TUM_FACTOR
+    if k >= 1.0 - 1e-9 and abs(k - round(k)) < 1e-9:
+        return TUM_FACTOR
+    return float(round(1.0 / depth_units_m))
+
+
 def _tum_name(t_ns: int) -> str:
     return f"{t_ns / 1e9:.6f}"
 
@@ -151,7 +163,8 @@ def export_tum(rec: Recording, out: Path, on_frame: FrameHook | None = None) -> 
     depth_lines: list[str] = []
     rgb_lines: list[str] = []
     assoc: list[str] = []
-    scale = info.depth_units_m * TUM_FACTOR
+    factor = tum_factor(info.depth_units_m)
+    scale = info.depth_units_m * factor
     for fs in _counted(rec, on_frame):
         if fs.depth is None:
             continue
@@ -172,7 +185,7 @@ def export_tum(rec: Recording, out: Path, on_frame: FrameHook | None = None) -> 
     if rgb_lines:
         (out / "rgb.txt").write_text(header.format("rgb", rec.name) + "\n".join(rgb_lines) + "\n")
         (out / "associations.txt").write_text("\n".join(assoc) + "\n")
-    units = 1.0 / TUM_FACTOR
+    units = 1.0 / factor
     di = info.depth_intrinsics
     camera = {**di.to_dict(), "depth_units_m": units,
               "rgb": "left infrared imager" if info.infrared_intrinsics is not None
