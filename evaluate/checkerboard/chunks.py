@@ -35,6 +35,7 @@ class StandpointOptions:
     refine: bool = True
     margin_m: float = 0.01
     topics: TopicChoice | None = None  # which topics of a ROS recording (None: found automatically)
+    roi: float | None = None           # the Depth Quality Tool's centred ROI, fraction of each side
 
 
 @dataclass(frozen=True)
@@ -51,7 +52,7 @@ def evaluate(rec: Recording, board: Board, options: StandpointOptions,
     o = options
     return evaluate_recording(rec, board, frames=o.frames, reference=o.reference,
                               collect_samples=o.collect_samples, sample_stride=o.sample_stride,
-                              refine=o.refine, margin_m=o.margin_m, on_frame=on_frame)
+                              refine=o.refine, margin_m=o.margin_m, on_frame=on_frame, roi=o.roi)
 
 
 def checkerboard_chunk(chunk: CheckerboardChunk) -> StandpointResult:

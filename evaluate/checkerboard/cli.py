@@ -26,12 +26,16 @@ def checkerboard(
                                 help="Local worker processes (standpoints in parallel)."),
     cluster: str | None = typer.Option(None, "--cluster",
                                        help="Address of a Dask distributed scheduler (tcp://host:8786)."),
+    roi: float | None = typer.Option(None, "--roi", help="Also Intel's Depth Quality Tool metrics on a "
+                                                        "centred ROI of this percentage of each side "
+                                                        "(DQT: 40), besides the board mask."),
     depth_topic: DepthTopic = None,
     color_topic: ColorTopic = None,
     infrared_topic: InfraredTopic = None,
 ) -> None:
-    """The checkerboard study (paper Section 3.1): noise and accuracy per standpoint."""
+    """The checkerboard study (paper Section 3.1): noise and accuracy per standpoint, with Intel's
+    Depth Quality Tool metrics (dqt_* columns) beside them."""
     rows = run_checkerboard(inputs, board, out, frames=frames, reference=reference,
                             target=RerunTarget(rrd, spawn, serve), workers=workers, cluster=cluster,
-                            topics=topic_choice(depth_topic, color_topic, infrared_topic))
+                            topics=topic_choice(depth_topic, color_topic, infrared_topic), roi_pct=roi)
     typer.echo(f"{len(rows)} standpoints -> {out / 'standpoints.csv'}")

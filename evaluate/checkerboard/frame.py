@@ -12,6 +12,7 @@ from depthstation.core.board_pose import PnPPose, solve_board_pose
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.frames import FrameSet
 from depthstation.evaluate.checkerboard.detection import BoardDetector, Detection
+from depthstation.evaluate.checkerboard.dqt import DqtFrame, TemporalStack, centred_roi, frame_metrics
 from depthstation.evaluate.checkerboard.errors import BoardMismatchError
 from depthstation.evaluate.checkerboard.kernels import board_moments
 from depthstation.evaluate.checkerboard.mask import BoardMask, board_mask, board_to_depth
@@ -49,6 +50,8 @@ class FrameResult:
     origin: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     moments: dict[str, NDArray[np.float64]] = field(default_factory=dict)  # 'all', 'black', 'white'
     temperature_c: float = float("nan")
+    dqt: DqtFrame | None = None        # Depth Quality Tool figures on the board mask
+    dqt_roi: DqtFrame | None = None    # ... on the centred ROI (`roi`), when asked
 
     @property
     def ok(self) -> bool:
@@ -70,7 +73,7 @@ class FrameEvaluator:
 
     def __init__(self, info: StreamInfo, board: Board, *, refine: bool = True,
                  margin_m: float = 0.01, max_reprojection_px: float = 3.0,
-                 min_pixels: int = 50, source: str | None = None) -> None:
+                 min_pixels: int = 50, source: str | None = None, roi: float | None = None) -> None:
         if info.color_intrinsics is None and not info.depth_aligned_to_color:
             self.color_intr = info.depth_intrinsics
         else:
@@ -90,6 +93,15 @@ class FrameEvaluator:
             board.squares_x % 2 == 0 or board.squares_y % 2 == 0)
         self._colours_checked = False
         self._first_corners: dict[int, NDArray[np.float64]] | None = None
+        # Depth Quality Tool metrics: disparity lives in the stereo imager's pixels
+        self.focal_px = info.stereo.fx
+        self.temporal = TemporalStack()
+        self.temporal_roi = TemporalStack()
+        self.roi = roi
+        di = info.depth_intrinsics
+        self.roi_box = centred_roi(di.width, di.height, roi) if roi else None
+        self.roi_ray = np.array([(di.width / 2 - di.ppx) / di.fx, (di.height / 2 - di.ppy) / di.fy, 1.0])
+        self._roi_rays: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]] | None = None
 
     def _corner_shift(self, det: Detection) -> float:
         """Median image motion of the corners since the first posed frame (camera still or not)."""
@@ -187,6 +199,7 @@ class FrameEvaluator:
         res.noise_m = fit_plane_moments(res.moments["all"])[2]
         res.noise_black_m = fit_plane_moments(res.moments["black"])[2]
         res.noise_white_m = fit_plane_moments(res.moments["white"])[2]
+        self._dqt(res, fs.depth, mask)
         pixels = None
         if keep_pixels:
             vi, ui = np.nonzero(mask.inside & (raw > 0))
@@ -195,3 +208,28 @@ class FrameEvaluator:
             pixels = FramePixels((ui + mask.u0).astype(np.int32), (vi + mask.v0).astype(np.int32),
                                  z.astype(np.float32), colour)
         return res, pixels
+
+    def _dqt(self, res: FrameResult, depth: NDArray[np.uint16], mask: BoardMask) -> None:
+        """The Depth Quality Tool's figures on the board mask (pivot: the board centre's ray) and
+        on the centred ROI (pivot: the image centre's, as the DQT)."""
+        rows, cols = mask.box
+        units, baseline = self.info.depth_units_m, self.info.baseline_m
+        res.dqt = frame_metrics(depth[rows, cols], mask.inside, mask.ray_x, mask.ray_y, units,
+                                res.board_pixels, self.focal_px, baseline, res.origin / res.origin[2])
+        if len(self.temporal.samples) < self.temporal.frames:
+            r, c = np.nonzero(mask.inside)
+            self.temporal.add(depth, r + mask.v0, c + mask.u0)
+        if self.roi_box is None:
+            return
+        x0, y0, x1, y1 = self.roi_box
+        if self._roi_rays is None:
+            di = self.info.depth_intrinsics
+            self._roi_rays = (((np.arange(x0, x1) - di.ppx) / di.fx).astype(np.float64),
+                              ((np.arange(y0, y1) - di.ppy) / di.fy).astype(np.float64),
+                              np.ones((y1 - y0, x1 - x0), dtype=bool))
+        rx, ry, every = self._roi_rays
+        res.dqt_roi = frame_metrics(depth[y0:y1, x0:x1], every, rx, ry, units,
+                                    (x1 - x0) * (y1 - y0), self.focal_px, baseline, self.roi_ray)
+        if len(self.temporal_roi.samples) < self.temporal_roi.frames:
+            r, c = np.mgrid[y0:y1, x0:x1]
+            self.temporal_roi.add(depth, r.ravel(), c.ravel())

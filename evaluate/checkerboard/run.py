@@ -27,6 +27,7 @@ from depthstation.evaluate.checkerboard.chunks import (
     StandpointOptions,
     run_standpoints,
 )
+from depthstation.evaluate.checkerboard.dqt import EXPECTED_SUBPIXEL_PX
 from depthstation.evaluate.checkerboard.frame import FrameResult
 from depthstation.evaluate.checkerboard.report import standpoint_row, write_study
 from depthstation.evaluate.checkerboard.study import StandpointResult
@@ -55,6 +56,9 @@ class CheckerboardJob:
                                   "margin_m": o.margin_m, "pose": POSE_METHOD}
         if o.topics is not None:
             params["topics"] = o.topics.to_dict()
+        if o.roi is not None:
+            params["roi_pct"] = 100.0 * o.roi
+        params["dqt_expected_subpixel_px"] = EXPECTED_SUBPIXEL_PX
         return params
 
     @property
@@ -72,6 +76,8 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
         raise InputError(None, f"--reference must be auto, average or frame, not '{opt.reference}'")
     if opt.frames < 1:
         raise InputError(None, f"--frames must be at least 1, not {opt.frames}")
+    if opt.roi is not None and not 0.0 < opt.roi <= 1.0:
+        raise InputError(None, f"--roi must be a percentage in (0, 100], not {100 * opt.roi:g}")
     brd = board if isinstance(board, Board) else load_board(board)
     source = f"{brd.type} {brd.squares_x}x{brd.squares_y}, {brd.square_length_m} m squares (given)" \
         if isinstance(board, Board) else str(board)
@@ -101,7 +107,8 @@ def finish_checkerboard(job: CheckerboardJob, results: list[StandpointResult],
 def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames: int = 150,
                      reference: str = "auto", target: RerunTarget | None = None,
                      collect_samples: bool = False, workers: int = 1,
-                     cluster: str | None = None, topics: TopicChoice | None = None) -> list[dict[str, Any]]:
+                     cluster: str | None = None, topics: TopicChoice | None = None,
+                     roi_pct: float | None = None) -> list[dict[str, Any]]:
     """The checkerboard study (paper Section 3.1) of every standpoint in `inputs` into `out`.
 
     With `workers > 1` or a Dask `cluster`, standpoints go out as tasks (each read by the worker
@@ -110,7 +117,8 @@ def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames:
     job = prepare_checkerboard(inputs, board_path, replace(StandpointOptions(), frames=frames,
                                                            reference=reference,
                                                            collect_samples=collect_samples,
-                                                           topics=topics))
+                                                           topics=topics,
+                                                           roi=None if roi_pct is None else roi_pct / 100.0))
     target = target or RerunTarget()
     recs = job.recordings
     with ChunkRunner(workers, cluster) as runner, \

@@ -1,0 +1,286 @@
+"""Intel's Depth Quality Tool (librealsense `tools/depth-quality`) metrics, beside the paper's.
+
+Why: D455 owners compare against the DQT and Intel's datasheet; these are the DQT's own
+definitions (depth-metrics.h, rs-depth-quality.cpp), computed per frame on the board mask (and on
+a centred ROI like the DQT's `--roi 40` when asked), averaged over the standpoint's frames:
+
+- fill rate [%]: valid (non-zero) pixels / ROI pixels;
+- plane fit: dominant-axis least squares on *all* valid points (ilikebigbits, not SVD); the
+  metrics then drop 0.5 % of the points at each end *of z* (not of the residual);
+- plane-fit RMS [mm] of the orthogonal distances, and [% of distance], distance = the plane's
+  perpendicular distance from the camera (-d);
+- subpixel RMS [px]: RMS of f B / Z - f B / Z_plane, Z the pixel's z-depth and Z_plane the
+  plane's along the same ray: the DQT's help text ("Di = BL*FL/Zi; Dpi = BL*FL/Zpi"), which is
+  the disparity residual itself. The tool's code takes ranges |p| and the orthogonal projection
+  instead, which reads low off the image centre (x cos^3 of the off-axis angle: -10 % over the
+  DQT's 40 % ROI of a D455); that value is reported too (`subpixel_rms_tool_px`);
+- Z accuracy [% of ground truth]: the *upper median* of (pivot z - GT + distance to the plane),
+  pivot = the fitted plane where the pivot ray meets it; positive = the plane fit is farther than
+  the ground truth (the DQT's sign). Our ground truth is the reference plane from the board pose
+  along the same ray (the DQT asks the user for one number);
+- temporal noise [%]: per pixel std / median over up to 39 frames (zeros left out, empty pixels
+  count as 0), the median over the ROI's pixels.
+
+Intel's expected RMS (tuning white paper): RMS_z = Z^2 * subpixel / (f * B), f the stereo
+imager's focal length (px), B the baseline; reported with subpixel = 0.08 px (Intel's advice for a
+well calibrated D4xx) and the ratio measured / expected. Where our definitions and the DQT's
+differ, and why: docs/checkerboard-study.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+EXPECTED_SUBPIXEL_PX = 0.08  # Intel: "best to use about 0.08" for a well calibrated D4xx
+TEMPORAL_FRAMES = 39         # the DQT's 40-frame FIFO pops the oldest before computing
+TRIM_DIVISOR = 200           # 0.5 % of the points at each end of z
+
+# standpoints.csv columns (mean over frames unless said), board mask first, then the centred ROI
+METRICS = ("fill_rate_pct", "distance_mm", "plane_fit_rms_mm", "plane_fit_rms_pct", "subpixel_rms_px",
+           "subpixel_rms_tool_px", "z_accuracy_pct", "temporal_noise_pct", "expected_rms_mm", "rms_ratio")
+DQT_COLUMNS = tuple(f"dqt_{m}" for m in METRICS) + tuple(f"dqt_roi_{m}" for m in METRICS)
+
+
+@dataclass
+class DqtFrame:
+    """The DQT's figures of one frame and one ROI (plus what Z accuracy needs once the reference
+    plane is known)."""
+
+    fill_rate_pct: float
+    distance_mm: float = float("nan")
+    plane_fit_rms_mm: float = float("nan")
+    plane_fit_rms_pct: float = float("nan")
+    subpixel_rms_px: float = float("nan")
+    subpixel_rms_tool_px: float = float("nan")
+    pivot_ray: tuple[float, float, float] = (0.0, 0.0, 1.0)  # camera ray (z = 1) of the pivot
+    pivot_z_mm: float = float("nan")                       # fitted plane's z along the pivot ray
+    median_distance_mm: float = float("nan")               # upper median of the trimmed residuals
+
+    def z_accuracy_pct(self, ground_truth_mm: float) -> float:
+        """DQT Z accuracy against a ground-truth z-depth (mm) along the pivot ray."""
+        if not np.isfinite(ground_truth_mm) or ground_truth_mm <= 0:
+            return float("nan")
+        return float(100.0 * (self.pivot_z_mm - ground_truth_mm + self.median_distance_mm) / ground_truth_mm)
+
+
+def centred_roi(width: int, height: int, fraction: float) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) of the DQT's centred ROI: `fraction` of each side (0.4: 16 % of the area)."""
+    return (int(width * (0.5 - 0.5 * fraction)), int(height * (0.5 - 0.5 * fraction)),
+            int(width * (0.5 + 0.5 * fraction)), int(height * (0.5 + 0.5 * fraction)))
+
+
+def plane_from_sums(n: float, s: F64, ss: F64) -> tuple[F64, float] | None:
+    """The DQT's plane fit (ilikebigbits' 'plane from points') from the point count, the sums of
+    x, y, z and of their products (xx, xy, xz, yy, yz, zz): the largest of the three 2x2
+    determinants picks the axis the regression solves for. Returns (unit normal away from the
+    camera, d) with n.p + d = 0, or None for fewer than 3 points or a degenerate set."""
+    if n < 3:
+        return None
+    c = s / n
+    xx = ss[0] - n * c[0] * c[0]
+    xy = ss[1] - n * c[0] * c[1]
+    xz = ss[2] - n * c[0] * c[2]
+    yy = ss[3] - n * c[1] * c[1]
+    yz = ss[4] - n * c[1] * c[2]
+    zz = ss[5] - n * c[2] * c[2]
+    det_x, det_y, det_z = yy * zz - yz * yz, xx * zz - xz * xz, xx * yy - xy * xy
+    det_max = max(det_x, det_y, det_z)
+    if det_max <= 0:
+        return None
+    if det_max == det_x:
+        v = np.array([det_x, xz * yz - xy * zz, xy * yz - xz * yy])
+    elif det_max == det_y:
+        v = np.array([xz * yz - xy * zz, det_y, xy * xz - yz * xx])
+    else:
+        v = np.array([xy * yz - xz * yy, xy * xz - yz * xx, det_z])
+    v /= np.linalg.norm(v)
+    if v @ c < 0:
+        v = -v
+    return v, float(-(v @ c))
+
+
+@njit(cache=True, nogil=True)
+def _collect(raw: Any, inside: Any, ray_x: Any, ray_y: Any, units: float, out_raw: Any,
+             sums: Any) -> int:  # pragma: no cover - compiled
+    """Valid ROI pixels: their raw depth (for the z trimming) and the plane-fit sums."""
+    h, w = raw.shape
+    k = 0
+    for i in range(h):
+        ry = np.float64(ray_y[i])
+        for j in range(w):
+            d = raw[i, j]
+            if d == 0 or not inside[i, j]:
+                continue
+            z = d * units
+            x = z * np.float64(ray_x[j])
+            y = z * ry
+            out_raw[k] = d
+            k += 1
+            sums[0] += x
+            sums[1] += y
+            sums[2] += z
+            sums[3] += x * x
+            sums[4] += x * y
+            sums[5] += x * z
+            sums[6] += y * y
+            sums[7] += y * z
+            sums[8] += z * z
+    return k
+
+
+@njit(cache=True, nogil=True)
+def _residuals(raw: Any, inside: Any, ray_x: Any, ray_y: Any, units: float, nx: float, ny: float,
+               nz: float, d0: float, lo: int, drop_lo: int, hi: int, drop_hi: int, bf: float,
+               dist: Any, acc: Any) -> int:  # pragma: no cover - compiled
+    """Orthogonal distances of the trimmed points (into `dist`) and the sums of squares of the
+    distances, the disparity residuals along the rays and the tool's range-based ones."""
+    h, w = raw.shape
+    k = 0
+    for i in range(h):
+        ry = np.float64(ray_y[i])
+        for j in range(w):
+            d = raw[i, j]
+            if d == 0 or not inside[i, j] or d < lo or d > hi:
+                continue
+            if d == lo and drop_lo > 0:
+                drop_lo -= 1
+                continue
+            if d == hi and drop_hi > 0:
+                drop_hi -= 1
+                continue
+            z = d * units
+            rx = np.float64(ray_x[j])
+            x = z * rx
+            y = z * ry
+            e = nx * x + ny * y + nz * z + d0
+            dist[k] = e
+            k += 1
+            acc[0] += e * e
+            if bf > 0:
+                z_plane = -d0 / (nx * rx + ny * ry + nz)
+                a = bf / z - bf / z_plane
+                acc[1] += a * a
+                px, py, pz = x - e * nx, y - e * ny, z - e * nz
+                b = bf / np.sqrt(x * x + y * y + z * z) - bf / np.sqrt(px * px + py * py + pz * pz)
+                acc[2] += b * b
+    return k
+
+
+def frame_metrics(raw: NDArray[np.uint16], inside: NDArray[np.bool_], ray_x: NDArray[np.floating],
+                  ray_y: NDArray[np.floating], depth_units_m: float, roi_pixels: int, focal_px: float,
+                  baseline_m: float | None, pivot_ray: F64) -> DqtFrame:
+    """The DQT's figures of one frame from a depth box, the ROI's pixels in it (`inside`), and the
+    rays (x / z, y / z) of its columns and rows; two passes over the pixels, no temporaries."""
+    out = DqtFrame(float("nan"), pivot_ray=(float(pivot_ray[0]), float(pivot_ray[1]), float(pivot_ray[2])))
+    units = float(depth_units_m)
+    values = np.empty(raw.size, np.uint16)
+    sums = np.zeros(9)
+    n = _collect(raw, inside, ray_x, ray_y, units, values, sums)
+    out.fill_rate_pct = 100.0 * n / roi_pixels if roi_pixels else float("nan")
+    plane = plane_from_sums(n, sums[:3], sums[3:])
+    if plane is None:
+        return out
+    normal, d0 = plane
+    out.distance_mm = -d0 * 1000.0
+    values = values[:n]
+    k = n // TRIM_DIVISOR  # the k nearest and k farthest in z leave (ties arbitrarily, as std::sort)
+    lo, hi, drop_lo, drop_hi = 0, 65535, 0, 0
+    if k:
+        part = np.partition(values, (k - 1, n - k))
+        lo, hi = int(part[k - 1]), int(part[n - k])
+        drop_lo = k - int(np.count_nonzero(values < lo))
+        drop_hi = k - int(np.count_nonzero(values > hi))
+    bf = float(baseline_m) * float(focal_px) if baseline_m else 0.0
+    dist = np.empty(n, np.float64)
+    acc = np.zeros(3)
+    m = _residuals(raw, inside, ray_x, ray_y, units, float(normal[0]), float(normal[1]), float(normal[2]),
+                   d0, lo, drop_lo, hi, drop_hi, bf, dist, acc)
+    if m == 0:
+        return out
+    out.plane_fit_rms_mm = float(np.sqrt(acc[0] / m)) * 1000.0
+    out.plane_fit_rms_pct = 100.0 * out.plane_fit_rms_mm / out.distance_mm
+    if bf > 0:
+        out.subpixel_rms_px = float(np.sqrt(acc[1] / m))
+        out.subpixel_rms_tool_px = float(np.sqrt(acc[2] / m))
+    denom = float(normal @ pivot_ray)
+    if denom > 0:
+        out.pivot_z_mm = -d0 / denom * float(pivot_ray[2]) * 1000.0
+    dist = dist[:m]
+    out.median_distance_mm = float(np.partition(dist, m // 2)[m // 2]) * 1000.0
+    return out
+
+
+def temporal_noise_pct(stack: NDArray[np.uint16], depth_units_m: float) -> float:
+    """DQT temporal noise of frames x pixels raw depth (0 = none): median over pixels of std /
+    median over frames, pixels without any depth counting as 0."""
+    if stack.shape[0] < 2 or stack.shape[1] == 0:
+        return float("nan")
+    a = np.where(stack > 0, stack.astype(np.float64) * depth_units_m * 1000.0, np.nan)
+    seen = np.isfinite(a).any(axis=0)
+    ratio = np.zeros(a.shape[1])
+    if seen.any():
+        med = np.nanmedian(a[:, seen], axis=0)
+        std = np.nanstd(a[:, seen], axis=0)
+        ratio[seen] = np.where(med > 0, std / np.where(med > 0, med, 1.0), 0.0)
+    return float(100.0 * np.median(ratio))
+
+
+def expected_rms_mm(distance_mm: float, focal_px: float, baseline_m: float | None,
+                    subpixel_px: float = EXPECTED_SUBPIXEL_PX) -> float:
+    """Intel's expected depth RMS error (mm) at a distance: Z^2 * subpixel / (f * B)."""
+    if not baseline_m or not np.isfinite(distance_mm) or focal_px <= 0:
+        return float("nan")
+    return float(distance_mm**2 * subpixel_px / (focal_px * float(baseline_m) * 1000.0))
+
+
+class TemporalStack:
+    """The raw depth of one fixed pixel set over the first frames of a standpoint."""
+
+    def __init__(self, frames: int = TEMPORAL_FRAMES) -> None:
+        self.frames = frames
+        self.rows: NDArray[np.intp] | None = None
+        self.cols: NDArray[np.intp] | None = None
+        self.samples: list[NDArray[np.uint16]] = []
+
+    def add(self, depth: NDArray[np.uint16], rows: NDArray[np.intp], cols: NDArray[np.intp]) -> None:
+        """One frame: the pixel set is the first frame's (`rows`, `cols`), kept for the rest."""
+        if len(self.samples) >= self.frames:
+            return
+        if self.rows is None:
+            self.rows, self.cols = rows, cols
+        self.samples.append(np.asarray(depth[self.rows, self.cols]))
+
+    def noise_pct(self, depth_units_m: float) -> float:
+        if not self.samples:
+            return float("nan")
+        return temporal_noise_pct(np.stack(self.samples), depth_units_m)
+
+
+def standpoint_figures(frames: list[DqtFrame], ground_truth_mm: list[float], temporal_pct: float,
+                       focal_px: float, baseline_m: float | None, prefix: str) -> dict[str, float]:
+    """Mean over frames of each DQT figure, Z accuracy against each frame's ground truth, the
+    temporal noise, Intel's expected RMS at the mean distance and measured / expected."""
+    def mean(values: list[float]) -> float:
+        a = np.asarray([v for v in values if np.isfinite(v)], dtype=np.float64)
+        return float(a.mean()) if a.size else float("nan")
+
+    f = {
+        "fill_rate_pct": mean([x.fill_rate_pct for x in frames]),
+        "distance_mm": mean([x.distance_mm for x in frames]),
+        "plane_fit_rms_mm": mean([x.plane_fit_rms_mm for x in frames]),
+        "plane_fit_rms_pct": mean([x.plane_fit_rms_pct for x in frames]),
+        "subpixel_rms_px": mean([x.subpixel_rms_px for x in frames]),
+        "subpixel_rms_tool_px": mean([x.subpixel_rms_tool_px for x in frames]),
+        "z_accuracy_pct": mean([x.z_accuracy_pct(g) for x, g in zip(frames, ground_truth_mm, strict=True)]),
+        "temporal_noise_pct": temporal_pct,
+    }
+    f["expected_rms_mm"] = expected_rms_mm(f["distance_mm"], focal_px, baseline_m)
+    f["rms_ratio"] = (f["plane_fit_rms_mm"] / f["expected_rms_mm"]
+                      if np.isfinite(f["expected_rms_mm"]) and f["expected_rms_mm"] > 0 else float("nan"))
+    return {f"{prefix}{k}": v for k, v in f.items()}
