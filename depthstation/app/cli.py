@@ -39,26 +39,41 @@ def _register() -> None:
 _register()
 
 
+# typer >= 0.22 carries its own copy of click: its exceptions are not click's
+_USAGE: tuple[type[Exception], ...] = tuple({click.ClickException, typer.exceptions.TyperException})
+_EXIT: tuple[type[BaseException], ...] = tuple({click.exceptions.Exit, typer.Exit})
+_ABORT: tuple[type[BaseException], ...] = tuple({click.exceptions.Abort, typer.Abort})
+
+
 def main() -> None:
-    """Entry point: one-line errors on stderr, exit 2 for bad input, 1 for other failures."""
+    """Entry point: one-line errors on stderr, exit 2 for bad input and usage errors (with the
+    usage line), 1 for other failures."""
     try:
-        rc = app(standalone_mode=False)
+        rc = app(standalone_mode=False, prog_name="depthstation")
     except DepthstationError as exc:
         typer.echo(f"depthstation: error: {exc}", err=True)
         sys.exit(exc.exit_code)
     except KeyboardInterrupt:
         typer.echo("depthstation: interrupted", err=True)
         sys.exit(130)
-    except Exception as exc:  # click usage errors and anything unexpected
-
-        if isinstance(exc, click.exceptions.Exit):
-            sys.exit(exc.exit_code)
-        if isinstance(exc, click.ClickException):
-            exc.show()
-            sys.exit(2)
-        if isinstance(exc, click.exceptions.Abort):
-            typer.echo("depthstation: aborted", err=True)
-            sys.exit(1)
+    except _EXIT as exc:
+        sys.exit(getattr(exc, "exit_code", 0))
+    except _ABORT:
+        typer.echo("depthstation: aborted", err=True)
+        sys.exit(1)
+    except _USAGE as exc:  # unknown command, missing or invalid option: usage line, exit 2
+        if getattr(exc, "ctx", True) is None:  # raised before a command context existed
+            words = [w for w in sys.argv[1:3] if not w.startswith("-")]
+            cmd = " ".join(["depthstation", *words])
+            typer.echo(f"Usage: {cmd} [OPTIONS] ...\nTry '{cmd} --help' for help.\n", err=True)
+        show = getattr(exc, "show", None)
+        if callable(show):
+            show()
+        else:
+            typer.echo(f"depthstation: error: {exc}", err=True)
+        code = getattr(exc, "exit_code", 2)
+        sys.exit(code if isinstance(code, int) and code else 2)
+    except Exception as exc:  # anything unexpected
         typer.echo(f"depthstation: internal error: {type(exc).__name__}: {exc}", err=True)
         sys.exit(1)
     if isinstance(rc, int) and rc:

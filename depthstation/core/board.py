@@ -14,10 +14,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tomllib
 from numpy.typing import NDArray
 
 from depthstation.core.errors import InputError
+from depthstation.core.tomlcompat import tomllib
 
 BOARD_TYPES = ("checkerboard", "charuco")
 

@@ -2,12 +2,26 @@
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 from depthstation.core.camera_model import StreamInfo
+from depthstation.core.errors import CameraError
 from depthstation.core.frames import FrameSet
 from depthstation.core.protocol import Streams
+
+REALSENSE_HINT = ("pyrealsense2 is not installed: pip install -e '.[camera]' (wheels for Linux x86_64 and "
+                  "Windows; on macOS or a Jetson build librealsense with its Python bindings)")
+
+
+def realsense() -> Any:
+    """pyrealsense2 (an optional extra: offline evaluation, simulation and explain run without
+    it), imported on first use; a one-line CameraError saying how to get it when it is missing."""
+    try:
+        return importlib.import_module("pyrealsense2")
+    except ImportError as exc:
+        raise CameraError(REALSENSE_HINT) from exc
 
 
 @dataclass(frozen=True)

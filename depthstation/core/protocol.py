@@ -7,10 +7,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import tomllib
-
 from depthstation.core.board import Board
 from depthstation.core.errors import ProtocolError
+from depthstation.core.tomlcompat import tomllib
 
 PROTOCOL_DIR = Path(__file__).resolve().parent.parent / "protocols"
 
