@@ -28,6 +28,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
 from depthstation.core.capture import mcap_writer as mw
 from depthstation.core.capture import rosmsgs
+from depthstation.core.capture.mcap_reader import MCAP_MAGIC, mcap_messages
 from depthstation.core.capture.recording import Recording, log
 from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
@@ -246,8 +247,10 @@ class RosRecording(Recording):
     reopen it from its path and topic choice)."""
 
     def __init__(self, *args: Any, streams: dict[str, RosStream], tolerance_ns: int,
-                 frame_topic: str | None, temperature_topic: str | None, **kwargs: Any) -> None:
+                 frame_topic: str | None, temperature_topic: str | None, mcap_files: list[Path],
+                 **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        self.mcap_files = mcap_files
         self.streams = streams
         self.tolerance_ns = int(tolerance_ns)
         self.frame_topic = frame_topic
@@ -279,29 +282,49 @@ class RosRecording(Recording):
                             stamps[k] = best[0]
                 yield self._frameset(order, stamp, (msg, msgtype), parts, stamps, records.pop(stamp, None))
 
-        with _reader(self.path, typestore()) as reader:
-            wanted = set(kinds) | {t for t in (self.frame_topic,) if t}
-            conns = [c for c in reader.connections if c.topic in wanted]
-            for conn, bag_t, raw in reader.messages(connections=conns):
-                if conn.topic == self.frame_topic:
-                    rec = json.loads(reader.deserialize(raw, conn.msgtype).data)
-                    records[int(rec["timestamp_ns"])] = rec
+        wanted = set(kinds) | {t for t in (self.frame_topic,) if t}
+        for topic, msgtype, bag_t, raw, deserialize in self._messages(wanted):
+            if topic == self.frame_topic:
+                rec = json.loads(deserialize(raw, msgtype).data)
+                records[int(rec["timestamp_ns"])] = rec
+                continue
+            kind = kinds[topic]
+            if kind == "depth":
+                order = n_depth
+                n_depth += 1
+                if order < start:
                     continue
-                kind = kinds[conn.topic]
-                if kind == "depth":
-                    order = n_depth
-                    n_depth += 1
-                    if order < start:
-                        continue
-                    msg = reader.deserialize(raw, conn.msgtype)
-                    pending.append((order, rosmsgs.stamp_ns(msg.header) or bag_t, msg, conn.msgtype))
-                else:
-                    msg = reader.deserialize(raw, conn.msgtype)
-                    stamp = rosmsgs.stamp_ns(msg.header) or bag_t
-                    buffers[kind].append((stamp, msg, conn.msgtype))
-                    last[kind] = max(last[kind], stamp)
-                yield from ready(False)
-            yield from ready(True)
+                msg = deserialize(raw, msgtype)
+                pending.append((order, rosmsgs.stamp_ns(msg.header) or bag_t, msg, msgtype))
+            else:
+                msg = deserialize(raw, msgtype)
+                stamp = rosmsgs.stamp_ns(msg.header) or bag_t
+                buffers[kind].append((stamp, msg, msgtype))
+                last[kind] = max(last[kind], stamp)
+            yield from ready(False)
+        yield from ready(True)
+
+    def _messages(self, topics: set[str]) -> Iterator[tuple[str, str, int, Any, Any]]:
+        """(topic, message type, log time, raw data, deserializer) of these topics in file order.
+
+        rosbag2 MCAP files are parsed by the chunk reader of our own MCAP (memoryviews, no copy of
+        the images: 3-4x what rosbags' reader gives at 1280x720); sqlite3 and ROS 1 bags by rosbags.
+        """
+        if self.mcap_files:
+            types = {s.topic: s.msgtype for s in self.streams.values()}
+            types.update({t: rosmsgs.STRING for t in (self.frame_topic,) if t})
+            for path in self.mcap_files:
+                names: dict[int, str] = {}
+                with path.open("rb") as fh:
+                    for cid, log_time, data in mcap_messages(fh, names):
+                        topic = names.get(cid)
+                        if topic in topics:
+                            yield topic, types[topic], log_time, data, rosmsgs.deserialize
+            return
+        with _reader(self.path, typestore()) as reader:
+            conns = [c for c in reader.connections if c.topic in topics]
+            for conn, bag_t, raw in reader.messages(connections=conns):
+                yield conn.topic, conn.msgtype, bag_t, raw, reader.deserialize
 
     def _frameset(self, order: int, stamp: int, depth: tuple[Any, str], parts: dict[str, tuple[Any, str]],
                   stamps: dict[str, int], record: dict[str, Any] | None) -> FrameSet:
@@ -342,6 +365,23 @@ def _pixels(msg: Any, msgtype: str) -> NDArray[Any]:
     if msgtype == rosmsgs.COMPRESSED_IMAGE:
         return rosmsgs.compressed_image_array(msg)
     return rosmsgs.image_array(msg)
+
+
+def _mcap_files(path: Path) -> list[Path]:
+    """The MCAP files of a rosbag2 recording in order (split files `x_0.mcap`, `x_1.mcap`, ...);
+    empty for another storage."""
+    if path.is_file():
+        with path.open("rb") as fh:
+            return [path] if fh.read(len(MCAP_MAGIC)) == MCAP_MAGIC else []
+    files = [p for p in path.iterdir() if p.suffix.lower() == ".mcap"]
+    if not files or any(p.suffix.lower() == ".db3" for p in path.iterdir()):
+        return []
+
+    def order(p: Path) -> tuple[int, str]:
+        tail = p.stem.rsplit("_", 1)[-1]
+        return (int(tail) if tail.isdigit() else -1, p.name)
+
+    return sorted(files, key=order)
 
 
 def is_ros_recording(path: Path) -> bool:
@@ -455,6 +495,7 @@ def _open(path: Path, reader: Any, choice: TopicChoice | None) -> RosRecording:
         name, path, info, meta, depth.count, counts, streams=streams, tolerance_ns=int(period_ns / 2),
         frame_topic=mw.FRAME_TOPIC if mw.FRAME_TOPIC in topic_names else None,
         temperature_topic=mw.TEMPERATURE_TOPIC if mw.TEMPERATURE_TOPIC in topic_names else None,
+        mcap_files=_mcap_files(path) if reader.is2 else [],
     )
     rec.topics = choice
     return rec
