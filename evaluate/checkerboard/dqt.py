@@ -36,6 +36,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from depthstation.evaluate.checkerboard.kernels import board_moments
+
 F64 = NDArray[np.float64]
 EXPECTED_SUBPIXEL_PX = 0.08  # Intel: "best to use about 0.08" for a well calibrated D4xx
 TEMPORAL_FRAMES = 39         # the DQT's 40-frame FIFO pops the oldest before computing
@@ -106,35 +108,6 @@ def plane_from_sums(n: float, s: F64, ss: F64) -> tuple[F64, float] | None:
 
 
 @njit(cache=True, nogil=True)
-def _collect(raw: Any, inside: Any, ray_x: Any, ray_y: Any, units: float, out_raw: Any,
-             sums: Any) -> int:  # pragma: no cover - compiled
-    """Valid ROI pixels: their raw depth (for the z trimming) and the plane-fit sums."""
-    h, w = raw.shape
-    k = 0
-    for i in range(h):
-        ry = np.float64(ray_y[i])
-        for j in range(w):
-            d = raw[i, j]
-            if d == 0 or not inside[i, j]:
-                continue
-            z = d * units
-            x = z * np.float64(ray_x[j])
-            y = z * ry
-            out_raw[k] = d
-            k += 1
-            sums[0] += x
-            sums[1] += y
-            sums[2] += z
-            sums[3] += x * x
-            sums[4] += x * y
-            sums[5] += x * z
-            sums[6] += y * y
-            sums[7] += y * z
-            sums[8] += z * z
-    return k
-
-
-@njit(cache=True, nogil=True)
 def _residuals(raw: Any, inside: Any, ray_x: Any, ray_y: Any, units: float, nx: float, ny: float,
                nz: float, d0: float, lo: int, drop_lo: int, hi: int, drop_hi: int, bf: float,
                dist: Any, acc: Any) -> int:  # pragma: no cover - compiled
@@ -174,21 +147,24 @@ def _residuals(raw: Any, inside: Any, ray_x: Any, ray_y: Any, units: float, nx: 
 
 def frame_metrics(raw: NDArray[np.uint16], inside: NDArray[np.bool_], ray_x: NDArray[np.floating],
                   ray_y: NDArray[np.floating], depth_units_m: float, roi_pixels: int, focal_px: float,
-                  baseline_m: float | None, pivot_ray: F64) -> DqtFrame:
+                  baseline_m: float | None, pivot_ray: F64, moments: F64 | None = None) -> DqtFrame:
     """The DQT's figures of one frame from a depth box, the ROI's pixels in it (`inside`), and the
-    rays (x / z, y / z) of its columns and rows; two passes over the pixels, no temporaries."""
+    rays (x / z, y / z) of its columns and rows. `moments`: the valid points' 4x4 moment matrix
+    about the camera (the study's, `kernels.board_moments`), computed here when not given."""
     out = DqtFrame(float("nan"), pivot_ray=(float(pivot_ray[0]), float(pivot_ray[1]), float(pivot_ray[2])))
     units = float(depth_units_m)
-    values = np.empty(raw.size, np.uint16)
-    sums = np.zeros(9)
-    n = _collect(raw, inside, ray_x, ray_y, units, values, sums)
+    if moments is None:
+        moments = board_moments(raw, inside, np.zeros(inside.shape, np.uint8), ray_x.astype(np.float32),
+                                ray_y.astype(np.float32), units, np.zeros(3))[1]["all"]
+    n = round(float(moments[0, 0]))
     out.fill_rate_pct = 100.0 * n / roi_pixels if roi_pixels else float("nan")
-    plane = plane_from_sums(n, sums[:3], sums[3:])
+    iu = np.triu_indices(3)  # xx, xy, xz, yy, yz, zz
+    plane = plane_from_sums(n, moments[0, 1:], moments[1:, 1:][iu])
     if plane is None:
         return out
     normal, d0 = plane
     out.distance_mm = -d0 * 1000.0
-    values = values[:n]
+    values = raw[inside & (raw > 0)]
     k = n // TRIM_DIVISOR  # the k nearest and k farthest in z leave (ties arbitrarily, as std::sort)
     lo, hi, drop_lo, drop_hi = 0, 65535, 0, 0
     if k:

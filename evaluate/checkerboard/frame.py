@@ -16,7 +16,7 @@ from depthstation.evaluate.checkerboard.dqt import DqtFrame, TemporalStack, cent
 from depthstation.evaluate.checkerboard.errors import BoardMismatchError
 from depthstation.evaluate.checkerboard.kernels import board_moments
 from depthstation.evaluate.checkerboard.mask import BoardMask, board_mask, board_to_depth
-from depthstation.evaluate.checkerboard.metrics import fit_plane_moments
+from depthstation.evaluate.checkerboard.metrics import fit_plane_moments, shift_moments
 from depthstation.evaluate.checkerboard.pose import flip_board, square_contrast
 
 MIN_CONTRAST = 5.0  # grey levels white minus black below which the colours count as swapped
@@ -214,8 +214,10 @@ class FrameEvaluator:
         on the centred ROI (pivot: the image centre's, as the DQT)."""
         rows, cols = mask.box
         units, baseline = self.info.depth_units_m, self.info.baseline_m
+        about_camera = shift_moments(res.moments["all"], res.origin)  # the study's pass, reused
         res.dqt = frame_metrics(depth[rows, cols], mask.inside, mask.ray_x, mask.ray_y, units,
-                                res.board_pixels, self.focal_px, baseline, res.origin / res.origin[2])
+                                res.board_pixels, self.focal_px, baseline, res.origin / res.origin[2],
+                                about_camera)
         if len(self.temporal.samples) < self.temporal.frames:
             r, c = np.nonzero(mask.inside)
             self.temporal.add(depth, r + mask.v0, c + mask.u0)
