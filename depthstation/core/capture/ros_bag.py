@@ -35,7 +35,6 @@ from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 
 IMAGE_TYPES = (rosmsgs.IMAGE, rosmsgs.COMPRESSED_IMAGE)
-CAMERA_INFO_TYPE = rosmsgs.CAMERA_INFO
 TF_TOPICS = ("/tf_static", "/tf")
 # realsense-ros image topics after the camera namespace, best first (ROS 1 and ROS 2 wrappers)
 LAYOUT: dict[str, tuple[str, ...]] = {
@@ -382,14 +381,6 @@ def _mcap_files(path: Path) -> list[Path]:
         return (int(tail) if tail.isdigit() else -1, p.name)
 
     return sorted(files, key=order)
-
-
-def is_ros_recording(path: Path) -> bool:
-    """A file or folder rosbags can open (suffix or rosbag2 layout); content is checked on open."""
-    path = Path(path)
-    if path.is_dir():
-        return (path / "metadata.yaml").is_file()
-    return path.suffix.lower() in (".bag", ".db3", ".mcap")
 
 
 def open_ros(path: Path, topics: TopicChoice | None = None) -> RosRecording:
