@@ -50,8 +50,10 @@ def test_frontal_wall_reads_the_model_disparity_noise(distance_m: float) -> None
         assert fs.depth is not None
         frames.append(frame_metrics(fs.depth[y0:y1, x0:x1], every, rx, ry, info.depth_units_m, every.size,
                                     info.stereo.fx, info.baseline_m, centre))
-        r, c = np.mgrid[y0:y1, x0:x1]
-        stack.add(fs.depth, r.ravel(), c.ravel())
+        if stack.rows is None:
+            r, c = np.mgrid[y0:y1, x0:x1]
+            stack.start(r.ravel(), c.ravel())
+        stack.add(fs.depth)
     sub = np.mean([f.subpixel_rms_px for f in frames])
     assert sub == pytest.approx(sigma, rel=0.10)
     dist = np.mean([f.distance_mm for f in frames])

@@ -108,6 +108,27 @@ def plane_from_sums(n: float, s: F64, ss: F64) -> tuple[F64, float] | None:
 
 
 @njit(cache=True, nogil=True)
+def _histogram(raw: Any, inside: Any, hist: Any) -> None:  # pragma: no cover - compiled
+    """Counts of each raw depth value over the ROI (for the trimming by z without a sort)."""
+    h, w = raw.shape
+    for i in range(h):
+        for j in range(w):
+            if inside[i, j]:
+                hist[raw[i, j]] += 1
+
+
+def _trim_bounds(hist: NDArray[np.int64], n: int, k: int) -> tuple[int, int, int, int]:
+    """(lo, drop_lo, hi, drop_hi): values below lo and above hi leave, and that many of the values
+    equal to lo / hi, so that exactly k leave at each end (0 = no depth is not counted)."""
+    hist[0] = 0
+    c = np.cumsum(hist)
+    lo = int(np.searchsorted(c, k))                 # the k-th smallest value
+    hi = int(np.searchsorted(c, n - k + 1))         # the k-th largest value
+    below, above = (int(c[lo - 1]) if lo > 0 else 0), n - int(c[hi])
+    return lo, k - below, hi, k - above
+
+
+@njit(cache=True, nogil=True)
 def _residuals(raw: Any, inside: Any, ray_x: Any, ray_y: Any, units: float, nx: float, ny: float,
                nz: float, d0: float, lo: int, drop_lo: int, hi: int, drop_hi: int, bf: float,
                dist: Any, acc: Any) -> int:  # pragma: no cover - compiled
@@ -164,14 +185,12 @@ def frame_metrics(raw: NDArray[np.uint16], inside: NDArray[np.bool_], ray_x: NDA
         return out
     normal, d0 = plane
     out.distance_mm = -d0 * 1000.0
-    values = raw[inside & (raw > 0)]
     k = n // TRIM_DIVISOR  # the k nearest and k farthest in z leave (ties arbitrarily, as std::sort)
-    lo, hi, drop_lo, drop_hi = 0, 65535, 0, 0
+    lo, drop_lo, hi, drop_hi = 0, 0, 65535, 0
     if k:
-        part = np.partition(values, (k - 1, n - k))
-        lo, hi = int(part[k - 1]), int(part[n - k])
-        drop_lo = k - int(np.count_nonzero(values < lo))
-        drop_hi = k - int(np.count_nonzero(values > hi))
+        hist = np.zeros(65536, np.int64)
+        _histogram(raw, inside, hist)
+        lo, drop_lo, hi, drop_hi = _trim_bounds(hist, n, k)
     bf = float(baseline_m) * float(focal_px) if baseline_m else 0.0
     dist = np.empty(n, np.float64)
     acc = np.zeros(3)
@@ -192,19 +211,47 @@ def frame_metrics(raw: NDArray[np.uint16], inside: NDArray[np.bool_], ray_x: NDA
     return out
 
 
+@njit(cache=True, nogil=True)
+def _pixel_ratios(samples: Any, scale: float, out: Any) -> None:  # pragma: no cover - compiled
+    """Per pixel (row of `samples`, pixels x frames): std / median of its non-zero samples
+    (population std; the median of an even count the mean of the middle two, as the DQT's); 0
+    without samples. Insertion sort in place: at most 39 values."""
+    n, f = samples.shape
+    buf = np.empty(f, np.float64)
+    for j in range(n):
+        k = 0
+        total = 0.0
+        for i in range(f):
+            v = samples[j, i]
+            if v == 0:
+                continue
+            x = v * scale
+            total += x
+            m = k
+            while m > 0 and buf[m - 1] > x:
+                buf[m] = buf[m - 1]
+                m -= 1
+            buf[m] = x
+            k += 1
+        if k == 0:
+            out[j] = 0.0
+            continue
+        med = buf[k // 2] if k % 2 else 0.5 * (buf[k // 2 - 1] + buf[k // 2])
+        mean = total / k
+        var = 0.0
+        for i in range(k):
+            var += (buf[i] - mean) ** 2
+        out[j] = np.sqrt(var / k) / med if med > 0 else 0.0
+
+
 def temporal_noise_pct(stack: NDArray[np.uint16], depth_units_m: float) -> float:
     """DQT temporal noise of frames x pixels raw depth (0 = none): median over pixels of std /
     median over frames, pixels without any depth counting as 0."""
     if stack.shape[0] < 2 or stack.shape[1] == 0:
         return float("nan")
-    a = np.where(stack > 0, stack.astype(np.float64) * depth_units_m * 1000.0, np.nan)
-    seen = np.isfinite(a).any(axis=0)
-    ratio = np.zeros(a.shape[1])
-    if seen.any():
-        med = np.nanmedian(a[:, seen], axis=0)
-        std = np.nanstd(a[:, seen], axis=0)
-        ratio[seen] = np.where(med > 0, std / np.where(med > 0, med, 1.0), 0.0)
-    return float(100.0 * np.median(ratio))
+    ratios = np.empty(stack.shape[1], np.float64)
+    _pixel_ratios(np.ascontiguousarray(stack.T), float(depth_units_m) * 1000.0, ratios)
+    return float(100.0 * np.median(ratios))
 
 
 def expected_rms_mm(distance_mm: float, focal_px: float, baseline_m: float | None,
@@ -224,13 +271,14 @@ class TemporalStack:
         self.cols: NDArray[np.intp] | None = None
         self.samples: list[NDArray[np.uint16]] = []
 
-    def add(self, depth: NDArray[np.uint16], rows: NDArray[np.intp], cols: NDArray[np.intp]) -> None:
-        """One frame: the pixel set is the first frame's (`rows`, `cols`), kept for the rest."""
-        if len(self.samples) >= self.frames:
-            return
-        if self.rows is None:
-            self.rows, self.cols = rows, cols
-        self.samples.append(np.asarray(depth[self.rows, self.cols]))
+    def start(self, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> None:
+        """The pixel set (the first frame's), kept for the rest."""
+        self.rows, self.cols = rows, cols
+
+    def add(self, depth: NDArray[np.uint16]) -> None:
+        """One frame's raw depth at the pixel set (up to `frames` frames)."""
+        if self.rows is not None and self.cols is not None and len(self.samples) < self.frames:
+            self.samples.append(np.asarray(depth[self.rows, self.cols]))
 
     def noise_pct(self, depth_units_m: float) -> float:
         if not self.samples:

@@ -218,9 +218,10 @@ class FrameEvaluator:
         res.dqt = frame_metrics(depth[rows, cols], mask.inside, mask.ray_x, mask.ray_y, units,
                                 res.board_pixels, self.focal_px, baseline, res.origin / res.origin[2],
                                 about_camera)
-        if len(self.temporal.samples) < self.temporal.frames:
+        if self.temporal.rows is None:
             r, c = np.nonzero(mask.inside)
-            self.temporal.add(depth, r + mask.v0, c + mask.u0)
+            self.temporal.start(r + mask.v0, c + mask.u0)
+        self.temporal.add(depth)
         if self.roi_box is None:
             return
         x0, y0, x1, y1 = self.roi_box
@@ -232,6 +233,7 @@ class FrameEvaluator:
         rx, ry, every = self._roi_rays
         res.dqt_roi = frame_metrics(depth[y0:y1, x0:x1], every, rx, ry, units,
                                     (x1 - x0) * (y1 - y0), self.focal_px, baseline, self.roi_ray)
-        if len(self.temporal_roi.samples) < self.temporal_roi.frames:
+        if self.temporal_roi.rows is None:
             r, c = np.mgrid[y0:y1, x0:x1]
-            self.temporal_roi.add(depth, r.ravel(), c.ravel())
+            self.temporal_roi.start(r.ravel(), c.ravel())
+        self.temporal_roi.add(depth)
