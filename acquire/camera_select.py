@@ -12,6 +12,7 @@ from typing import Any
 
 from depthstation.acquire.live_camera import LiveCamera
 from depthstation.acquire.playback_camera import PlaybackCamera
+from depthstation.core.device import realsense
 from depthstation.core.errors import InputError
 from depthstation.simulate.simulated_camera import SimulatedCamera
 
@@ -54,8 +55,11 @@ def parse_camera(spec: str) -> CameraSpec:
 def open_camera(spec: CameraSpec, **options: Any) -> Any:
     """The camera object for a spec (not started); `options` go to the live or simulated camera."""
     if spec.kind == "live":
+        realsense()  # the one line saying how to install it, before anything starts
         return LiveCamera(spec.serial, **options)
     if spec.kind == "file":
         assert spec.path is not None
-        return PlaybackCamera(spec.path)
+        cam = PlaybackCamera(spec.path)  # a bad path first, then whether librealsense is there
+        realsense()
+        return cam
     return SimulatedCamera(spec.model or "d455", **options)

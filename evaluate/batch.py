@@ -30,13 +30,12 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import tomllib
-
 from depthstation.core.errors import DepthstationError, EvaluationError, InputError
 from depthstation.core.grid import GRID_FILE, Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn, progress_bar
 from depthstation.core.results import RESULT_FILE, result_folder, write_json, write_result_info
 from depthstation.core.text_files import read_text
+from depthstation.core.tomlcompat import tomllib
 from depthstation.evaluate.checkerboard.chunks import StandpointOptions, checkerboard_chunk
 from depthstation.evaluate.checkerboard.run import finish_checkerboard, prepare_checkerboard
 from depthstation.evaluate.checkerboard.study import StandpointResult

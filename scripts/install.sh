@@ -14,20 +14,26 @@ if [ -n "$missing" ]; then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq $missing >/dev/null
 fi
 
-# pyrealsense2 publishes wheels for a few CPython versions only: use one of those.
+# Python 3.10 to 3.13. pyrealsense2 (the live camera) is the extra [camera]: its wheels exist for
+# Linux x86_64 and Windows, elsewhere the extra installs nothing and offline evaluation, simulation
+# and explain run without it. E57/LAS/LAZ references come with the extra [tls].
 PY=""
-for cand in python3.11 python3.12 python3.10 python3; do
+for cand in python3.11 python3.12 python3.13 python3.10 python3; do
   if command -v "$cand" >/dev/null 2>&1 &&
-     "$cand" -c 'import sys; sys.exit(0 if (3, 10) <= sys.version_info[:2] <= (3, 12) else 1)'; then
+     "$cand" -c 'import sys; sys.exit(0 if (3, 10) <= sys.version_info[:2] <= (3, 13) else 1)'; then
     PY="$cand"; break
   fi
 done
 if [ -z "$PY" ]; then
-  echo "install.sh: needs Python 3.10 to 3.12 (pyrealsense2 wheels); install python3.11 and retry" >&2
+  echo "install.sh: needs Python 3.10 to 3.13; install python3.11 and retry" >&2
   exit 2
 fi
 
 if [ ! -x .venv/bin/python ]; then "$PY" -m venv .venv; fi
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-.venv/bin/python -m pip install -q -e '.[dev]'
+.venv/bin/python -m pip install -q -e '.[dev,camera,tls]'
+if ! .venv/bin/python -c 'import pyrealsense2' >/dev/null 2>&1; then
+  echo "install.sh: no pyrealsense2 wheel for this platform: offline evaluation, simulation and explain" \
+       "work; for a live camera build librealsense with its Python bindings" >&2
+fi
 echo "depthstation installed in .venv ($(.venv/bin/python --version))" >&2

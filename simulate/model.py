@@ -9,10 +9,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tomllib
 
 from depthstation.core.errors import InputError, SimulationError
 from depthstation.core.text_files import read_text
+from depthstation.core.tomlcompat import tomllib
 from depthstation.simulate.effects import EFFECTS
 from depthstation.simulate.effects.base import Array, Effect, PixelContext
 from depthstation.simulate.fastpath import FusedSampler, fusable

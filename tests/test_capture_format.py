@@ -227,11 +227,22 @@ def test_rosbags_anyreader_opens_our_mcap(tmp_path: Path) -> None:
                 connections=[c for c in reader.connections if c.topic == "/tf_static"]
             )
         ]
-        # /tf_static holds the pose of the colour frame in the depth frame: colour->depth.
+        # /tf_static is realsense-ros' tree under camera_link, stamped at the first frame; the chain
+        # depth optical -> link -> colour optical gives the depth-to-colour extrinsics
+        from depthstation.core.capture.ros_bag import tf_between
         from depthstation.core.capture.rosmsgs import extrinsics_from_transform
 
-        pose = extrinsics_from_transform(tf[0].transforms[0].transform)
-        np.testing.assert_allclose(pose.matrix, info.depth_to_color.inverse().matrix, atol=1e-12)
+        assert len(tf) == 1
+        tree = {str(t.child_frame_id): (str(t.header.frame_id), extrinsics_from_transform(t.transform))
+                for t in tf[0].transforms}
+        assert {p for p, _ in tree.values()} >= {"camera_link"}
+        assert all(t.header.stamp.sec * 10**9 + t.header.stamp.nanosec == frames[0].timestamp_ns
+                   for t in tf[0].transforms)
+        e = tf_between(tree, "camera_depth_optical_frame", "camera_color_optical_frame")
+        assert e is not None
+        np.testing.assert_allclose(e.matrix, info.depth_to_color.matrix, atol=1e-12)
+        qos = next(c.ext.offered_qos_profiles for c in reader.connections if c.topic == "/tf_static")
+        assert qos[0].durability.name == "TRANSIENT_LOCAL" and qos[0].depth == 1
 
 
 def test_rerun_mcap_importer_sees_depth_image_with_pinhole(tmp_path: Path) -> None:

@@ -62,6 +62,21 @@ def test_steps_report_and_go_on(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert "not available in this build" in err and "open it with" in err
 
 
+def test_demo_records_every_study_by_default(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Each study's recording lands in its folder without --rrd; the report prints the command."""
+    def study(ctx: DemoContext) -> tuple[Path, str]:
+        folder = ctx.out / "study"
+        folder.mkdir()
+        target = ctx.target(folder, "study")
+        assert target.rrd is not None
+        target.rrd.write_bytes(b"")  # what the study's recording would be
+        return folder, "recorded"
+
+    run_demo(tmp_path / "d", steps=[Step("study", "a study", (), study)])
+    err = " ".join(capsys.readouterr().err.split())
+    assert f"depthstation view {tmp_path / 'd' / 'study' / 'study.rrd'}" in err
+
+
 def test_unknown_skip_is_input_error(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="unknown step"):
         run_demo(tmp_path / "d", steps=[Step("ok", "works", (), _ok)], skip={"nope"})

@@ -10,11 +10,13 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from depthstation.core.capture.export import TARGETS, export_recordings
 from depthstation.core.capture.importer import import_recordings
 from depthstation.core.capture.mcap_reader import McapRecording
 from depthstation.core.capture.mcap_writer import write_mcap
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs, open_recording
+from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, TopicChoice, topic_choice
 from depthstation.core.errors import InputError
 from depthstation.core.progress import progress
 from depthstation.core.results import _jsonable, result_folder
@@ -29,29 +31,59 @@ def import_cmd(
     ],
     out: Annotated[Path, typer.Option("--out", "-o", help="new session directory")],
     compression: Annotated[str, typer.Option(help="none (default, fastest to read), lz4 or zstd")] = "none",
+    depth_topic: DepthTopic = None,
+    color_topic: ColorTopic = None,
+    infrared_topic: InfraredTopic = None,
     force: Annotated[bool, typer.Option("--force", help="Replace a non-empty --out once the import "
                                                          "is complete.")] = False,
 ) -> None:
-    """Import recordings into a capture session (one MCAP per standpoint)."""
+    """Import recordings into a capture session (one MCAP per standpoint): our MCAP, RealSense
+    .bag/.db3, ROS bags (rosbag2 folders or files, ROS 1 .bag), PNG folders."""
 
-    with progress() as bar:
-        tasks: dict[str, Any] = {}
-
-        def on_frame(rec: Recording, i: int) -> None:
-            if rec.name not in tasks:
-                tasks[rec.name] = bar.add_task(rec.name, total=rec.frame_count, status="")
-            bar.update(tasks[rec.name], completed=i + 1)
-
-        with result_folder(out, force=force) as tmp:
-            session = import_recordings(sources, tmp, compression=compression, on_frame=on_frame)
+    with progress() as bar, result_folder(out, force=force) as tmp:
+        session = import_recordings(sources, tmp, compression=compression, on_frame=_frame_bar(bar),
+                                    topics=topic_choice(depth_topic, color_topic, infrared_topic))
     frames = sum(int(e.get("frames", 0)) for e in session.standpoints)
     typer.echo(f"{out}: {len(session.standpoints)} standpoints, {frames} frames")
 
 
-def _describe(path: Path) -> list[dict[str, Any]]:
+def _frame_bar(bar: Any) -> Any:
+    """A per-recording progress task, advanced by `on_frame(recording, index)`."""
+    tasks: dict[str, Any] = {}
+
+    def on_frame(rec: Recording, i: int) -> None:
+        if rec.name not in tasks:
+            tasks[rec.name] = bar.add_task(rec.name, total=rec.frame_count, status="")
+        bar.update(tasks[rec.name], completed=i + 1)
+
+    return on_frame
+
+
+@app.command("export")
+def export_cmd(
+    sources: Annotated[list[Path], typer.Argument(help="a session, recordings or dataset roots")],
+    to: Annotated[str, typer.Option("--to", help=f"target format: {' | '.join(TARGETS)}")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="new (or empty) folder")],
+    depth_topic: DepthTopic = None,
+    color_topic: ColorTopic = None,
+    infrared_topic: InfraredTopic = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace a non-empty --out once the export "
+                                                         "is complete.")] = False,
+) -> None:
+    """Export captures for other tools: a realsense-ros rosbag2 (ros2 bag play, Foxglove), a TUM
+    RGB-D folder (ORB-SLAM3, RTAB-Map: make the scan study's poses) or a RealSense .db3 (Viewer).
+    Written under a temporary name and renamed when complete, like every result folder."""
+    recordings = open_inputs(list(sources), topic_choice(depth_topic, color_topic, infrared_topic))
+    with progress() as bar, result_folder(out, force=force) as tmp:
+        done = export_recordings(recordings, to, tmp, on_frame=_frame_bar(bar))
+    for path, n in done:
+        typer.echo(f"{out / path.relative_to(tmp)}: {n} frames")
+
+
+def _describe(path: Path, topics: TopicChoice | None = None) -> list[dict[str, Any]]:
 
     out = []
-    for rec in open_inputs([path]):
+    for rec in open_inputs([path], topics):
         d = rec.summary()
         first = last = None
         n = 0
@@ -79,10 +111,13 @@ def _fmt_intr(d: dict[str, Any] | None) -> str:
 def info_cmd(
     path: Annotated[Path, typer.Argument(help="a recording, session directory or PNG dataset")],
     as_json: Annotated[bool, typer.Option("--json", help="print JSON instead of a table")] = False,
+    depth_topic: DepthTopic = None,
+    color_topic: ColorTopic = None,
+    infrared_topic: InfraredTopic = None,
 ) -> None:
     """Streams, resolutions, frame counts, intrinsics, extrinsics, device and duration."""
 
-    items = _describe(path)
+    items = _describe(path, topic_choice(depth_topic, color_topic, infrared_topic))
     if as_json:
         typer.echo(json.dumps(_jsonable(items), indent=2))
         return
@@ -96,6 +131,10 @@ def info_cmd(
         counts = d["stream_counts"]
         t.add_row("frames", str(d["frame_count"] if d["frame_count"] is not None else d["frames_read"]))
         t.add_row("streams", ", ".join(f"{k}: {v}" for k, v in counts.items()) or "-")
+        source = d["metadata"].get("source") or {}
+        if source.get("kind") == "ros":
+            t.add_row("topics", ", ".join(f"{k}: {v}" for k, v in source.get("topics", {}).items()))
+            t.add_row("extrinsics from", str(source.get("extrinsics")))
         t.add_row("duration", "-" if d["duration_s"] is None else f"{d['duration_s']:.3f} s")
         t.add_row("fps", str(info.get("fps")))
         t.add_row("depth", _fmt_intr(info["depth_intrinsics"]))

@@ -42,6 +42,11 @@ def _register() -> None:
 _register()
 
 
+# typer >= 0.22 carries its own copy of click: its exceptions are not click's
+_USAGE: tuple[type[Exception], ...] = tuple({click.ClickException, typer.exceptions.TyperException})
+_EXIT: tuple[type[BaseException], ...] = tuple({click.exceptions.Exit, typer.Exit})
+_ABORT: tuple[type[BaseException], ...] = tuple({click.exceptions.Abort, typer.Abort})
+
 STRICT_FLAG = "--strict"
 STRICT_EXIT = 3
 
@@ -87,13 +92,30 @@ def run_cli(argv: list[str]) -> int:
 def _run(args: list[str]) -> int:
     """Run the command; its exit code (errors said in one line)."""
     try:
-        rc = app(args=args, standalone_mode=False)
+        rc = app(args=args, standalone_mode=False, prog_name="depthstation")
     except DepthstationError as exc:
         typer.echo(f"depthstation: error: {exc}", err=True)
         return exc.exit_code
     except KeyboardInterrupt:
         typer.echo("depthstation: interrupted", err=True)
         return 130
+    except _EXIT as exc:
+        return int(getattr(exc, "exit_code", 0) or 0)
+    except _ABORT:
+        typer.echo("depthstation: aborted", err=True)
+        return 1
+    except _USAGE as exc:  # unknown command, missing or invalid option: usage line, exit 2
+        if getattr(exc, "ctx", True) is None:  # raised before a command context existed
+            words = [w for w in args[:2] if not w.startswith("-")]
+            cmd = " ".join(["depthstation", *words])
+            typer.echo(f"Usage: {cmd} [OPTIONS] ...\nTry '{cmd} --help' for help.\n", err=True)
+        show = getattr(exc, "show", None)
+        if callable(show):
+            show()
+        else:
+            typer.echo(f"depthstation: error: {exc}", err=True)
+        code = getattr(exc, "exit_code", 2)
+        return code if isinstance(code, int) and code else 2
     except OSError as exc:
         err = disk_error(exc, Path(exc.filename or "."))
         if isinstance(err, DepthstationError):
@@ -101,15 +123,7 @@ def _run(args: list[str]) -> int:
             return 1
         typer.echo(f"depthstation: error: {exc.filename or ''}: {exc.strerror or exc}", err=True)
         return 1
-    except Exception as exc:  # click usage errors and anything unexpected
-        if isinstance(exc, click.exceptions.Exit):
-            return int(exc.exit_code)
-        if isinstance(exc, click.ClickException):
-            exc.show()
-            return 2
-        if isinstance(exc, click.exceptions.Abort):
-            typer.echo("depthstation: aborted", err=True)
-            return 1
+    except Exception as exc:  # anything unexpected
         typer.echo(f"depthstation: internal error: {type(exc).__name__}: {exc}", err=True)
         return 1
     if isinstance(rc, int) and rc:

@@ -20,7 +20,8 @@ from depthstation.core.grid import Grid
 STANDPOINT_COLUMNS = (
     "frames", "fill_rate", "reference_distance_std_m", "noise_m", "noise_std_m", "accuracy_m",
     "accuracy_std_m", "accuracy_rms_m", "noise_black_m", "noise_white_m", "accuracy_black_m",
-    "accuracy_white_m",
+    "accuracy_white_m", "dqt_fill_rate_pct", "dqt_plane_fit_rms_mm", "dqt_plane_fit_rms_pct",
+    "dqt_subpixel_rms_px", "dqt_z_accuracy_pct", "dqt_temporal_noise_pct", "dqt_rms_ratio",
 )
 # Scales that make "nearest standpoint" meaningful across distance and inclination.
 DISTANCE_SCALE_M = 0.10

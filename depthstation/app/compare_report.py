@@ -51,6 +51,13 @@ def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
             w.writerow({k: ("" if isinstance(v, float) and not np.isfinite(v) else v) for k, v in r.items()})
 
 
+def _num(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
 def _standpoint_figure(path: Path, cmp: StandpointComparison, label: str) -> None:
     """Per standpoint, difference of noise and accuracy (mm) placed over distance x inclination (the
     axes of the evaluation figures)."""
@@ -62,11 +69,13 @@ def _standpoint_figure(path: Path, cmp: StandpointComparison, label: str) -> Non
     ref = cmp.labels[0]
     dist = np.array([r["distance_m"] for r in cmp.rows], dtype=float)
     incl = np.array([r["inclination_deg"] for r in cmp.rows], dtype=float)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), constrained_layout=True)
-    for ax, col, title in zip(axes, ("noise_m", "accuracy_m"),
-                                  ("noise", "accuracy (mean signed)"), strict=True):
+    panels = [("noise_m", "noise", 1e3, "mm"), ("accuracy_m", "accuracy (mean signed)", 1e3, "mm")]
+    if any(np.isfinite(_num(r.get(f"dqt_plane_fit_rms_pct[{label} - {ref}]"))) for r in cmp.rows):
+        panels.append(("dqt_plane_fit_rms_pct", "DQT plane-fit RMS", 1.0, "% of distance"))
+    fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4.5), constrained_layout=True)
+    for ax, (col, title, scale, unit) in zip(axes, panels, strict=True):
         key = f"{col}[{label} - {ref}]"
-        diff = np.array([r.get(key, np.nan) for r in cmp.rows], dtype=float) * 1e3
+        diff = np.array([_num(r.get(key)) for r in cmp.rows], dtype=float) * scale
         ok = np.isfinite(diff)
         lo, hi = robust_limits(diff, 100.0, symmetric=True)
         sc = ax.scatter(dist[ok], incl[ok], c=diff[ok], cmap=colormap(SIGNED), vmin=lo, vmax=hi, s=160,
@@ -74,7 +83,7 @@ def _standpoint_figure(path: Path, cmp: StandpointComparison, label: str) -> Non
         if (~ok).any():
             ax.scatter(dist[~ok], incl[~ok], marker="x", c="grey", label="unmatched")
             ax.legend(loc="best")
-        fig.colorbar(sc, ax=ax, label="difference [mm]")
+        fig.colorbar(sc, ax=ax, label=f"difference [{unit}]")
         ax.set_xlabel("distance [m]")
         ax.set_ylabel("inclination [deg]")
         ax.set_title(f"{title} difference per standpoint")
@@ -150,6 +159,21 @@ def _print_standpoints(cmp: StandpointComparison) -> None:
         for col in ("noise_m", "accuracy_m"):
             cells += [mm(r.get(f"{col}[{lab}]", np.nan)) for lab in cmp.labels]
             cells += [mm(r.get(f"{col}[{lab} - {ref}]", np.nan)) for lab in cmp.labels[1:]]
+        table.add_row(*cells)
+    stderr_console.print(table)
+    dqt = [("dqt_plane_fit_rms_pct", "RMS %"), ("dqt_subpixel_rms_px", "subpx px"),
+           ("dqt_z_accuracy_pct", "Z acc %"), ("dqt_fill_rate_pct", "fill %")]
+    if not any(np.isfinite(_num(r.get(f"{c}[{ref}]"))) for r in cmp.rows for c, _ in dqt):
+        return
+    table = Table(title="Intel Depth Quality Tool metrics side by side (board mask)")
+    table.add_column("standpoint")
+    for _, head in dqt:
+        for lab in cmp.labels:
+            table.add_column(f"{head} {lab}", justify="right")
+    for r in cmp.rows:
+        cells = [str(r["standpoint"])]
+        for c, _ in dqt:
+            cells += [f"{_num(r.get(f'{c}[{lab}]')):.3g}" for lab in cmp.labels]
         table.add_row(*cells)
     stderr_console.print(table)
 

@@ -32,14 +32,14 @@ class DemoContext:
     """What the steps share: where to write, how to record, what earlier steps produced."""
 
     out: Path
-    rrd: bool = False
+    rrd: bool = True
     spawn: bool = False
     serve: bool = False
     results: dict[str, Path] = field(default_factory=dict)
     facts: dict[str, Any] = field(default_factory=dict)
 
     def target(self, folder: Path, name: str) -> RerunTarget:
-        """A recording per study: `<folder>/<name>.rrd` with --rrd, plus the viewer when asked."""
+        """A recording per study: `<folder>/<name>.rrd` (unless --no-rrd), plus the viewer when asked."""
         return RerunTarget(folder / f"{name}.rrd" if self.rrd else None, self.spawn, self.serve)
 
 
@@ -145,7 +145,10 @@ def print_report(ctx: DemoContext, outcomes: dict[str, StepOutcome], steps: list
         o = outcomes[step.name]
         res = str(o.result) if o.result else (o.summary if o.status != "done" else "")
         how = ""
-        if o.result is not None:
+        own = sorted(o.result.glob("*.rrd")) if o.result is not None and o.result.is_dir() else []
+        if own:
+            how = f"depthstation view {own[0]}"
+        elif o.result is not None:
             how = (f"depthstation view {o.result}" if (o.result / "result.json").is_file()
                    else f"depthstation capture info {o.result}" if (o.result / "session.json").is_file()
                    else str(o.result))
@@ -155,12 +158,12 @@ def print_report(ctx: DemoContext, outcomes: dict[str, StepOutcome], steps: list
     stderr_console.print(table)
     rrds = sorted(ctx.out.rglob("*.rrd"))
     if rrds:
-        stderr_console.print("recordings: " + ", ".join(str(p) for p in rrds)
-                             + "\n  open one with `depthstation view FILE.rrd` "
-                               "(or `--serve` for a web viewer)")
+        lines = [f"  depthstation view {p}" for p in rrds]
+        stderr_console.print("recordings (heatmaps, blueprints, descriptions), one per study; open one with\n"
+                             + "\n".join(lines) + "\n  (add --serve for a web viewer)", highlight=False)
 
 
-def run_demo(out: Path, *, rrd: bool = False, spawn: bool = False, serve: bool = False,
+def run_demo(out: Path, *, rrd: bool = True, spawn: bool = False, serve: bool = False,
              skip: set[str] | None = None, steps: list[Step]) -> dict[str, StepOutcome]:
     """Run `steps` (the demo's are `demo_steps.DEMO_STEPS`) into a fresh folder; returns each step's
     outcome (also in `demo.json`)."""

@@ -22,7 +22,9 @@ FORCE_HELP = "Replace what exists (--out, --rrd) once the new result is complete
 def demo(
     out: Path = typer.Option(Path("depthstation-demo"), "--out",
                              help="Folder for everything the demo makes."),
-    rrd: bool = typer.Option(False, "--rrd", help="Also write an .rrd recording per study into its folder."),
+    rrd: bool = typer.Option(True, "--rrd/--no-rrd",
+                             help="Write an .rrd recording per study into its folder (default) and print "
+                                  "the command that opens each."),
     spawn: bool = typer.Option(False, "--spawn", help=SPAWN_HELP),
     serve: bool = typer.Option(False, "--serve", help=SERVE_HELP),
     skip: list[str] = typer.Option([], "--skip", help="Leave out a step by name (session, checkerboard, "

@@ -15,11 +15,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tomllib
 from numpy.typing import NDArray
 
 from depthstation.core.errors import InputError
 from depthstation.core.text_files import read_text
+from depthstation.core.tomlcompat import tomllib
 
 BOARD_TYPES = ("checkerboard", "charuco")
 REQUIRED_MEANING = {

@@ -9,6 +9,7 @@ measure reads from the glass, so a tare ground truth is the glass distance plus 
 
 from __future__ import annotations
 
+import importlib
 import re
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -56,6 +57,19 @@ class CameraUnsuitable(CameraError):
 
 class CalibrationUnavailable(CameraError):
     """The device cannot enter Intel's self-calibration mode (depth 256x144 at 90 fps), e.g. on USB 2."""
+
+
+REALSENSE_HINT = ("pyrealsense2 is not installed: pip install -e '.[camera]' (wheels for Linux x86_64 and "
+                  "Windows; on macOS or a Jetson build librealsense with its Python bindings)")
+
+
+def realsense() -> Any:
+    """pyrealsense2 (an optional extra: offline evaluation, simulation and explain run without
+    it), imported on first use; a one-line CameraError saying how to get it when it is missing."""
+    try:
+        return importlib.import_module("pyrealsense2")
+    except ImportError as exc:
+        raise CameraError(REALSENSE_HINT) from exc
 
 
 @dataclass(frozen=True)

@@ -8,11 +8,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import tomllib
-
 from depthstation.core.board import Board
 from depthstation.core.errors import ProtocolError
 from depthstation.core.text_files import read_text
+from depthstation.core.tomlcompat import tomllib
 
 PROTOCOL_DIR = Path(__file__).resolve().parent.parent / "protocols"
 

@@ -15,6 +15,7 @@ from pathlib import Path
 from depthstation.core.board import Board
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_recording
+from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner, ProgressFn
 from depthstation.evaluate.checkerboard.frame import FrameResult
@@ -33,6 +34,8 @@ class StandpointOptions:
     sample_stride: int = 1
     refine: bool = True
     margin_m: float = 0.01
+    topics: TopicChoice | None = None  # which topics of a ROS recording (None: found automatically)
+    roi: float | None = None           # the Depth Quality Tool's centred ROI, fraction of each side
 
 
 @dataclass(frozen=True)
@@ -49,12 +52,12 @@ def evaluate(rec: Recording, board: Board, options: StandpointOptions,
     o = options
     return evaluate_recording(rec, board, frames=o.frames, reference=o.reference,
                               collect_samples=o.collect_samples, sample_stride=o.sample_stride,
-                              refine=o.refine, margin_m=o.margin_m, on_frame=on_frame)
+                              refine=o.refine, margin_m=o.margin_m, on_frame=on_frame, roi=o.roi)
 
 
 def checkerboard_chunk(chunk: CheckerboardChunk) -> StandpointResult:
     """StandpointResult of one standpoint, evaluated where it is read."""
-    return evaluate(open_recording(Path(chunk.path)), chunk.board, chunk.options)
+    return evaluate(open_recording(Path(chunk.path), topics=chunk.options.topics), chunk.board, chunk.options)
 
 
 StandpointCallback = Callable[[int, StandpointResult], None]

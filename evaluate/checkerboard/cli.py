@@ -6,6 +6,7 @@ from pathlib import Path
 
 import typer
 
+from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, topic_choice
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.evaluate.checkerboard.run import run_checkerboard
 
@@ -27,11 +28,19 @@ def checkerboard(
                                 help="Local worker processes (standpoints in parallel)."),
     cluster: str | None = typer.Option(None, "--cluster",
                                        help="Address of a Dask distributed scheduler (tcp://host:8786)."),
+    roi: float | None = typer.Option(None, "--roi", help="Also Intel's Depth Quality Tool metrics on a "
+                                                        "centred ROI of this percentage of each side "
+                                                        "(DQT: 40), besides the board mask."),
+    depth_topic: DepthTopic = None,
+    color_topic: ColorTopic = None,
+    infrared_topic: InfraredTopic = None,
     force: bool = typer.Option(False, "--force", help="Replace a non-empty --out and an existing --rrd "
                                                       "(only once the new result is complete)."),
 ) -> None:
-    """The checkerboard study (paper Section 3.1): noise and accuracy per standpoint."""
+    """The checkerboard study (paper Section 3.1): noise and accuracy per standpoint, with Intel's
+    Depth Quality Tool metrics (dqt_* columns) beside them."""
     rows = run_checkerboard(inputs, board, out, frames=frames, reference=reference,
                             target=RerunTarget(rrd, spawn, serve, force), workers=workers, cluster=cluster,
-                            force=force)
+                            force=force, topics=topic_choice(depth_topic, color_topic, infrared_topic),
+                            roi_pct=roi)
     typer.echo(f"{len(rows)} standpoints -> {out / 'standpoints.csv'}")

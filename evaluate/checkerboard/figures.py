@@ -193,6 +193,71 @@ def fig_colours(path: Path, results: list[StandpointResult], caption: str = "") 
     return path
 
 
+def fig_dqt(path: Path, results: list[StandpointResult], caption: str = "") -> Path | None:
+    """Intel's Depth Quality Tool metrics per standpoint over distance, with Intel's expected RMS."""
+    rs = [r for r in _usable(results) if np.isfinite(r.figures.get("dqt_distance_mm", np.nan))]
+    if not rs:
+        return None
+    plt = _plt()
+    d = np.array([r.figures["distance_m"] for r in rs])
+    inc = np.array([r.figures["inclination_deg"] for r in rs])
+
+    def col(key: str) -> np.ndarray:
+        return np.array([r.figures.get(key, np.nan) for r in rs], dtype=np.float64)
+
+    roi = np.isfinite(col("dqt_roi_distance_mm")).any()
+    fig, axes = plt.subplots(2, 2, figsize=(13, 9))
+    kw = {"c": inc, "cmap": "viridis", "vmin": 0, "vmax": 90, "edgecolors": "k", "s": 50}
+    ax = axes[0, 0]
+    sc = ax.scatter(d, col("dqt_plane_fit_rms_mm"), label="plane-fit RMS, board mask", **kw)
+    if roi:
+        ax.scatter(d, col("dqt_roi_plane_fit_rms_mm"), marker="s", label="plane-fit RMS, centred ROI", **kw)
+    expected = col("dqt_expected_rms_mm")
+    per_z2 = expected / (col("dqt_distance_mm") / 1000.0) ** 2
+    k = float(np.nanmedian(per_z2)) if np.isfinite(per_z2).any() else np.nan
+    if np.isfinite(k):
+        zz = np.linspace(0.0, max(float(d.max()) * 1.1, 0.5), 100)
+        ax.plot(zz, k * zz**2, "k--", label="Intel expected: Z² · 0.08 px / (f B)")
+    ax.set_xlabel("distance (m)")
+    ax.set_ylabel("plane-fit RMS (mm)")
+    ax.set_title("(a) plane-fit RMS against Intel's expected RMS")
+    ax.legend(fontsize=7)
+    fig.colorbar(sc, ax=ax, label="inclination (deg)")
+    ax = axes[0, 1]
+    ax.scatter(d, col("dqt_subpixel_rms_px"), label="subpixel RMS (along the rays)", **kw)
+    ax.scatter(d, col("dqt_subpixel_rms_tool_px"), marker="x", c="0.4", label="as the DQT's code computes it")
+    ax.axhline(0.08, color="k", ls="--", lw=1, label="Intel's 0.08 px")
+    ax.set_xlabel("distance (m)")
+    ax.set_ylabel("subpixel RMS (px)")
+    ax.set_title("(b) subpixel RMS")
+    ax.legend(fontsize=7)
+    ax = axes[1, 0]
+    ax.scatter(d, col("dqt_z_accuracy_pct"), label="board mask", **kw)
+    if roi:
+        ax.scatter(d, col("dqt_roi_z_accuracy_pct"), marker="s", label="centred ROI", **kw)
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_xlabel("distance (m)")
+    ax.set_ylabel("Z accuracy (% of ground truth), + = too far")
+    ax.set_title("(c) Z accuracy (median, the DQT's sign)")
+    ax.legend(fontsize=7)
+    ax = axes[1, 1]
+    ax.scatter(d, col("dqt_fill_rate_pct"), label="fill rate (%)", **kw)
+    ax2 = ax.twinx()
+    ax2.scatter(d, col("dqt_temporal_noise_pct"), marker="^", c="tab:red", label="temporal noise (%)")
+    ax.set_xlabel("distance (m)")
+    ax.set_ylabel("fill rate (%)")
+    ax2.set_ylabel("temporal noise (% of depth)", color="tab:red")
+    ax.set_title("(d) fill rate and temporal noise, board mask")
+    for a in axes.ravel():
+        a.grid(alpha=0.3)
+    fig.suptitle("Intel Depth Quality Tool metrics per standpoint (dqt_* columns of standpoints.csv)"
+                 + (f"\n{caption}" if caption else ""))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def write_figures(out: Path, results: list[StandpointResult], board: Board,
                   caption: str = "") -> list[Path]:
     """All figures of the study; those without data (no usable standpoint) are left out.
@@ -210,4 +275,7 @@ def write_figures(out: Path, results: list[StandpointResult], board: Board,
     paths.append(fig_over_grid(out / "fig6_noise.png", results, "noise", "noise", 6, caption))
     paths.append(fig_over_grid(out / "fig7_accuracy.png", results, "accuracy", "accuracy", 7, caption))
     paths.append(fig_colours(out / "fig_black_white.png", results, caption))
+    dqt = fig_dqt(out / "fig_dqt.png", results, caption)
+    if dqt is not None:
+        paths.append(dqt)
     return paths

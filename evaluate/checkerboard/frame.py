@@ -12,10 +12,11 @@ from depthstation.core.board_pose import PnPPose, solve_board_pose
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.frames import FrameSet
 from depthstation.evaluate.checkerboard.detection import BoardDetector, Detection
+from depthstation.evaluate.checkerboard.dqt import DqtFrame, TemporalStack, centred_roi, frame_metrics
 from depthstation.evaluate.checkerboard.errors import BoardMismatchError
 from depthstation.evaluate.checkerboard.kernels import board_moments
 from depthstation.evaluate.checkerboard.mask import BoardMask, board_mask, board_to_depth
-from depthstation.evaluate.checkerboard.metrics import fit_plane_moments
+from depthstation.evaluate.checkerboard.metrics import fit_plane_moments, shift_moments
 from depthstation.evaluate.checkerboard.pose import flip_board, square_contrast
 
 MIN_CONTRAST = 5.0  # grey levels white minus black below which the colours count as swapped
@@ -51,6 +52,8 @@ class FrameResult:
     temperature_c: float = float("nan")
     corner_ids: NDArray[np.int64] | None = None      # the board corners seen (Board.corner_points order)
     corners_px: NDArray[np.float32] | None = None    # their colour-image positions, N x 2
+    dqt: DqtFrame | None = None        # Depth Quality Tool figures on the board mask
+    dqt_roi: DqtFrame | None = None    # ... on the centred ROI (`roi`), when asked
 
     @property
     def ok(self) -> bool:
@@ -72,7 +75,7 @@ class FrameEvaluator:
 
     def __init__(self, info: StreamInfo, board: Board, *, refine: bool = True,
                  margin_m: float = 0.01, max_reprojection_px: float = 3.0,
-                 min_pixels: int = 50, source: str | None = None) -> None:
+                 min_pixels: int = 50, source: str | None = None, roi: float | None = None) -> None:
         if info.color_intrinsics is None and not info.depth_aligned_to_color:
             self.color_intr = info.depth_intrinsics
         else:
@@ -92,6 +95,15 @@ class FrameEvaluator:
             board.squares_x % 2 == 0 or board.squares_y % 2 == 0)
         self._colours_checked = False
         self._first_corners: dict[int, NDArray[np.float64]] | None = None
+        # Depth Quality Tool metrics: disparity lives in the stereo imager's pixels
+        self.focal_px = info.stereo.fx
+        self.temporal = TemporalStack()
+        self.temporal_roi = TemporalStack()
+        self.roi = roi
+        di = info.depth_intrinsics
+        self.roi_box = centred_roi(di.width, di.height, roi) if roi else None
+        self.roi_ray = np.array([(di.width / 2 - di.ppx) / di.fx, (di.height / 2 - di.ppy) / di.fy, 1.0])
+        self._roi_rays: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]] | None = None
 
     def _corner_shift(self, det: Detection) -> float:
         """Median image motion of the corners since the first posed frame (camera still or not)."""
@@ -191,6 +203,7 @@ class FrameEvaluator:
         res.noise_m = fit_plane_moments(res.moments["all"])[2]
         res.noise_black_m = fit_plane_moments(res.moments["black"])[2]
         res.noise_white_m = fit_plane_moments(res.moments["white"])[2]
+        self._dqt(res, fs.depth, mask)
         pixels = None
         if keep_pixels:
             vi, ui = np.nonzero(mask.inside & (raw > 0))
@@ -199,3 +212,32 @@ class FrameEvaluator:
             pixels = FramePixels((ui + mask.u0).astype(np.int32), (vi + mask.v0).astype(np.int32),
                                  z.astype(np.float32), colour)
         return res, pixels
+
+    def _dqt(self, res: FrameResult, depth: NDArray[np.uint16], mask: BoardMask) -> None:
+        """The Depth Quality Tool's figures on the board mask (pivot: the board centre's ray) and
+        on the centred ROI (pivot: the image centre's, as the DQT)."""
+        rows, cols = mask.box
+        units, baseline = self.info.depth_units_m, self.info.baseline_m
+        about_camera = shift_moments(res.moments["all"], res.origin)  # the study's pass, reused
+        res.dqt = frame_metrics(depth[rows, cols], mask.inside, mask.ray_x, mask.ray_y, units,
+                                res.board_pixels, self.focal_px, baseline, res.origin / res.origin[2],
+                                about_camera)
+        if self.temporal.rows is None:
+            r, c = np.nonzero(mask.inside)
+            self.temporal.start(r + mask.v0, c + mask.u0)
+        self.temporal.add(depth)
+        if self.roi_box is None:
+            return
+        x0, y0, x1, y1 = self.roi_box
+        if self._roi_rays is None:
+            di = self.info.depth_intrinsics
+            self._roi_rays = (((np.arange(x0, x1) - di.ppx) / di.fx).astype(np.float64),
+                              ((np.arange(y0, y1) - di.ppy) / di.fy).astype(np.float64),
+                              np.ones((y1 - y0, x1 - x0), dtype=bool))
+        rx, ry, every = self._roi_rays
+        res.dqt_roi = frame_metrics(depth[y0:y1, x0:x1], every, rx, ry, units,
+                                    (x1 - x0) * (y1 - y0), self.focal_px, baseline, self.roi_ray)
+        if self.temporal_roi.rows is None:
+            r, c = np.mgrid[y0:y1, x0:x1]
+            self.temporal_roi.start(r.ravel(), c.ravel())
+        self.temporal_roi.add(depth)

@@ -12,6 +12,7 @@ import numpy as np
 
 from depthstation.core.board import Board
 from depthstation.core.results import software_versions, write_json, write_result_info
+from depthstation.evaluate.checkerboard.dqt import DQT_COLUMNS
 from depthstation.evaluate.checkerboard.figures import write_figures
 from depthstation.evaluate.checkerboard.frame import FrameResult
 from depthstation.evaluate.checkerboard.study import (
@@ -31,7 +32,7 @@ COLUMNS = ("standpoint", "frames", "frames_read", "distance_m", "inclination_deg
            "corner_shift_px", "pixels_per_frame", "corner_noise_px", "inclination_std_deg",
            "inclination_frame_std_deg", "reference_plane",
            "distance_m_u95", "inclination_deg_u95", "noise_m_u95", "accuracy_m_u95",
-           "corner_random_px", "corner_static_px")
+           "corner_random_px", "corner_static_px", *DQT_COLUMNS)
 FRAME_COLUMNS = ("standpoint", "index", "timestamp_ns", "status", "corners", "reprojection_px",
                  "corner_shift_px", "reference_distance_m", "board_pixels", "valid_pixels",
                  "fill_rate", "noise_m", "noise_black_m", "noise_white_m", "accuracy_m",

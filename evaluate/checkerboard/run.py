@@ -16,6 +16,7 @@ import numpy as np
 from depthstation.core.board import Board, load_board
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs
+from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
@@ -30,6 +31,7 @@ from depthstation.evaluate.checkerboard.chunks import (
     StandpointOptions,
     run_standpoints,
 )
+from depthstation.evaluate.checkerboard.dqt import EXPECTED_SUBPIXEL_PX
 from depthstation.evaluate.checkerboard.frame import FrameResult
 from depthstation.evaluate.checkerboard.report import standpoint_row, write_study
 from depthstation.evaluate.checkerboard.study import DEFAULT_FRAMES, StandpointResult
@@ -54,8 +56,14 @@ class CheckerboardJob:
     @property
     def parameters(self) -> dict[str, Any]:
         o = self.options
-        return {"board": self.board_source, "frames": o.frames, "reference": o.reference,
-                "margin_m": o.margin_m, "pose": POSE_METHOD}
+        params: dict[str, Any] = {"board": self.board_source, "frames": o.frames, "reference": o.reference,
+                                  "margin_m": o.margin_m, "pose": POSE_METHOD}
+        if o.topics is not None:
+            params["topics"] = o.topics.to_dict()
+        if o.roi is not None:
+            params["roi_pct"] = 100.0 * o.roi
+        params["dqt_expected_subpixel_px"] = EXPECTED_SUBPIXEL_PX
+        return params
 
     def caption(self, results: list[StandpointResult]) -> str:
         """What every figure title says of the data: stream resolution and frames used."""
@@ -81,10 +89,12 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
         raise InputError(None, f"--reference must be auto, average or frame, not '{opt.reference}'")
     if opt.frames is not None and opt.frames < 1:
         raise InputError(None, f"--frames must be at least 1, not {opt.frames}")
+    if opt.roi is not None and not 0.0 < opt.roi <= 1.0:
+        raise InputError(None, f"--roi must be a percentage in (0, 100], not {100 * opt.roi:g}")
     brd = board if isinstance(board, Board) else load_board(board)
     source = f"{brd.type} {brd.squares_x}x{brd.squares_y}, {brd.square_length_m} m squares (given)" \
         if isinstance(board, Board) else str(board)
-    recs = open_inputs(inputs)
+    recs = open_inputs(inputs, opt.topics)
     if not recs:
         raise InputError(inputs[0] if inputs else None, "no standpoints found")
     return CheckerboardJob(list(inputs), source, brd, recs, opt)
@@ -134,7 +144,8 @@ def finish_checkerboard(job: CheckerboardJob, results: list[StandpointResult],
 def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames: int | None = None,
                      reference: str = "auto", target: RerunTarget | None = None,
                      collect_samples: bool = False, workers: int = 1,
-                     cluster: str | None = None, force: bool = False) -> list[dict[str, Any]]:
+                     cluster: str | None = None, force: bool = False, topics: TopicChoice | None = None,
+                     roi_pct: float | None = None) -> list[dict[str, Any]]:
     """The checkerboard study (paper Section 3.1) of every standpoint in `inputs` into `out`
     (written whole or not at all; a non-empty `out` only with `force`).
 
@@ -143,7 +154,9 @@ def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames:
     """
     job = prepare_checkerboard(inputs, board_path, replace(StandpointOptions(), frames=frames,
                                                            reference=reference,
-                                                           collect_samples=collect_samples))
+                                                           collect_samples=collect_samples,
+                                                           topics=topics,
+                                                           roi=None if roi_pct is None else roi_pct / 100.0))
     with result_folder(out, force=force) as tmp:
         return _run(job, tmp, (target or RerunTarget()).within(out, tmp), workers, cluster)
 

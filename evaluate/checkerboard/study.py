@@ -17,6 +17,7 @@ from depthstation.core.errors import EvaluationError
 from depthstation.core.frames import FrameSet
 from depthstation.core.geometry import average_poses, inclination_deg
 from depthstation.core.run_warnings import RunWarning
+from depthstation.evaluate.checkerboard.dqt import DQT_COLUMNS, standpoint_figures
 from depthstation.evaluate.checkerboard.frame import FrameEvaluator, FramePixels, FrameResult
 from depthstation.evaluate.checkerboard.mask import BLACK, WHITE
 from depthstation.evaluate.checkerboard.metrics import plane_distance_stats
@@ -214,9 +215,10 @@ def evaluate_frames(name: str, frames: Iterable[FrameSet], info: StreamInfo, boa
                     frames_requested: int | None = None, collect_samples: bool = False,
                     sample_stride: int = 1, refine: bool = True, margin_m: float = 0.01,
                     path: str = "", on_frame: FrameCallback | None = None,
-                    reference: str = "auto") -> StandpointResult:
-    """The study of one standpoint from any frame source (one pass over the frames)."""
-    ev = FrameEvaluator(info, board, refine=refine, margin_m=margin_m, source=path or name)
+                    reference: str = "auto", roi: float | None = None) -> StandpointResult:
+    """The study of one standpoint from any frame source (one pass over the frames); `roi`: the
+    Depth Quality Tool's centred ROI (fraction of each side) besides the board mask."""
+    ev = FrameEvaluator(info, board, refine=refine, margin_m=margin_m, source=path or name, roi=roi)
     results: list[FrameResult] = []
     kept: list[tuple[FrameResult, FramePixels]] = []
     example: tuple[FrameResult, FramePixels] | None = None
@@ -234,14 +236,17 @@ def evaluate_frames(name: str, frames: Iterable[FrameSet], info: StreamInfo, boa
                 kept.append((res, pixels))
         if on_frame is not None:
             on_frame(fs, res)
+    units = info.depth_units_m
     return aggregate(name, results, info, board, frames_requested=frames_requested, path=path,
-                     kept=kept if collect_samples else None, example=example, reference=reference)
+                     kept=kept if collect_samples else None, example=example, reference=reference,
+                     temporal_pct={"dqt_": ev.temporal.noise_pct(units),
+                                   "dqt_roi_": ev.temporal_roi.noise_pct(units)})
 
 
 def evaluate_recording(rec: Recording, board: Board, *, frames: int | None = None,
                        collect_samples: bool = False, sample_stride: int = 1, refine: bool = True,
                        margin_m: float = 0.01, on_frame: FrameCallback | None = None,
-                       reference: str = "auto") -> StandpointResult:
+                       reference: str = "auto", roi: float | None = None) -> StandpointResult:
     """Contract 3: the checkerboard study of one recording (its first `frames` frames, or up to
     DEFAULT_FRAMES when none were asked for: then a short recording is not warned of here).
 
@@ -251,7 +256,7 @@ def evaluate_recording(rec: Recording, board: Board, *, frames: int | None = Non
     result = evaluate_frames(rec.name, rec.frames(limit=frames or DEFAULT_FRAMES), rec.info, board,
                              frames_requested=frames, collect_samples=collect_samples,
                              sample_stride=sample_stride, refine=refine, margin_m=margin_m,
-                             path=str(rec.path), on_frame=on_frame, reference=reference)
+                             path=str(rec.path), on_frame=on_frame, reference=reference, roi=roi)
     truth = rec.metadata.get("truth") if isinstance(rec.metadata, dict) else None
     if isinstance(truth, dict):
         result.truth = truth
@@ -262,7 +267,8 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
               frames_requested: int | None, path: str = "",
               kept: list[tuple[FrameResult, FramePixels]] | None = None,
               example: tuple[FrameResult, FramePixels] | None = None, reference: str = "auto",
-              max_corner_shift_px: float = 2.0) -> StandpointResult:
+              max_corner_shift_px: float = 2.0,
+              temporal_pct: dict[str, float] | None = None) -> StandpointResult:
     """Standpoint figures from per-frame results: averaged pose, then accuracy against its plane.
 
     The paper's standpoints are still, so the averaged pose is the better reference (pose noise
@@ -344,6 +350,7 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
     f["corner_shift_px"] = shift
     f["pixels_per_frame"] = _mean_std([float(r.valid_pixels) for r in ok])[0]
     f.update(expanded_uncertainties(ok, board, info, out.camera_in_board, f, use_frame))
+    f.update(_dqt_figures(ok, info, pose, use_frame, temporal_pct or {}))
     out.figures = f
     if abs(f["accuracy_m"]) > BOARD_SCALE_TOLERANCE * f["distance_m"]:
         # the pose's distance scales with the board's printed size: a wrong square length moves the
@@ -360,6 +367,26 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
         out.example = _example(example, info, board, ex_pose)
     if kept is not None:
         out.samples = _samples(kept, info, pose, use_frame)
+    return out
+
+
+def _dqt_figures(ok: list[FrameResult], info: StreamInfo, pose: NDArray[np.float64], use_frame: bool,
+                 temporal_pct: dict[str, float]) -> dict[str, float]:
+    """The Depth Quality Tool's figures of the standpoint; the ground truth of each frame's Z
+    accuracy is the reference plane (the one accuracy uses) along that frame's pivot ray."""
+    out = {c: float("nan") for c in DQT_COLUMNS}
+    for prefix, attr in (("dqt_", "dqt"), ("dqt_roi_", "dqt_roi")):
+        frames = [(r, getattr(r, attr)) for r in ok if getattr(r, attr) is not None]
+        if not frames:
+            continue
+        gts = []
+        for r, d in frames:
+            ref = r.pose_depth if use_frame and r.pose_depth is not None else pose
+            n = ref[:3, 2]
+            denom = float(n @ np.asarray(d.pivot_ray))
+            gts.append(float(n @ ref[:3, 3]) / denom * 1000.0 if denom > 0 else float("nan"))
+        out.update(standpoint_figures([d for _, d in frames], gts, temporal_pct.get(prefix, float("nan")),
+                                      info.stereo.fx, info.baseline_m, prefix))
     return out
 
 

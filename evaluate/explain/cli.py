@@ -6,6 +6,7 @@ from pathlib import Path
 
 import typer
 
+from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, TopicChoice, topic_choice
 from depthstation.core.errors import InputError
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
@@ -47,6 +48,9 @@ def explain(
     no_resimulate: bool = typer.Option(False, "--no-resimulate", help="Skip the check with the new model."),
     workers: int = typer.Option(1, "--workers", help="Local worker processes for the real-side evaluation."),
     cluster: str | None = typer.Option(None, "--cluster", help="Dask scheduler address (tcp://host:8786)."),
+    depth_topic: DepthTopic = None,
+    color_topic: ColorTopic = None,
+    infrared_topic: InfraredTopic = None,
     force: bool = typer.Option(False, "--force", help="Replace a non-empty --out and an existing --rrd "
                                                       "(only once the new result is complete)."),
 ) -> None:
@@ -57,10 +61,11 @@ def explain(
             raise InputError(p, "not found")
     if out.exists() and any(out.iterdir()) and not force:
         raise InputError(out, "is not empty; explain never overwrites results (--force replaces it)")
+    topics = topic_choice(depth_topic, color_topic, infrared_topic)
     if scan:
         mode = ScanOptions(register=register, icp=icp).register_mode
         _explain_scan(real, poses, reference, model, out, frames, seed, similarity, mode, block_frames,
-                      not no_resimulate, force)
+                      not no_resimulate, force, topics)
         return
     if board is None:
         raise InputError(None, "--board is needed for checkerboard sessions")
@@ -74,7 +79,7 @@ def explain(
         stderr_console.print(f"[bold]explain[/]: {msg}")
 
     data = run_explain(real, board, mdl, out, frames=frames, seed=seed, resimulate=not no_resimulate,
-                       workers=workers, cluster=cluster,
+                       workers=workers, cluster=cluster, topics=topics,
                        parameters={"board": str(board), "model": model, "frames": frames, "seed": seed,
                                    "workers": workers, "cluster": cluster},
                        target=RerunTarget(rrd, spawn, serve, force), tick=tick, force=force)
@@ -85,7 +90,7 @@ def explain(
 
 def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, model: str, out: Path,
                   frames: int, seed: int, similarity: Path | None, register: str, block_frames: int,
-                  resimulate: bool, force: bool) -> None:
+                  resimulate: bool, force: bool, topics: TopicChoice | None = None) -> None:
     """`explain --scan`: a reference-scan sequence against its simulation along the same trajectory."""
 
     if len(real) != 1:
@@ -105,7 +110,7 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
     with result_folder(out, force=force) as tmp:
         ex = explain_scan(real[0], poses, reference, mdl, tmp, frames=frames, block_frames=block_frames,
                           seed=seed, register=register, similarity=similarity, resimulate=resimulate,
-                          tick=tick)
+                          tick=tick, topics=topics)
         data = write_scan_outputs(ex, tmp, [str(real[0]), str(poses), str(reference)],
                                   {"model": model, "frames": frames, "seed": seed, "register": register,
                                    "block_frames": block_frames,

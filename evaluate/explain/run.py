@@ -16,6 +16,7 @@ import numpy as np
 
 from depthstation.core.board import Board, load_board
 from depthstation.core.camera_model import StreamInfo
+from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import EvaluationError
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
@@ -131,16 +132,17 @@ def _stride(info: StreamInfo) -> int:
 
 
 def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, baseline_m: float,
-                  tick: Progress | None = None, workers: int = 1, cluster: str | None = None) -> Side:
+                  tick: Progress | None = None, workers: int = 1, cluster: str | None = None,
+                  topics: TopicChoice | None = None) -> Side:
     """The checkerboard study of the real inputs (its one prepare/run path), with per-pixel samples.
 
     Standpoints go out as tasks on a ChunkRunner: each is read and evaluated by the worker that
     gets it, local processes (`workers`) or a Dask scheduler (`cluster`).
     """
-    probe = prepare_checkerboard(list(paths), board, StandpointOptions(frames=frames))
+    probe = prepare_checkerboard(list(paths), board, StandpointOptions(frames=frames, topics=topics))
     info = probe.recordings[0].info
     options = StandpointOptions(frames=frames, collect_samples=True, sample_stride=_stride(info),
-                                reference=REFERENCE)
+                                reference=REFERENCE, topics=topics)
     job = replace(probe, options=options)
 
     def progress(done: int, total: int) -> None:
@@ -246,22 +248,23 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
 def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, *, frames: int,
                 seed: int = 0, resimulate: bool = True, workers: int = 1, cluster: str | None = None,
                 parameters: dict[str, Any] | None = None, target: RerunTarget | None = None,
-                tick: Progress | None = None, force: bool = False) -> dict[str, Any]:
+                tick: Progress | None = None, force: bool = False,
+                topics: TopicChoice | None = None) -> dict[str, Any]:
     """`depthstation explain` of checkerboard captures: evaluate the real standpoints, simulate them
     with `model`, locate, attribute, refit, check, and write the result folder (whole or not at
     all; a non-empty `out` only with `force`); its explain.json."""
     with result_folder(out, force=force) as tmp:
         return _run_explain(real, board, model, tmp, frames, seed, resimulate, workers, cluster,
-                            parameters, None if target is None else target.within(out, tmp), tick)
+                            parameters, None if target is None else target.within(out, tmp), tick, topics)
 
 
 def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, frames: int,
                  seed: int, resimulate: bool, workers: int, cluster: str | None,
                  parameters: dict[str, Any] | None, target: RerunTarget | None,
-                 tick: Progress | None) -> dict[str, Any]:
+                 tick: Progress | None, topics: TopicChoice | None = None) -> dict[str, Any]:
     brd = board if isinstance(board, Board) else load_board(board)
     real_side = evaluate_real(real, brd, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
-                              workers=workers, cluster=cluster)
+                              workers=workers, cluster=cluster, topics=topics)
     sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
     ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, tick=tick)
     data = write_outputs(ex, out, [str(p) for p in real], dict(parameters or {}))

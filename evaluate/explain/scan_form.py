@@ -23,6 +23,7 @@ import numpy as np
 from scipy import stats
 
 from depthstation.core.camera_model import StreamInfo
+from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import EvaluationError
 from depthstation.core.frames import FrameSet, FrameSource
 from depthstation.core.grid import Grid
@@ -344,13 +345,16 @@ class ScanExplanation:
 def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorModel, out: Path, *,
                  frames: int | None = None, block_frames: int = 8, seed: int = 0, register: str = "none",
                  similarity: Path | None = None, resimulate: bool = True, tolerance_s: float = 0.01,
-                 tick: Progress | None = None) -> ScanExplanation:
+                 tick: Progress | None = None, topics: TopicChoice | None = None) -> ScanExplanation:
     """Evaluate the real sequence and its simulation in frame blocks, locate, attribute, re-simulate."""
 
     if tick:
         tick("prepare: reference mesh and registration")
     job = prepare_scan(sequence, poses, reference, out,
-                       ScanOptions(similarity=similarity, register=register, tolerance_s=tolerance_s))
+                       ScanOptions(similarity=similarity, register=register, tolerance_s=tolerance_s,
+                                   depth_topic=topics.depth if topics else None,
+                                   color_topic=topics.color if topics else None,
+                                   infrared_topic=topics.infrared if topics else None))
     source, mesh_path, posed = job.source, job.mesh_path, job.posed
     reg_info: dict[str, Any] = job.registration.to_dict()
     clock = read_clock(source)

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.core.capture.registry import open_recording
+from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSource
 from depthstation.core.grid import PackedGrid, pack_grid, unpack_grid
@@ -38,6 +39,7 @@ class ScanChunk:
     start: int
     limit: int | None  # None: to the end (a sequence that does not say its length)
     intrinsics: str | None = None
+    topics: TopicChoice | None = None  # ROS recordings: the topics it was opened with
 
 
 @dataclass
@@ -57,10 +59,10 @@ _CACHE = _WorkerCache()
 def _context(chunk: ScanChunk) -> tuple[MeshCaster, FrameSource]:
     source: FrameSource
     if isinstance(chunk.sequence, str):
-        key: object = (chunk.sequence, chunk.intrinsics)
+        key: object = (chunk.sequence, chunk.intrinsics, chunk.topics)
         if _CACHE.source is None or _CACHE.source_key != key:
             intr = Path(chunk.intrinsics) if chunk.intrinsics else None
-            _CACHE.source = open_recording(Path(chunk.sequence), intrinsics=intr)
+            _CACHE.source = open_recording(Path(chunk.sequence), intrinsics=intr, topics=chunk.topics)
             _CACHE.source_key = key
         source = _CACHE.source
     else:
@@ -118,18 +120,19 @@ def frames_to_read(source: FrameSource, config: StudyConfig) -> int | None:
 
 def scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajectory, config: StudyConfig, *,
                 chunk_frames: int = 64, intrinsics: Path | None = None,
-                source: FrameSource | None = None) -> list[ScanChunk]:
+                source: FrameSource | None = None, topics: TopicChoice | None = None) -> list[ScanChunk]:
     """The chunks of a scan evaluation (the frame count comes from the sequence's index only).
 
     `source`: the sequence already opened (so it is not opened again here).
     """
     if source is None:
-        source = open_recording(sequence, intrinsics=intrinsics) if isinstance(sequence, Path) else sequence
+        source = (open_recording(sequence, intrinsics=intrinsics, topics=topics) if isinstance(sequence, Path)
+                  else sequence)
     n = frames_to_read(source, config)
     ranges: list[tuple[int, int | None]] = [(0, None)] if n is None else list(chunk_ranges(n, chunk_frames))
     spec: str | FrameSource = str(sequence) if isinstance(sequence, Path) else sequence
     return [ScanChunk(spec, str(mesh), trajectory, config, s, lim,
-                      None if intrinsics is None else str(intrinsics)) for s, lim in ranges]
+                      None if intrinsics is None else str(intrinsics), topics) for s, lim in ranges]
 
 
 ChunkCallback = Callable[[int, int, ChunkResult], None]
@@ -137,7 +140,8 @@ ChunkCallback = Callable[[int, int, ChunkResult], None]
 
 def run_scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajectory, config: StudyConfig,
                     runner: ChunkRunner, *, chunk_frames: int = 64, intrinsics: Path | None = None,
-                    source: FrameSource | None = None, on_frame: FrameCallback | None = None,
+                    topics: TopicChoice | None = None, source: FrameSource | None = None,
+                    on_frame: FrameCallback | None = None,
                     on_chunk: ChunkCallback | None = None, progress: ProgressFn | None = None) -> ChunkResult:
     """The study over the whole sequence, chunk by chunk on `runner`, merged in frame order.
 
@@ -148,7 +152,7 @@ def run_scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajec
     if config.per_frame_dir is not None:
         Path(config.per_frame_dir).mkdir(parents=True, exist_ok=True)
     chunks = scan_chunks(sequence, mesh, trajectory, config, chunk_frames=chunk_frames,
-                         intrinsics=intrinsics, source=source)
+                         intrinsics=intrinsics, source=source, topics=topics)
     merges = [0]
 
     def merge(a: ChunkResult, b: ChunkResult) -> ChunkResult:
@@ -162,7 +166,8 @@ def run_scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajec
 
     if runner.in_process:
         open_source = source if source is not None else (
-            sequence if not isinstance(sequence, Path) else open_recording(sequence, intrinsics=intrinsics))
+            sequence if not isinstance(sequence, Path)
+            else open_recording(sequence, intrinsics=intrinsics, topics=topics))
         caster = MeshCaster(Path(mesh), open_source.info.depth_intrinsics, config.nthreads)
 
         def here(c: ScanChunk) -> ChunkResult:

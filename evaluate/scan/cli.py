@@ -9,6 +9,7 @@ from pathlib import Path
 
 import typer
 
+from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.evaluate.scan.run import ScanOptions, run_scan
 
@@ -65,6 +66,9 @@ def scan(
     poisson_depth: int = typer.Option(9, "--poisson-depth", help="Poisson octree depth for a cloud."),
     density_quantile: float = typer.Option(0.05, "--density-quantile",
                                            help="Drop Poisson vertices below this density quantile."),
+    depth_topic: DepthTopic = None,
+    color_topic: ColorTopic = None,
+    infrared_topic: InfraredTopic = None,
 ) -> None:
     """The reference-scan study (paper Section 3.2): per-pixel depth error against a TLS reference,
     gridded over distance x inclination."""
@@ -77,7 +81,8 @@ def scan(
                        distance_max_m=distance_max_m, min_count_frame=min_count_frame,
                        min_count_sequence=min_count_sequence, figure_frame=figure_frame,
                        intrinsics=intrinsics, poisson_depth=poisson_depth,
-                       density_quantile=density_quantile, force=force,
+                       density_quantile=density_quantile, force=force, depth_topic=depth_topic,
+                       color_topic=color_topic, infrared_topic=infrared_topic,
                        target=RerunTarget(rrd, spawn, serve, force))
     s = run_scan(sequence, poses, reference, out, opts)
     typer.echo(f"{s['frames']['used']} frames, {s['pixels']['evaluated']} pixels evaluated; "

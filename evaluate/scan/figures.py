@@ -25,10 +25,14 @@ def _plt() -> Any:
     return plt
 
 
-def frame_figure(images: FrameImages, path: Path, title: str = "") -> Path:
-    """Measured depth, reference depth, inclination and depth error of one frame (Fig. 8)."""
+def frame_figure(images: FrameImages, path: Path, title: str = "",
+                 appearance: np.ndarray | None = None, appearance_kind: str = "") -> Path:
+    """Measured depth, reference depth, inclination and depth error of one frame (Fig. 8); with the
+    reference scan's intensity/colour on the surface each pixel sees, when the scan has it."""
     plt = _plt()
-    fig, axes = plt.subplots(2, 2, figsize=(11, 8), constrained_layout=True)
+    cols = 3 if appearance is not None else 2
+    fig, grid = plt.subplots(2, cols, figsize=(5.5 * cols, 8), constrained_layout=True)
+    axes = grid[:, :2]
     both = np.concatenate([images.measured_m[np.isfinite(images.measured_m)],
                            images.reference_m[np.isfinite(images.reference_m)]])
     vmax = float(np.percentile(both, 99.5)) if both.size else 1.0
@@ -48,6 +52,13 @@ def frame_figure(images: FrameImages, path: Path, title: str = "") -> Path:
         ax.set_xlabel("u (px)")
         ax.set_ylabel("v (px)")
         fig.colorbar(im, ax=ax, label=unit)
+    if appearance is not None:
+        ax = grid[0, 2]
+        ax.imshow(np.nan_to_num(np.clip(appearance, 0.0, 1.0), nan=0.5), interpolation="nearest")
+        ax.set_title(f"(e) reference scan's {appearance_kind or 'appearance'} (grey: no surface)")
+        ax.set_xlabel("u (px)")
+        ax.set_ylabel("v (px)")
+        grid[1, 2].axis("off")
     if title:
         fig.suptitle(title)
     fig.savefig(path, dpi=110)

@@ -3,10 +3,18 @@ a mesh, loaded with Open3D; the mesh made from a cloud is cached next to the res
 
 Why a mesh: the paper found nearest neighbours in the cloud too imprecise at long range; ray
 casting needs a surface, and Poisson's density lets us drop the invented surface far from points.
+
+Surveyors deliver scans in survey coordinates (x ~ 4e5 m, y ~ 5e6 m). Coordinates are read in
+float64 and, when the reference lies far from the origin, moved by a local shift (its bounding-box
+centre, whole metres) before anything is meshed, cast or registered: float32 ray casting at 5e6 m
+has a 0.5 m spacing. The mesh kept next to the results is the shifted one; the shift is reported.
+E57 and LAS/LAZ come through the `[tls]` extra (pye57, laspy with lazrs); their intensity or colour
+rides on the cloud (and Poisson carries it to the mesh) for the figures.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,12 +22,15 @@ from typing import Any
 
 import numpy as np
 
+from depthstation.core.camera_model import Intrinsics, pixel_rays
 from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.lazy_open3d import open3d
+from depthstation.evaluate.scan.trajectory import LOCAL_SHIFT_ABOVE_M, local_shift
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".gltf", ".glb")
 MESH_CACHE = "reference_mesh.ply"
+TLS_EXTRA = "pip install -e '.[tls]'"
 
 
 @dataclass(frozen=True)
@@ -36,34 +47,83 @@ class PoissonParams:
                 "normal_radius_m": self.normal_radius_m, "normal_max_nn": self.normal_max_nn}
 
 
-def _read_special(path: Path) -> Any:
-    """E57 / LAS / LAZ through their optional packages, else a clear error (exit 2)."""
+def _appearance(rgb: np.ndarray | None, intensity: np.ndarray | None) -> np.ndarray | None:
+    """Per-point colour in [0, 1] for the figures: the scan's RGB, else its intensity as grey."""
+    if rgb is not None and rgb.size and np.any(rgb > 0):
+        rgb = rgb.astype(np.float64)
+        return np.clip(rgb / (65535.0 if rgb.max() > 255 else 255.0), 0.0, 1.0)
+    if intensity is not None and intensity.size:
+        i = intensity.astype(np.float64)
+        hi = float(np.percentile(i, 99.5)) or float(i.max()) or 1.0
+        return np.repeat(np.clip(i / hi, 0.0, 1.0)[:, None], 3, axis=1)
+    return None
+
+
+def _read_special(path: Path) -> tuple[Any, str | None, Scans | None]:
+    """E57 / LAS / LAZ through their optional packages (float64 coordinates, the scan poses
+    applied, intensity or RGB as point colours), else a clear error (exit 2)."""
     o3d = open3d()
 
     suffix = path.suffix.lower()
+    rgb: np.ndarray | None = None
+    intensity: np.ndarray | None = None
+    scans: Scans | None = None
     if suffix in (".las", ".laz"):
         try:
             import laspy
         except ImportError as exc:
-            raise InputError(path, "LAS/LAZ needs the optional package 'laspy' (pip install laspy), "
+            raise InputError(path, f"LAS/LAZ needs the optional package 'laspy' ({TLS_EXTRA}), "
                                    "or convert the cloud to PLY") from exc
-        las = laspy.read(str(path))
-        xyz = np.stack([las.x, las.y, las.z], axis=-1).astype(np.float64)
+        try:
+            las = laspy.read(str(path))
+        except Exception as exc:  # laspy raises its own errors (no LAZ backend, bad header)
+            raise InputError(path, f"cannot read ({type(exc).__name__}: {exc}); {TLS_EXTRA} installs a "
+                                   "LAZ backend") from exc
+        xyz = np.asarray(las.xyz, dtype=np.float64)
+        names = set(las.point_format.dimension_names)
+        if {"red", "green", "blue"} <= names:
+            rgb = np.stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)], axis=-1)
+        if "intensity" in names:
+            intensity = np.asarray(las.intensity)
     else:
         try:
             import pye57
         except ImportError as exc:
-            raise InputError(path, "E57 needs the optional package 'pye57' (pip install pye57), "
+            raise InputError(path, f"E57 needs the optional package 'pye57' ({TLS_EXTRA}), "
                                    "or convert the cloud to PLY") from exc
-        e57 = pye57.E57(str(path))
-        parts = []
-        for i in range(e57.scan_count):
-            d = e57.read_scan(i, ignore_missing_fields=True, transform=True)
-            parts.append(np.stack([d["cartesianX"], d["cartesianY"], d["cartesianZ"]], axis=-1))
+        try:
+            e57 = pye57.E57(str(path))
+            parts, colours, intens = [], [], []
+            stations: list[tuple[int, int, np.ndarray | None]] = []
+            for i in range(e57.scan_count):
+                header = e57.get_header(i)
+                fields = set(header.point_fields)
+                has_rgb = {"colorRed", "colorGreen", "colorBlue"} <= fields
+                has_i = "intensity" in fields
+                d = e57.read_scan(i, intensity=has_i, colors=has_rgb, ignore_missing_fields=True,
+                                  transform=True)
+                parts.append(np.stack([d["cartesianX"], d["cartesianY"], d["cartesianZ"]], axis=-1))
+                start = sum(len(p) for p in parts[:-1])
+                origin = np.asarray(header.translation, dtype=np.float64) if header.has_pose() else None
+                stations.append((start, start + len(parts[-1]), origin))
+                if has_rgb:
+                    colours.append(np.stack([d["colorRed"], d["colorGreen"], d["colorBlue"]], axis=-1))
+                if has_i:
+                    intens.append(np.asarray(d["intensity"]))
+        except Exception as exc:
+            raise InputError(path, f"cannot read E57 ({type(exc).__name__}: {exc})") from exc
         xyz = np.concatenate(parts).astype(np.float64)
+        rgb = np.concatenate(colours) if len(colours) == len(parts) and colours else None
+        intensity = np.concatenate(intens) if len(intens) == len(parts) and intens else None
+        if all(o is not None for _, _, o in stations):  # else no station to orient towards
+            scans = [(a, b, o) for a, b, o in stations if o is not None]
     pc = o3d.geometry.PointCloud()
     pc.points = o3d.utility.Vector3dVector(xyz)
-    return pc
+    look = _appearance(rgb, intensity)
+    if look is not None:
+        pc.colors = o3d.utility.Vector3dVector(look)
+    kind = None if look is None else ("rgb" if rgb is not None and np.any(rgb > 0) else "intensity")
+    return pc, kind, scans
 
 
 def load_reference(path: Path) -> tuple[str, Any]:
@@ -75,7 +135,7 @@ def load_reference(path: Path) -> tuple[str, Any]:
         raise InputError(path, "reference not found")
     suffix = path.suffix.lower()
     if suffix in (".e57", ".las", ".laz"):
-        return "cloud", _read_special(path)
+        return "cloud", _read_special(path)[0]
     if suffix not in CLOUD_SUFFIXES + MESH_SUFFIXES:
         raise InputError(path, f"unknown reference format {suffix!r} (PLY, PCD, XYZ, OBJ, STL, E57, LAS)")
     if suffix in MESH_SUFFIXES:
@@ -88,14 +148,51 @@ def load_reference(path: Path) -> tuple[str, Any]:
     return "cloud", cloud
 
 
-def poisson_mesh(cloud: Any, params: PoissonParams = PoissonParams()) -> tuple[Any, dict[str, Any]]:
+Scans = list[tuple[int, int, np.ndarray]]  # (first point, end, scanner origin) per TLS station
+
+
+def orient_normals(cloud: Any, scans: Scans | None = None, viewpoints: np.ndarray | None = None) -> str:
+    """Turn estimated normals towards where the surface was seen from; says how, in words.
+
+    The camera centres of the walk under study (`viewpoints`, in the reference frame): towards
+    the nearest one, so every surface faces the cameras whose depth is judged, whatever the file
+    format. Else TLS stations (E57 scan poses): each point's normal towards its own scanner. Else
+    Open3D's consistent-tangent-plane spanning tree (slow: it grows faster than n^2, and sharp
+    room corners can split its orientation), the fallback for a cloud with nothing better.
+    """
+    o3d = open3d()
+
+    pts = np.asarray(cloud.points)
+    normals = np.asarray(cloud.normals).copy()
+    if viewpoints is not None and len(viewpoints):
+        from scipy.spatial import cKDTree
+
+        _, nearest = cKDTree(viewpoints).query(pts, k=1)
+        flip = np.einsum("ij,ij->i", normals, viewpoints[nearest] - pts) < 0
+        normals[flip] *= -1.0
+        how = "towards the nearest camera centre of the trajectory"
+    elif scans:
+        for start, end, origin in scans:
+            flip = np.einsum("ij,ij->i", normals[start:end], origin - pts[start:end]) < 0
+            normals[start:end][flip] *= -1.0
+        how = "towards the scanner of each E57 scan"
+    else:
+        cloud.orient_normals_consistent_tangent_plane(10)
+        return "consistent tangent plane"
+    cloud.normals = o3d.utility.Vector3dVector(normals)
+    return how
+
+
+def poisson_mesh(cloud: Any, params: PoissonParams = PoissonParams(), scans: Scans | None = None,
+                 viewpoints: np.ndarray | None = None) -> tuple[Any, dict[str, Any]]:
     """Poisson surface of the cloud, minus vertices whose density is below the quantile."""
     o3d = open3d()
 
+    normals = "given"
     if not cloud.has_normals():
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(
             radius=params.normal_radius_m, max_nn=params.normal_max_nn))
-        cloud.orient_normals_consistent_tangent_plane(10)
+        normals = orient_normals(cloud, scans, viewpoints)
     mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
         cloud, depth=params.depth)
     dens = np.asarray(densities)
@@ -105,14 +202,27 @@ def poisson_mesh(cloud: Any, params: PoissonParams = PoissonParams()) -> tuple[A
     if len(mesh.triangles) == 0:
         raise EvaluationError("Poisson reconstruction left no triangles after density trimming")
     mesh.compute_triangle_normals()
-    info = {"poisson": params.to_dict(), "density_threshold": threshold,
+    info = {"poisson": params.to_dict(), "density_threshold": threshold, "normals": normals,
             "triangles": len(mesh.triangles), "vertices": len(mesh.vertices)}
     return mesh, info
 
 
-def reference_mesh(path: Path, cache_dir: Path | None,
-                   params: PoissonParams = PoissonParams()) -> tuple[Any, Path, dict[str, Any]]:
-    """The mesh to cast against and the file it lives in (the input, or the cache for a cloud).
+def _shift_geometry(geom: Any, kind: str) -> np.ndarray:
+    """Move a far-away mesh or cloud to local coordinates (float64); the shift subtracted."""
+    pts = np.asarray(geom.vertices if kind == "mesh" else geom.points)
+    if pts.size == 0:
+        return np.zeros(3)
+    shift = local_shift(pts.min(axis=0), pts.max(axis=0))
+    if np.any(shift != 0.0):
+        geom.translate(-shift)
+    return shift
+
+
+def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = PoissonParams(),
+                   viewpoints: np.ndarray | None = None) -> tuple[Any, Path, dict[str, Any]]:
+    """The mesh to cast against and the file it lives in (the input, or the cache for a cloud or a
+    shifted mesh); `info['local_shift_m']` is what was subtracted from the reference's coordinates.
+    `viewpoints`: camera centres in the reference's frame, to orient a cloud's normals by.
 
     The cache (`reference_mesh.ply` + `.json`) is reused when source path, size, mtime and Poisson
     parameters match, since Poisson on millions of points takes minutes.
@@ -122,7 +232,10 @@ def reference_mesh(path: Path, cache_dir: Path | None,
     path = Path(path)
     st = path.stat() if path.is_file() else None
     key = {"source": str(path.resolve()), "size": st.st_size if st else None,
-           "mtime_ns": st.st_mtime_ns if st else None, "poisson": params.to_dict()}
+           "mtime_ns": st.st_mtime_ns if st else None, "poisson": params.to_dict(),
+           "local_shift_above_m": LOCAL_SHIFT_ABOVE_M,
+           "viewpoints": None if viewpoints is None else hashlib.sha1(
+               np.round(np.asarray(viewpoints, dtype=np.float64), 2).tobytes()).hexdigest()}
     if cache_dir is not None:
         cached = Path(cache_dir) / MESH_CACHE
         meta = cached.with_suffix(".json")
@@ -134,20 +247,58 @@ def reference_mesh(path: Path, cache_dir: Path | None,
             if stored.get("key") == key:
                 mesh = o3d.io.read_triangle_mesh(str(cached))
                 return mesh, cached, {**stored.get("info", {}), "cached": True}
-    kind, geom = load_reference(path)
+    scans: Scans | None = None
+    if path.suffix.lower() in (".e57", ".las", ".laz"):
+        kind, (geom, look, scans) = "cloud", _read_special(path)
+    else:
+        kind, geom = load_reference(path)
+        look = "rgb" if (geom.has_vertex_colors() if kind == "mesh" else geom.has_colors()) else None
+    shift = _shift_geometry(geom, kind)
+    if scans is not None:
+        scans = [(a, b, o - shift) for a, b, o in scans]
+    local_views = None if viewpoints is None else np.asarray(viewpoints, dtype=np.float64) - shift
     if kind == "mesh":
         geom.compute_triangle_normals()
-        return geom, path, {"kind": "mesh", "triangles": len(geom.triangles),
-                            "vertices": len(geom.vertices)}
-    mesh, info = poisson_mesh(geom, params)
-    info = {"kind": "cloud", "points": len(geom.points), **info}
+        info: dict[str, Any] = {"kind": "mesh", "triangles": len(geom.triangles),
+                                "vertices": len(geom.vertices)}
+        if not np.any(shift != 0.0):
+            return geom, path, {**info, "local_shift_m": [0.0, 0.0, 0.0], "appearance": look}
+        mesh = geom
+    else:
+        mesh, info = poisson_mesh(geom, params, scans, local_views)
+        info = {"kind": "cloud", "points": len(geom.points), **info}
+    info.update({"local_shift_m": shift.tolist(), "appearance": look})
     if cache_dir is None:
-        raise EvaluationError("a reference cloud needs a folder to keep its mesh")
+        raise EvaluationError("a reference cloud (or a far-away mesh) needs a folder to keep its mesh")
     Path(cache_dir).mkdir(parents=True, exist_ok=True)
     cached = Path(cache_dir) / MESH_CACHE
     o3d.io.write_triangle_mesh(str(cached), mesh)
     cached.with_suffix(".json").write_text(json.dumps({"key": key, "info": info}, indent=2))
     return mesh, cached, {**info, "cached": False}
+
+
+def appearance_image(mesh: Any, intr: Intrinsics, pose: np.ndarray) -> np.ndarray | None:
+    """What the scanner recorded (RGB, or intensity as grey) on the reference surface each pixel of
+    a camera with camera-to-reference `pose` sees; HxWx3 in [0, 1], NaN where no surface. None when
+    the reference carries no appearance."""
+    o3d = open3d()
+
+    if not mesh.has_vertex_colors():
+        return None
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    dirs = pixel_rays(intr).reshape(-1, 3).astype(np.float64) @ np.asarray(pose)[:3, :3].T
+    rays = np.concatenate([np.broadcast_to(np.asarray(pose)[:3, 3], dirs.shape), dirs], axis=1)
+    ans = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))
+    ids = ans["primitive_ids"].numpy().astype(np.int64)
+    uv = ans["primitive_uvs"].numpy().astype(np.float64)
+    hit = ids != o3d.t.geometry.RaycastingScene.INVALID_ID
+    out = np.full((ids.size, 3), np.nan)
+    tri = np.asarray(mesh.triangles)[ids[hit]]
+    col = np.asarray(mesh.vertex_colors)
+    u, v = uv[hit, 0:1], uv[hit, 1:2]
+    out[hit] = (1.0 - u - v) * col[tri[:, 0]] + u * col[tri[:, 1]] + v * col[tri[:, 2]]
+    return out.reshape(intr.height, intr.width, 3)
 
 
 def sample_reference_points(mesh: Any, n: int = 400_000, seed: int = 0) -> Any:

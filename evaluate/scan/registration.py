@@ -28,7 +28,12 @@ from depthstation.core.frames import FrameSource
 from depthstation.core.geometry import rodrigues, rotation_angle_deg
 from depthstation.core.lazy_open3d import open3d
 from depthstation.core.text_files import read_text
-from depthstation.evaluate.scan.trajectory import Trajectory, compose_similarity, decompose_similarity
+from depthstation.evaluate.scan.trajectory import (
+    LocalFrames,
+    Trajectory,
+    compose_similarity,
+    decompose_similarity,
+)
 
 F64 = NDArray[np.float64]
 
@@ -39,7 +44,11 @@ SCALE_SUBSETS = 5  # disjoint frame subsets for the band of an estimated scale
 
 @dataclass
 class Registration:
-    """p_reference = s R p_trajectory + t, how it was found, and how well it fits."""
+    """p_reference = s R p_trajectory + t, how it was found, and how well it fits.
+
+    `matrix` maps the local frames (`local`: the shifts subtracted from far-away coordinates) the
+    study works in; `to_dict` reports it between the frames as given.
+    """
 
     matrix: F64
     method: str
@@ -49,6 +58,7 @@ class Registration:
     mode: str = "none"
     median_c2m_m: float | None = None
     scale_band95: tuple[float, float] | None = None  # of an estimated scale (None: given or 1)
+    local: LocalFrames | None = None
 
     @property
     def scale(self) -> float:
@@ -84,12 +94,22 @@ class Registration:
             text += f"; median cloud-to-mesh {1000 * self.median_c2m_m:.1f} mm"
         return text
 
+    @property
+    def given_matrix(self) -> F64:
+        """The similarity between the trajectory and reference frames as given (shifts undone)."""
+        return self.local.to_given(self.matrix) if self.local is not None else self.matrix
+
     def to_dict(self) -> dict[str, Any]:
-        s, r, t = decompose_similarity(self.matrix)
-        return {"mode": self.mode, "method": self.method, "scale": s, "rotation": r.tolist(),
-                "translation_m": t.tolist(), "matrix": self.matrix.tolist(), "mean_c2c_m": self.mean_c2c_m,
-                "mean_c2m_m": self.mean_c2m_m, "median_c2m_m": self.median_c2m_m,
-                "absorbed": self.absorbed(), "icp": self.icp}
+        m = self.given_matrix
+        s, r, t = decompose_similarity(m)
+        out = {"mode": self.mode, "method": self.method, "scale": s, "rotation": r.tolist(),
+               "translation_m": t.tolist(), "matrix": m.tolist(), "mean_c2c_m": self.mean_c2c_m,
+               "mean_c2m_m": self.mean_c2m_m, "median_c2m_m": self.median_c2m_m,
+               "absorbed": self.absorbed(), "icp": self.icp}
+        if self.local is not None:
+            out["local_shift"] = self.local.to_dict()
+            out["local_matrix"] = self.matrix.tolist()
+        return out
 
 
 def read_similarity(path: Path) -> F64:
@@ -296,25 +316,35 @@ def fit_distances(points: F64, matrix: F64, target: Any,
     return c2c, c2m, c2m_median
 
 
+def initial_similarity(similarity: F64 | None,
+                       pass_points: tuple[F64, F64] | None) -> tuple[F64, str]:
+    """The starting similarity (trajectory -> reference) and its name: given, pass points, identity."""
+    if similarity is not None:
+        return np.asarray(similarity, dtype=np.float64), "given"
+    if pass_points is not None:
+        return umeyama(*pass_points), "pass_points"
+    return np.eye(4), "identity"
+
+
 def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any, *, mode: str = "none",
              similarity: F64 | None = None, pass_points: tuple[F64, F64] | None = None,
              band_m: tuple[float, float] = (0.5, 2.0), tolerance_s: float = 0.01,
-             every: int = 10) -> Registration:
+             every: int = 10, local: LocalFrames | None = None) -> Registration:
     """The registration `mode` asks for (see the module's docstring), from the initial transform
-    (given similarity, pass points or identity), with its fit and what its scale absorbs."""
+    (given similarity, pass points or identity), with its fit and what its scale absorbs.
+
+    `local`: the trajectory and mesh are in local frames (far-away coordinates shifted); the
+    similarity and pass points are in the frames as given and are moved along.
+    """
     if mode not in REGISTER_MODES:
         raise InputError(None, f"--register must be one of {', '.join(REGISTER_MODES)}, not '{mode}'")
     if mode == "pass-points" and pass_points is None:
         raise InputError(None, "--register pass-points needs --pass-points FILE")
-    scale_band: tuple[float, float] | None = None
-    if similarity is not None:
-        init, method = np.asarray(similarity, dtype=np.float64), "given"
-    elif pass_points is not None:
-        init, method = umeyama(*pass_points), "pass_points"
-        if mode == "pass-points":
-            scale_band = _jackknife_band(*pass_points)
-    else:
-        init, method = np.eye(4), "identity"
+    init, method = initial_similarity(similarity, pass_points)
+    scale_band = (_jackknife_band(*pass_points) if mode == "pass-points" and pass_points is not None
+                  and similarity is None else None)
+    if local is not None:
+        init = local.to_local(init)
     parts = depth_band_frames(source, trajectory, band_m=band_m, tolerance_s=tolerance_s, every=every)
     points = voxel_cloud(parts)
     info: dict[str, Any] = {"band_m": list(band_m), "frames": len(parts)}
@@ -331,7 +361,7 @@ def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any
             if scaled:
                 scale_band = _subset_band(parts, mesh, m)
     c2c, c2m, c2m_median = fit_distances(points, m, target, mesh)
-    return Registration(m, method, c2c, c2m, info, mode, c2m_median, scale_band95=scale_band)
+    return Registration(m, method, c2c, c2m, info, mode, c2m_median, scale_band95=scale_band, local=local)
 
 
 def _subset_band(parts: list[F64], mesh: Any, m: F64,

@@ -9,14 +9,21 @@ import time
 from typing import TYPE_CHECKING, Any
 
 from depthstation.core.grid import GRID_FILE
+from depthstation.core.lazy_open3d import open3d
 from depthstation.core.results import SUMMARY_FILE, inside, write_json, write_result_info
 from depthstation.core.run_warnings import warn
 from depthstation.evaluate.scan.figures import frame_figure, grid_figure
 from depthstation.evaluate.scan.raycast import MeshCaster
+from depthstation.evaluate.scan.reference import appearance_image
 from depthstation.evaluate.scan.study import ChunkResult, StudyConfig, evaluate_chunk, frame_images
 
 if TYPE_CHECKING:
     from depthstation.evaluate.scan.run import ScanJob
+
+
+def _stamp_s(source: Any, index: int) -> float:
+    """Time stamp (s) of frame `index` of the sequence."""
+    return next(fs.timestamp_ns for fs in source.frames(limit=1, start=index)) * 1e-9
 
 
 def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
@@ -36,9 +43,15 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
         frame_cfg = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
                                 tolerance_s=opt.tolerance_s)
         one = evaluate_chunk(caster, source, job.posed, frame_cfg, fig_index, 1)
+        look = job.mesh_info.get("appearance")
+        pose = job.posed.match(_stamp_s(source, fig_index), opt.tolerance_s) if look else None
+        shown = None
+        if pose is not None:
+            mesh = open3d().io.read_triangle_mesh(str(job.mesh_path))
+            shown = appearance_image(mesh, source.info.depth_intrinsics, pose)
         figures["frame"] = frame_figure(images, out / "fig8_frame.png",
                                         f"Fig. 8: frame {fig_index} of {source.name} ({stream}): "
-                                        "measured vs reference").name
+                                        "measured vs reference", shown, look or "").name
         figures["frame_grid"] = grid_figure(one.grid, out / "fig9_frame_grid.png", opt.min_count_frame,
                                             f"Fig. 9: frame {fig_index} of {source.name} ({stream})").name
     figures["sequence_grid"] = grid_figure(grid, out / "fig10_sequence_grid.png", opt.min_count_sequence,
@@ -60,6 +73,8 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
         "registration": reg.to_dict(),
         "registration_caption": reg.caption(),
         "fit_check": None if job.fit is None else job.fit.to_dict(),
+        "local_shift": (reg.local.to_dict() if reg.local is not None
+                        else {"reference_m": [0.0, 0.0, 0.0], "trajectory_m": [0.0, 0.0, 0.0]}),
         "frames": {"used": len(result.used), "skipped_no_pose": len(result.no_pose),
                    "skipped_no_depth": len(result.no_depth), "every": opt.every,
                    "figure_frame": fig_index, "no_pose_indices": result.no_pose[:1000]},

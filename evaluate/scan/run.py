@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_recording
+from depthstation.core.capture.topics import TopicChoice, topic_choice
 from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.grid import Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn
@@ -33,13 +34,14 @@ from depthstation.evaluate.scan.reference import PoissonParams, reference_mesh, 
 from depthstation.evaluate.scan.registration import (
     REGISTER_MODES,
     Registration,
+    initial_similarity,
     read_pass_points,
     read_similarity,
     register,
 )
 from depthstation.evaluate.scan.report import write_scan
 from depthstation.evaluate.scan.study import PER_FRAME_DIR, ChunkResult, FitCheck, StudyConfig, fit_check
-from depthstation.evaluate.scan.trajectory import Trajectory, read_tum
+from depthstation.evaluate.scan.trajectory import LocalFrames, Trajectory, local_shift, read_tum
 
 
 @dataclass
@@ -69,7 +71,14 @@ class ScanOptions:
     force: bool = False
     poisson_depth: int = 9
     density_quantile: float = 0.05
+    depth_topic: str | None = None      # ROS recordings: topics (None: the realsense-ros layout)
+    color_topic: str | None = None
+    infrared_topic: str | None = None
     target: RerunTarget = field(default_factory=RerunTarget)
+
+    @property
+    def topics(self) -> TopicChoice | None:
+        return topic_choice(self.depth_topic, self.color_topic, self.infrared_topic)
 
     def to_dict(self) -> dict[str, Any]:
         d = {k: v for k, v in self.__dict__.items() if k not in ("target", "force")}
@@ -129,7 +138,7 @@ class ScanJob:
     options: ScanOptions
     source: Recording
     trajectory: Trajectory          # as read (trajectory frame)
-    posed: Trajectory               # camera-to-reference (registration applied)
+    posed: Trajectory               # camera-to-reference (registration applied), local frame
     registration: Registration
     mesh_path: Path
     mesh_info: dict[str, Any]
@@ -158,16 +167,22 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
         if not Path(path).exists():
             raise InputError(path, f"{role} not found")
     out.mkdir(parents=True, exist_ok=True)
-    source = open_recording(Path(sequence), intrinsics=opt.intrinsics)
-    traj = read_tum(Path(poses))
+    source = open_recording(Path(sequence), intrinsics=opt.intrinsics, topics=opt.topics)
+    given = read_tum(Path(poses))
     similarity = read_similarity(opt.similarity) if opt.similarity is not None else None
     pass_points = read_pass_points(opt.pass_points) if opt.pass_points is not None else None
     mesh, mesh_path, mesh_info = reference_mesh(
-        Path(reference), out, PoissonParams(depth=opt.poisson_depth, density_quantile=opt.density_quantile))
+        Path(reference), out, PoissonParams(depth=opt.poisson_depth, density_quantile=opt.density_quantile),
+        viewpoints=camera_centres(given, similarity, pass_points))
+    # far-away coordinates (survey frames) are shifted before anything is registered or cast
+    centres = given.poses[:, :3, 3]
+    local = LocalFrames(np.asarray(mesh_info.get("local_shift_m", [0.0, 0.0, 0.0]), dtype=np.float64),
+                        local_shift(centres.min(axis=0), centres.max(axis=0)))
+    traj = given.translated(-local.trajectory_m)
     t_mesh = time.perf_counter()
     reg = register(source, traj, mesh, sample_reference_points(mesh), mode=opt.register_mode,
                    similarity=similarity, pass_points=pass_points, band_m=opt.icp_band_m,
-                   tolerance_s=opt.tolerance_s, every=opt.icp_every)
+                   tolerance_s=opt.tolerance_s, every=opt.icp_every, local=local if local.any else None)
     posed = traj.transformed(reg.matrix)
     fit = fit_check(MeshCaster(mesh_path, source.info.depth_intrinsics), source, posed,
                     tolerance_s=opt.tolerance_s)
@@ -178,8 +193,8 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                          nthreads=0 if in_process else 1,
                          per_frame_dir=out / PER_FRAME_DIR if opt.per_frame_grids else None)
     chunks = scan_chunks(Path(sequence), mesh_path, posed, config, chunk_frames=opt.chunk_frames,
-                         intrinsics=opt.intrinsics, source=source)
-    return ScanJob(Path(sequence), Path(poses), Path(reference), out, opt, source, traj, posed, reg,
+                         intrinsics=opt.intrinsics, source=source, topics=opt.topics)
+    return ScanJob(Path(sequence), Path(poses), Path(reference), out, opt, source, given, posed, reg,
                    mesh_path, mesh_info, fit, config, chunks,
                    {"reference": t_mesh - t0, "registration": t_reg - t_mesh})
 
@@ -200,6 +215,16 @@ def say_registration(reg: Registration, fit: FitCheck | None, sequence: Path) ->
              "(RGB-D SLAM); if the poses are exact instead, the scale has moved that much depth error "
              "into the poses and the grid hides it (--register rigid or none keeps it)", str(sequence),
              "absorbed-scale")
+
+
+def camera_centres(trajectory: Trajectory, similarity: NDArray[np.float64] | None,
+                   pass_points: tuple[NDArray[np.float64], NDArray[np.float64]] | None,
+                   ) -> NDArray[np.float64]:
+    """The walk's camera centres in the reference frame by the initial registration (to orient a
+    cloud's normals towards where its surfaces were seen from)."""
+    m = initial_similarity(similarity, pass_points)[0]
+    c = trajectory.poses[:, :3, 3]
+    return np.asarray(c @ m[:3, :3].T + m[:3, 3], dtype=np.float64)
 
 
 def run_prepared(job: ScanJob, runner: ChunkRunner, *, rec: Any = None,
@@ -230,7 +255,8 @@ def run_prepared(job: ScanJob, runner: ChunkRunner, *, rec: Any = None,
         t0 = time.perf_counter()
         result = run_scan_chunks(job.sequence, job.mesh_path, job.posed, job.config, runner,
                                  chunk_frames=opt.chunk_frames, intrinsics=opt.intrinsics,
-                                 source=job.source, on_frame=on_frame if runner.in_process else None,
+                                 topics=opt.topics, source=job.source,
+                                 on_frame=on_frame if runner.in_process else None,
                                  on_chunk=on_chunk, progress=on_task)
         job.seconds["study"] = time.perf_counter() - t0
     if not result.used:

@@ -51,6 +51,58 @@ class Trajectory:
         out[:, :3, 3] = (s * (r @ self.poses[:, :3, 3].T)).T + t
         return Trajectory(self.timestamps_s.copy(), out)
 
+    def translated(self, offset: NDArray[np.float64]) -> Trajectory:
+        """The same poses with `offset` added to every camera centre (float64)."""
+        out = self.poses.copy()
+        out[:, :3, 3] += np.asarray(offset, dtype=np.float64)
+        return Trajectory(self.timestamps_s.copy(), out)
+
+
+LOCAL_SHIFT_ABOVE_M = 1000.0  # beyond this a float32 coordinate is coarser than 0.06 mm
+
+
+def local_shift(lo: NDArray[np.float64], hi: NDArray[np.float64],
+                above_m: float = LOCAL_SHIFT_ABOVE_M) -> NDArray[np.float64]:
+    """The shift (whole metres) to subtract from coordinates with bounds [lo, hi]: their centre when
+    it lies farther than `above_m` from the origin on any axis, else zero.
+
+    Why: Open3D casts rays in float32; at y ~ 5e6 m (survey coordinates) its spacing is 0.5 m.
+    """
+    centre = (np.asarray(lo, dtype=np.float64) + np.asarray(hi, dtype=np.float64)) / 2.0
+    if not np.all(np.isfinite(centre)) or np.max(np.abs(centre)) <= above_m:
+        return np.zeros(3)
+    return np.round(centre)
+
+
+@dataclass(frozen=True)
+class LocalFrames:
+    """The shifts subtracted from reference and trajectory coordinates before the study works.
+
+    A similarity M (trajectory -> reference) in the given frames is T(-reference) M T(trajectory)
+    between the local ones.
+    """
+
+    reference_m: NDArray[np.float64]
+    trajectory_m: NDArray[np.float64]
+
+    @property
+    def any(self) -> bool:
+        return bool(np.any(self.reference_m != 0.0) or np.any(self.trajectory_m != 0.0))
+
+    def to_local(self, m: NDArray[np.float64]) -> NDArray[np.float64]:
+        out = np.asarray(m, dtype=np.float64).copy()
+        out[:3, 3] += out[:3, :3] @ self.trajectory_m - self.reference_m
+        return out
+
+    def to_given(self, m: NDArray[np.float64]) -> NDArray[np.float64]:
+        out = np.asarray(m, dtype=np.float64).copy()
+        out[:3, 3] += self.reference_m - out[:3, :3] @ self.trajectory_m
+        return out
+
+    def to_dict(self) -> dict[str, list[float]]:
+        return {"reference_m": [float(x) for x in self.reference_m],
+                "trajectory_m": [float(x) for x in self.trajectory_m]}
+
 
 def decompose_similarity(m: NDArray[np.float64]) -> tuple[float, NDArray[np.float64], NDArray[np.float64]]:
     """4x4 similarity [sR t; 0 1] -> (s, R, t)."""

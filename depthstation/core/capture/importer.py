@@ -9,6 +9,7 @@ from typing import Any
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs
 from depthstation.core.capture.session import Session
+from depthstation.core.capture.topics import TopicChoice
 
 
 def import_recordings(
@@ -17,12 +18,13 @@ def import_recordings(
     *,
     compression: str = "none",
     on_frame: Callable[[Recording, int], None] | None = None,
+    topics: TopicChoice | None = None,
 ) -> Session:
     """Convert every standpoint of `sources` into one MCAP each in the new session `out`.
 
     Standpoints keep their names (file or folder stem); clashes get a `-2`, `-3` suffix.
     """
-    recordings = open_inputs(list(sources))
+    recordings = open_inputs(list(sources), topics)
     device: dict[str, Any] = dict(recordings[0].metadata.get("device") or recordings[0].info.device)
     session = Session.create(Path(out), device=device, imported_from=[str(r.path) for r in recordings])
     used: set[str] = set()

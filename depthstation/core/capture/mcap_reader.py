@@ -18,7 +18,7 @@ from mcap.stream_reader import StreamReader
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture import mcap_writer as mw
 from depthstation.core.capture import rosmsgs
-from depthstation.core.capture.recording import Recording
+from depthstation.core.capture.recording import NotThisFormat, Recording
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.run_warnings import warn
@@ -26,8 +26,8 @@ from depthstation.core.run_warnings import warn
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
-def _mcap_messages(f: Any, topics: dict[int, str]) -> Iterator[tuple[int, memoryview]]:
-    """(channel id, message data) in file order, filling `topics` from Channel records.
+def mcap_messages(f: Any, topics: dict[int, str]) -> Iterator[tuple[int, int, memoryview]]:
+    """(channel id, log time, message data) in file order, filling `topics` from Channel records.
 
     Chunks are parsed here with memoryviews instead of mcap's record objects: that saves two copies
     of every image and is what lifts the reader above 300 frame sets/s. Raises on a cut-off file.
@@ -54,15 +54,15 @@ def _mcap_messages(f: Any, topics: dict[int, str]) -> Iterator[tuple[int, memory
                 body = mv[pos + 9 : pos + 9 + length]
                 pos += 9 + length
                 if op == 0x05:  # Message: channel u16, sequence u32, log u64, publish u64, data
-                    (channel_id,) = struct.unpack_from("<H", body, 0)
-                    yield channel_id, body[22:]
+                    channel_id, _, log_time = struct.unpack_from("<HIQ", body, 0)
+                    yield channel_id, log_time, body[22:]
                 elif op == 0x04:  # Channel: id u16, schema u16, topic (u32 length + utf-8)
                     cid, _, n = struct.unpack_from("<HHI", body, 0)
                     topics[cid] = bytes(body[8 : 8 + n]).decode()
         elif isinstance(r, Channel):
             topics[r.id] = r.topic
         elif isinstance(r, Message):
-            yield r.channel_id, memoryview(r.data)
+            yield r.channel_id, r.log_time, memoryview(r.data)
 
 
 class McapRecording(Recording):
@@ -107,10 +107,10 @@ class McapRecording(Recording):
 
         truncated = False
         with self.path.open("rb") as f:
-            records = _mcap_messages(f, topics)
+            records = mcap_messages(f, topics)
             while True:
                 try:
-                    channel_id, data = next(records)
+                    channel_id, _, data = next(records)
                 except StopIteration:
                     break
                 except Exception:  # mcap raises several kinds on a cut-off file
@@ -145,7 +145,7 @@ class McapRecording(Recording):
         topics: dict[int, str] = {}
         with self.path.open("rb") as f:
             try:
-                for channel_id, data in _mcap_messages(f, topics):
+                for channel_id, _, data in mcap_messages(f, topics):
                     if topics.get(channel_id) == mw.TEMPERATURE_TOPIC:
                         m = rosmsgs.deserialize(data, rosmsgs.TEMPERATURE)
                         ts, vs = out.setdefault(str(m.header.frame_id), ([], []))
@@ -198,6 +198,8 @@ def open_mcap(path: Path) -> McapRecording:
                         break
             except Exception:
                 pass
+    if "streams" not in meta and summary is not None:
+        raise NotThisFormat(path, "is no depthstation recording (no 'streams' metadata record)")
     if summary is None and mw.DEPTH_TOPIC not in topics.values():
         raise InputError(path, "is cut short before its first complete chunk: no frame can be recovered")
     if "streams" not in meta:

@@ -2,6 +2,12 @@
 
 `McapFileWriter` writes synchronously (the session's background thread drives it);
 `write_mcap` is the one-shot form used by importers and the simulator.
+
+The ROS side plays right in the ecosystem (`ros2 bag play`, Foxglove, rerun): the static messages
+are stamped at the first frame (no message at time 0, so the file's time range is the frames'
+span), every image has its CameraInfo with the same stamp (as the ROS 2 wrapper publishes), each
+stream keeps its own stamp, and `/tf_static` is the wrapper's tree under `camera_link`, offered
+transient-local (so a late tf2 listener still gets it on playback).
 """
 
 from __future__ import annotations
@@ -38,6 +44,15 @@ COLOR_FRAME_ID = "camera_color_optical_frame"
 INFRARED_FRAME_ID = "camera_infra1_optical_frame"
 
 COMPRESSIONS = ("none", "lz4", "zstd")
+# rosbag2's offered_qos_profiles of a latched topic (tf2_ros::StaticBroadcasterQoS: keep last 1,
+# reliable, transient local), in the integer form every rosbag2 release decodes (Humble included)
+TF_STATIC_QOS = (
+    "- history: 1\n  depth: 1\n  reliability: 1\n  durability: 1\n"
+    "  deadline:\n    sec: 0\n    nsec: 0\n  lifespan:\n    sec: 0\n    nsec: 0\n"
+    "  liveliness: 1\n  liveliness_lease_duration:\n    sec: 0\n    nsec: 0\n"
+    "  avoid_ros_namespace_conventions: false"
+)
+STREAM_STAMPS_KEY = "stream_timestamps_ns"  # FrameSet.metadata: {"color": ns, "infrared": ns} when apart
 
 
 def _json(value: Any) -> str:
@@ -80,16 +95,21 @@ class McapFileWriter:
         self.first_index: int | None = None
         self.last_index: int | None = None
         self._closed = False
+        self._statics_written = False
+        self._depth_frame = COLOR_FRAME_ID if info.depth_aligned_to_color else DEPTH_FRAME_ID
+        self._info_msgs: dict[str, tuple[str, Any]] = {}  # image topic -> (info topic, intrinsics)
         self._write_header(metadata or {})
 
     # -- setup ---------------------------------------------------------------------------------
-    def _channel(self, topic: str, msgtype: str) -> int:
+    def _channel(self, topic: str, msgtype: str, metadata: dict[str, str] | None = None) -> int:
         if topic not in self._channels:
             if msgtype not in self._schemas:
                 self._schemas[msgtype] = self._writer.register_schema(
                     msgtype, "ros2msg", rosmsgs.msgdef(msgtype).encode()
                 )
-            self._channels[topic] = self._writer.register_channel(topic, "cdr", self._schemas[msgtype])
+            self._channels[topic] = self._writer.register_channel(
+                topic, "cdr", self._schemas[msgtype], metadata or {}
+            )
         return self._channels[topic]
 
     def _write_header(self, metadata: dict[str, Any]) -> None:
@@ -104,38 +124,39 @@ class McapFileWriter:
         for key, value in metadata.items():
             if key != "device":
                 self.add_metadata(key, value)
-        # Static topics first so that a truncated file still has its geometry.
+        # Channels up front: a reader then knows which streams to expect. The static messages
+        # follow with the first frame (its stamp); the geometry is in the 'streams' record anyway.
         di = info.depth_intrinsics  # equals the colour intrinsics when depth is aligned to colour
-        depth_frame = COLOR_FRAME_ID if info.depth_aligned_to_color else DEPTH_FRAME_ID
-        self._static(DEPTH_INFO_TOPIC, rosmsgs.CAMERA_INFO, rosmsgs.camera_info_msg(di, 0, depth_frame))
-        if info.color_intrinsics is not None:
-            self._static(
-                COLOR_INFO_TOPIC,
-                rosmsgs.CAMERA_INFO,
-                rosmsgs.camera_info_msg(info.color_intrinsics, 0, COLOR_FRAME_ID),
-            )
-            if not info.depth_aligned_to_color:
-                self._static(
-                    TF_STATIC_TOPIC,
-                    rosmsgs.TF_MESSAGE,
-                    rosmsgs.tf_static_msg(DEPTH_FRAME_ID, COLOR_FRAME_ID, info.depth_to_color.inverse()),
-                )
+        self._info_msgs[DEPTH_TOPIC] = (DEPTH_INFO_TOPIC, di)
+        color = info.color_intrinsics or (di if info.depth_aligned_to_color else None)
+        if color is not None:
+            self._info_msgs[COLOR_TOPIC] = (COLOR_INFO_TOPIC, color)
         if info.infrared_intrinsics is not None:
-            self._static(
-                INFRARED_INFO_TOPIC,
-                rosmsgs.CAMERA_INFO,
-                rosmsgs.camera_info_msg(info.infrared_intrinsics, 0, INFRARED_FRAME_ID),
-            )
-        # Register the frame channels up front: a reader then knows which streams to expect.
+            self._info_msgs[INFRARED_TOPIC] = (INFRARED_INFO_TOPIC, info.infrared_intrinsics)
+        self._channel(TF_STATIC_TOPIC, rosmsgs.TF_MESSAGE, {"offered_qos_profiles": TF_STATIC_QOS})
         self._channel(FRAME_TOPIC, rosmsgs.STRING)
-        self._channel(DEPTH_TOPIC, rosmsgs.IMAGE)
-        if info.color_intrinsics is not None:
-            self._channel(COLOR_TOPIC, rosmsgs.IMAGE)
-        if info.infrared_intrinsics is not None:
-            self._channel(INFRARED_TOPIC, rosmsgs.IMAGE)
+        for topic, (info_topic, _) in self._info_msgs.items():
+            self._channel(topic, rosmsgs.IMAGE)
+            self._channel(info_topic, rosmsgs.CAMERA_INFO)
 
-    def _static(self, topic: str, msgtype: str, data: bytes) -> None:
-        self._writer.add_message(self._channel(topic, msgtype), 0, data, 0, 0)
+    def _write_statics(self, t_ns: int) -> None:
+        """/tf_static (the wrapper's tree under camera_link) stamped at the first frame."""
+        self._statics_written = True
+        info = self.info
+        d2c = info.depth_to_color if info.color_intrinsics is not None else None
+        tree = rosmsgs.realsense_tf_tree(d2c, info.baseline_m)
+        self._writer.add_message(self._channels[TF_STATIC_TOPIC], t_ns,
+                                 rosmsgs.tf_message(tree, t_ns), t_ns, 0)
+
+    def _image(self, topic: str, array: Any, encoding: str, t_ns: int, frame_id: str, seq: int) -> None:
+        """An image and its CameraInfo, both stamped `t_ns` (as realsense-ros publishes them)."""
+        w = self._writer
+        image = rosmsgs.image_msg(array, encoding, t_ns, frame_id)
+        w.add_message(self._channel(topic, rosmsgs.IMAGE), t_ns, image, t_ns, seq)
+        if topic in self._info_msgs:
+            info_topic, intr = self._info_msgs[topic]
+            cam = rosmsgs.camera_info_msg(intr, t_ns, frame_id)
+            w.add_message(self._channels[info_topic], t_ns, cam, t_ns, seq)
 
     # -- writing -------------------------------------------------------------------------------
     def add_metadata(self, name: str, value: Any) -> None:
@@ -143,36 +164,28 @@ class McapFileWriter:
         self._writer.add_metadata(name, {"json": _json(value)})
 
     def write(self, fs: FrameSet) -> None:
-        """One frame set: a frame record, then depth, colour, infrared with sequence = frame index."""
+        """One frame set: a frame record, then depth, colour, infrared (each with its CameraInfo and
+        its own stamp, `metadata['stream_timestamps_ns']` where the streams were apart), sequence =
+        frame index."""
         if fs.depth is None:
             raise CaptureError(f"{self.path}: frame {fs.index} has no depth")
         t, seq = int(fs.timestamp_ns), int(fs.index) & 0xFFFFFFFF
-        w = self._writer
+        if not self._statics_written:
+            self._write_statics(t)
         streams = ["depth"] + [
             k for k, a in (("color", fs.color), ("infrared", fs.infrared)) if a is not None
         ]
         record = {"index": int(fs.index), "timestamp_ns": t, "streams": streams, "metadata": fs.metadata}
-        w.add_message(self._channels[FRAME_TOPIC], t, rosmsgs.string_msg(_json(record)), t, seq)
-        depth_frame = COLOR_FRAME_ID if self.info.depth_aligned_to_color else DEPTH_FRAME_ID
-        w.add_message(
-            self._channels[DEPTH_TOPIC], t, rosmsgs.image_msg(fs.depth, "16UC1", t, depth_frame), t, seq
-        )
-        if fs.color is not None:
-            w.add_message(
-                self._channel(COLOR_TOPIC, rosmsgs.IMAGE),
-                t,
-                rosmsgs.image_msg(fs.color, "rgb8", t, COLOR_FRAME_ID),
-                t,
-                seq,
-            )
-        if fs.infrared is not None:
-            w.add_message(
-                self._channel(INFRARED_TOPIC, rosmsgs.IMAGE),
-                t,
-                rosmsgs.image_msg(fs.infrared, "mono8", t, INFRARED_FRAME_ID),
-                t,
-                seq,
-            )
+        self._writer.add_message(self._channels[FRAME_TOPIC], t, rosmsgs.string_msg(_json(record)), t, seq)
+        stamps = (fs.metadata or {}).get(STREAM_STAMPS_KEY) or {}
+        self._image(DEPTH_TOPIC, fs.depth, "16UC1", t, self._depth_frame, seq)
+        for topic, kind, array, encoding, frame_id in (
+            (COLOR_TOPIC, "color", fs.color, "rgb8", COLOR_FRAME_ID),
+            (INFRARED_TOPIC, "infrared", fs.infrared, "mono8", INFRARED_FRAME_ID),
+        ):
+            if array is None:
+                continue
+            self._image(topic, array, encoding, int(stamps.get(kind, t)), frame_id, seq)
         self.frames_written += 1
         if self.first_index is None:
             self.first_index = int(fs.index)

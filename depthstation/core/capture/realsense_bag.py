@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 from rosbags.highlevel import AnyReader
@@ -23,7 +22,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
 from depthstation.core.capture import rosmsgs
-from depthstation.core.capture.recording import Recording
+from depthstation.core.capture.recording import NotThisFormat, Recording
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 
@@ -168,20 +167,7 @@ def _image_topic(topic: str) -> str:
 def _decode_image(msg: Any, msgtype: str) -> NDArray[Any]:
     """Raw Image or the version 4 CompressedImage ('16UC1; compressedDepth png', 'rgb8; png ...')."""
     if msgtype.endswith("CompressedImage"):
-
-        fmt = str(msg.format)
-        data = np.asarray(msg.data, dtype=np.uint8)
-        if "compressedDepth" in fmt:
-            data = data[12:]  # compressedDepth header: format enum + two float depth quantisation params
-        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise ValueError(f"cannot decode compressed image ({fmt})")
-        target = fmt.split(";")[0].strip()
-        if img.ndim == 3 and target in ("rgb8", "rgba8"):
-            img = img[..., [2, 1, 0]]
-        elif img.ndim == 3 and target in ("mono8", "8UC1", "y8"):
-            img = img[..., 0]
-        return np.ascontiguousarray(img)
+        return rosmsgs.compressed_image_array(msg)
     return rosmsgs.image_array(msg)
 
 
@@ -245,6 +231,8 @@ def _parse(path: Path, reader: Any, ts: Any) -> RealsenseRecording:
         if "/image/data" in c.topic:
             continue
         topics_small.append(c)
+    if not any(c.topic.startswith("/device_") for c in reader.connections):
+        raise NotThisFormat(path, "is no RealSense SDK recording (no /device_N topics)")
     if "depth" not in streams or counts.get("depth", 0) == 0:
         raise InputError(path, "has no depth stream")
     prefix_kind = {s.prefix: k for k, s in streams.items()}

@@ -12,9 +12,15 @@ from pathlib import Path
 from typing import Any
 
 from depthstation.core.camera_model import StreamInfo
+from depthstation.core.capture.topics import TopicChoice
+from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 
 log = logging.getLogger("depthstation.core.capture")
+
+
+class NotThisFormat(InputError):
+    """A reader's own layout is missing; the registry tries the next reader of the same suffix."""
 
 
 class Recording:
@@ -26,6 +32,7 @@ class Recording:
     metadata: dict[str, Any]
     frame_count: int | None
     stream_counts: dict[str, int]
+    topics: TopicChoice | None = None  # the topic choice it was opened with (ROS recordings)
 
     def __init__(
         self,

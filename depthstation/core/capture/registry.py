@@ -1,5 +1,10 @@
 """Which reader opens a path: a registry from file suffix or folder layout to reader (the way rosbags
-maps storage plugins), and the expansion of user inputs (sessions, dataset roots) into standpoints."""
+maps storage plugins), and the expansion of user inputs (sessions, dataset roots) into standpoints.
+
+Several readers may claim one suffix (`.mcap`: ours, else any ROS 2 bag; `.bag`/`.db3`: the
+RealSense SDK's layout, else any ROS bag): they are tried in order, a reader that finds its own
+layout missing raising `NotThisFormat`. Topic choices (`--depth-topic` ...) go to the ROS reader.
+"""
 
 from __future__ import annotations
 
@@ -10,8 +15,10 @@ from pathlib import Path
 from depthstation.core.capture.mcap_reader import MCAP_MAGIC, open_mcap
 from depthstation.core.capture.png_folder import is_png_folder, open_png
 from depthstation.core.capture.realsense_bag import is_rosbag2_folder, open_realsense
-from depthstation.core.capture.recording import Recording
+from depthstation.core.capture.recording import NotThisFormat, Recording
+from depthstation.core.capture.ros_bag import open_ros
 from depthstation.core.capture.session import SESSION_FILE, Session
+from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.capture.tum_folder import is_tum_folder, open_tum_folder
 from depthstation.core.errors import InputError
 
@@ -24,50 +31,81 @@ class Format:
     suffixes: tuple[str, ...]
     is_folder: Callable[[Path], bool] | None
     open: Callable[[Path], Recording]
+    takes_topics: bool = False  # reads any topic layout (`--depth-topic` ...)
+
+
+def _open_ros(path: Path) -> Recording:
+    return open_ros(path)
 
 
 FORMATS: tuple[Format, ...] = (
     Format("mcap", (".mcap", ".mcap.partial"), None, open_mcap),
     Format("realsense", (".bag", ".db3"), is_rosbag2_folder, open_realsense),
+    Format("ros", (".bag", ".db3", ".mcap"), is_rosbag2_folder, _open_ros, takes_topics=True),
     Format("png", (), is_png_folder, open_png),
 )
-RECORDING_SUFFIXES = tuple(s for f in FORMATS for s in f.suffixes if not s.endswith(".partial"))
+RECORDING_SUFFIXES = tuple(dict.fromkeys(s for f in FORMATS for s in f.suffixes
+                                         if not s.endswith(".partial")))
+
+
+def recording_formats(path: Path) -> list[Format]:
+    """The formats that may read `path`, in the order to try them (suffix, folder layout, or an
+    MCAP's magic bytes)."""
+    if path.is_dir():
+        return [f for f in FORMATS if f.is_folder is not None and f.is_folder(path)]
+    name = path.name.lower()
+    found = [f for f in FORMATS if any(name.endswith(s) for s in f.suffixes)]
+    if found:
+        return found
+    with path.open("rb") as fh:
+        if fh.read(len(MCAP_MAGIC)) == MCAP_MAGIC:
+            return [f for f in FORMATS if ".mcap" in f.suffixes]
+    return []
 
 
 def recording_format(path: Path) -> Format | None:
-    """The format that reads `path` (by suffix, folder layout, or an MCAP's magic bytes)."""
-    if path.is_dir():
-        return next((f for f in FORMATS if f.is_folder is not None and f.is_folder(path)), None)
-    name = path.name.lower()
-    for f in FORMATS:
-        if any(name.endswith(s) for s in f.suffixes):
-            return f
-    with path.open("rb") as fh:
-        if fh.read(len(MCAP_MAGIC)) == MCAP_MAGIC:
-            return FORMATS[0]
-    return None
+    """The first format that may read `path` (None: no recording)."""
+    found = recording_formats(path)
+    return found[0] if found else None
 
 
-def open_recording(path: Path, *, intrinsics: Path | None = None) -> Recording:
-    """Open one standpoint or sequence: `.mcap`, `.bag`, `.db3` (file or rosbag2 folder), a PNG
-    standpoint folder, or a TUM RGB-D folder (whose intrinsics file `intrinsics` may name)."""
+def open_recording(path: Path, *, intrinsics: Path | None = None,
+                   topics: TopicChoice | None = None) -> Recording:
+    """Open one standpoint or sequence: `.mcap`, `.bag`, `.db3` (file or rosbag2 folder; ours, the
+    RealSense SDK's or any ROS recording), a PNG standpoint folder, or a TUM RGB-D folder (whose
+    intrinsics file `intrinsics` may name). `topics` picks the streams of a ROS recording."""
     path = Path(path)
     if not path.exists():
         raise InputError(path, "does not exist")
+    if topics is not None and not topics.given:
+        topics = None
     if is_tum_folder(path):
+        if topics is not None:
+            raise InputError(path, "--depth-topic / --color-topic / --infrared-topic apply to ROS recordings")
         return open_tum_folder(path, intrinsics)
     if intrinsics is not None:
         raise InputError(intrinsics, "an intrinsics file applies to TUM RGB-D folders only; "
                                      f"{path} carries its own")
-    fmt = recording_format(path)
-    if fmt is None:
+    formats = recording_formats(path)
+    if topics is not None:
+        formats = [f for f in formats if f.takes_topics]
+        if not formats:
+            raise InputError(path, "--depth-topic / --color-topic / --infrared-topic apply to ROS "
+                                   "recordings (.bag, .db3, .mcap, rosbag2 folders)")
+    if not formats:
         what = "folder is no recording (no frameK_depth.png, no rosbag2 metadata.yaml, no depth.txt)" \
             if path.is_dir() else "is no recording (expected .mcap, .bag, .db3 or a PNG folder)"
         raise InputError(path, what)
-    return fmt.open(path)
+    for fmt in formats[:-1]:
+        try:
+            return fmt.open(path)
+        except NotThisFormat:
+            continue
+    last = formats[-1]
+    return open_ros(path, topics) if last.takes_topics else last.open(path)
 
 
-def open_inputs(paths: Sequence[Path]) -> list[Recording]:
+def open_inputs(paths: Sequence[Path], topics: TopicChoice | None = None) -> list[Recording]:
     """Expand session dirs, PNG dataset roots and folders of recordings into standpoints."""
     out: list[Recording] = []
     for p in map(Path, paths):
@@ -83,7 +121,7 @@ def open_inputs(paths: Sequence[Path]) -> list[Recording]:
                 raise InputError(
                     p, "holds no recordings (session.json, PNG standpoint folders, .mcap/.bag/.db3)"
                 )
-            out.extend(open_recording(x) for x in [*subs, *files, *bags])
+            out.extend(open_recording(x, topics=topics) for x in [*subs, *files, *bags])
         else:
-            out.append(open_recording(p))
+            out.append(open_recording(p, topics=topics))
     return out

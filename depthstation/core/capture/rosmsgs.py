@@ -6,9 +6,11 @@ what lets the writer keep up with 30 fps and the reader exceed 300 depth frames/
 
 from __future__ import annotations
 
+import struct
 from functools import cache, lru_cache
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from rosbags.typesys import Stores, get_typestore
@@ -17,6 +19,7 @@ from depthstation.core.camera_model import Extrinsics, Intrinsics
 from depthstation.core.geometry import matrix_to_quaternion, quaternion_to_matrix
 
 IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 TEMPERATURE = "sensor_msgs/msg/Temperature"
@@ -92,6 +95,7 @@ def image_msg(array: NDArray[Any], encoding: str, t_ns: int, frame_id: str) -> b
 
 _ENCODINGS: dict[str, tuple[Any, int]] = {
     "16UC1": (np.uint16, 1),
+    "32FC1": (np.float32, 1),
     "mono16": (np.uint16, 1),
     "z16": (np.uint16, 1),
     "rgb8": (np.uint8, 3),
@@ -122,6 +126,58 @@ def image_array(msg: Any) -> NDArray[Any]:
     elif enc == "rgba8":
         a = a[..., :3]
     return np.ascontiguousarray(a)
+
+
+_CDEPTH_HEADER = struct.Struct("<iff")  # compressed_depth_image_transport ConfigHeader
+
+
+def compressed_image_array(msg: Any) -> NDArray[Any]:
+    """The pixels of a sensor_msgs/CompressedImage as `image_array` gives them for an Image.
+
+    `format` is '<encoding>; compressedDepth [png]' (a 12-byte header, then a PNG of 16-bit
+    millimetres or, for 32FC1, of quantised inverse depth) or '<encoding>; jpeg|png compressed
+    bgr8|mono8' (OpenCV decodes to BGR; converted back to what the encoding names). A format with
+    no ';' is an older recorder's: a plain JPEG/PNG in BGR order.
+    """
+    fmt = str(msg.format)
+    enc, _, rest = fmt.partition(";")
+    enc = enc.strip()
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if "compressedDepth" in fmt:
+        if "rvl" in rest:
+            raise ValueError("compressedDepth RVL is not supported (record with format png)")
+        _, depth_a, depth_b = _CDEPTH_HEADER.unpack_from(data.tobytes()[: _CDEPTH_HEADER.size])
+        img = cv2.imdecode(data[_CDEPTH_HEADER.size :], cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f"cannot decode compressed depth ({fmt})")
+        if enc == "32FC1":  # inverse-depth quantisation: z = A / (q - B); 0 = no depth
+            out = np.full(img.shape, np.nan, np.float32)
+            nz = img > 0
+            out[nz] = np.float32(depth_a) / (img[nz].astype(np.float32) - np.float32(depth_b))
+            return out
+        return np.ascontiguousarray(img.astype(np.uint16, copy=False))
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"cannot decode compressed image ({fmt})")
+    if img.ndim == 3 and img.shape[2] == 4:
+        img = img[..., :3]
+    if img.ndim == 3 and enc in ("mono8", "8UC1", "y8", "mono16"):
+        img = img[..., 0]
+    elif img.ndim == 3 and not enc.startswith("bgr"):
+        img = img[..., [2, 1, 0]]  # OpenCV decoded BGR; everything but bgr8 is delivered as RGB
+    return np.ascontiguousarray(img)
+
+
+def depth_to_units(depth: NDArray[Any], depth_units_m: float) -> NDArray[np.uint16]:
+    """z16 counts of a depth image: 16-bit images as they are, float metres (32FC1, NaN or 0 =
+    none) rounded to `depth_units_m` (0 where invalid or beyond the 16-bit range)."""
+    if depth.dtype == np.uint16:
+        return depth
+    z = np.asarray(depth, dtype=np.float64) / depth_units_m
+    ok = np.isfinite(z) & (z > 0) & (z < 65535.5)
+    out = np.zeros(z.shape, np.uint16)
+    out[ok] = np.rint(z[ok]).astype(np.uint16)
+    return out
 
 
 def camera_info_msg(intr: Intrinsics, t_ns: int, frame_id: str) -> bytes:
@@ -182,13 +238,50 @@ def extrinsics_from_transform(tf: Any) -> Extrinsics:
     return Extrinsics.from_matrix(m)
 
 
-def tf_static_msg(parent: str, child: str, child_to_parent: Extrinsics) -> bytes:
+def tf_static_msg(parent: str, child: str, child_to_parent: Extrinsics, t_ns: int = 0) -> bytes:
     """/tf_static with one transform: ROS convention, the pose of `child` in `parent`."""
+    return tf_message([(parent, child, child_to_parent)], t_ns)
+
+
+def tf_message(transforms: list[tuple[str, str, Extrinsics]], t_ns: int) -> bytes:
+    """A TFMessage of (parent, child, pose of the child in the parent) transforms stamped `t_ns`."""
     ts = typestore().types
-    stamped = ts["geometry_msgs/msg/TransformStamped"](
-        header=_header(0, parent), child_frame_id=child, transform=transform(child_to_parent)
-    )
-    return serialize(ts[TF_MESSAGE](transforms=[stamped]), TF_MESSAGE)
+    stamped = [
+        ts["geometry_msgs/msg/TransformStamped"](
+            header=_header(t_ns, parent), child_frame_id=child, transform=transform(pose)
+        )
+        for parent, child, pose in transforms
+    ]
+    return serialize(ts[TF_MESSAGE](transforms=stamped), TF_MESSAGE)
+
+
+# Optical frame (x right, y down, z forward) in its body frame (x forward, y left, z up): the
+# rotation realsense-ros publishes as setRPY(-pi/2, 0, -pi/2), q = (-0.5, 0.5, -0.5, 0.5).
+OPTICAL_IN_BODY = Extrinsics((0.0, 0.0, 1.0, -1.0, 0.0, 0.0, 0.0, -1.0, 0.0))
+
+
+def realsense_tf_tree(depth_to_color: Extrinsics | None, baseline_m: float | None,
+                      prefix: str = "camera") -> list[tuple[str, str, Extrinsics]]:
+    """The static TF tree of the realsense-ros wrapper: `<prefix>_link` (= the depth frame) with
+    `<s>_frame` and `<s>_optical_frame` per stream: depth, colour (from the depth-to-colour
+    extrinsics), infra1 (the depth imager) and infra2 (the baseline to its right)."""
+    o = OPTICAL_IN_BODY
+    link = f"{prefix}_link"
+    out: list[tuple[str, str, Extrinsics]] = []
+
+    def stream(name: str, body: Extrinsics) -> None:
+        out.append((link, f"{prefix}_{name}_frame", body))
+        out.append((f"{prefix}_{name}_frame", f"{prefix}_{name}_optical_frame", o))
+
+    stream("depth", Extrinsics())
+    if depth_to_color is not None:
+        # pose of the colour optical frame in the link: O inv(E); its body frame: O inv(E) inv(O)
+        body = o.matrix @ depth_to_color.inverse().matrix @ o.inverse().matrix
+        stream("color", Extrinsics.from_matrix(body))
+    stream("infra1", Extrinsics())
+    if baseline_m:
+        stream("infra2", Extrinsics(translation=(0.0, -float(baseline_m), 0.0)))
+    return out
 
 
 def temperature_msg(t_ns: int, sensor: str, celsius: float) -> bytes:

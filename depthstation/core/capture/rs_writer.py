@@ -16,6 +16,7 @@ import numpy as np
 
 from depthstation.core.camera_model import Intrinsics, StreamInfo
 from depthstation.core.capture.realsense_bag import open_realsense
+from depthstation.core.device import realsense
 from depthstation.core.errors import CaptureError, InputError
 from depthstation.core.frames import FrameSet
 
@@ -55,7 +56,7 @@ def _video_stream(rs: Any, kind: str, uid: int, intr: Intrinsics, fps: int) -> A
 
 def write_realsense_recording(path: Path, info: StreamInfo, frames: Iterable[FrameSet]) -> int:
     """Record `frames` as a RealSense `.db3`; returns the number of depth frames written."""
-    import pyrealsense2 as rs
+    rs = realsense()
 
     path = Path(path)
     if path.suffix.lower() != ".db3":

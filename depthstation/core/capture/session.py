@@ -37,7 +37,7 @@ STATUSES = ("recording", "complete", "partial", "discarded")
 
 
 def _now() -> str:
-    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
 def _to_dict(obj: Any) -> Any:

@@ -1,0 +1,212 @@
+"""ROS recordings as users hold them (written here with rosbags' own writers in realsense-ros
+layouts): the checkerboard study of a bag equals that of the same frames in our MCAP; depth-only
+and namespaced bags open; a bag without depth says which topics it saw; our MCAP's time range and
+its rewrite by a ROS tool; `capture export` read back."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from ros_bags import write_bag
+
+from depthstation.core.capture.mcap_writer import write_mcap
+from depthstation.core.capture.recording import Recording
+from depthstation.core.capture.registry import open_inputs, open_recording
+from depthstation.core.capture.sample_recordings import sample_frames, sample_info
+from depthstation.core.capture.topics import TopicChoice
+
+FIGURES = ("distance_m", "inclination_deg", "noise_m", "accuracy_m", "accuracy_rms_m", "fill_rate")
+NAMES = ["standpoint_01", "standpoint_05"]
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """Two simulated standpoints (3 frames each) in our MCAP and their checkerboard table."""
+    pytest.importorskip("open3d")
+    from depthstation.core.protocol import load_protocol
+    from depthstation.simulate.checkerboard_session import simulate_checkerboard
+
+    proto = load_protocol("demo-d455")
+    root = tmp_path_factory.mktemp("ros")
+    out = simulate_checkerboard(proto, "d455", root / "sim", frames=3, standpoints=NAMES, seed=3)
+    recs = sorted(open_inputs([out]), key=lambda r: r.name)
+    return {"root": root, "board": proto.board, "recs": recs, "rows": [_row(r, proto.board) for r in recs]}
+
+
+def _row(rec: Recording, board: Any) -> dict[str, float]:
+    from depthstation.evaluate.checkerboard.study import evaluate_recording
+
+    r = evaluate_recording(rec, board, frames=3)
+    assert r.frames_used == 3, r.rejected
+    return {k: float(r.figures[k]) for k in FIGURES}
+
+
+def _same_geometry(a: Recording, b: Recording) -> None:
+    ia, ib = a.info, b.info
+    for x, y in ((ia.depth_intrinsics, ib.depth_intrinsics), (ia.color_intrinsics, ib.color_intrinsics)):
+        assert x is not None and y is not None
+        np.testing.assert_allclose([y.fx, y.fy, y.ppx, y.ppy], [x.fx, x.fy, x.ppx, x.ppy], rtol=1e-6)
+        np.testing.assert_allclose(y.coeffs, x.coeffs, atol=1e-6)
+        assert (y.width, y.height) == (x.width, x.height)
+    np.testing.assert_allclose(ib.depth_to_color.matrix, ia.depth_to_color.matrix, atol=1e-6)
+    assert ib.depth_units_m == ia.depth_units_m
+    assert ib.baseline_m == pytest.approx(ia.baseline_m, rel=1e-6)
+
+
+@pytest.mark.parametrize("layout", [
+    {"ros": 2, "storage": "mcap"},
+    {"ros": 2, "storage": "sqlite3", "compressed": True, "extrinsics_topic": True},
+    {"ros": 1, "namespace": "/camera/"},
+])
+def test_bag_evaluates_like_our_mcap(simulated: dict[str, Any], layout: dict[str, Any]) -> None:
+    root: Path = simulated["root"]
+    tag = "_".join(f"{k}{v}" for k, v in layout.items() if k != "namespace").replace("/", "")
+    for rec, row in zip(simulated["recs"], simulated["rows"], strict=True):
+        path = root / f"{rec.name}_{tag}" if layout["ros"] == 2 else root / f"{rec.name}_{tag}.bag"
+        write_bag(path, rec.info, rec.frames(), **layout)
+        bag = open_recording(path)
+        assert type(bag).__name__ == "RosRecording" and bag.frame_count == 3
+        _same_geometry(rec, bag)
+        got = _row(bag, simulated["board"])
+        for k in FIGURES:
+            assert got[k] == pytest.approx(row[k], rel=1e-6, abs=1e-9), (rec.name, tag, k)
+
+
+def test_depth_only_bag_under_another_namespace(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    info = sample_info(infrared=True)
+    frames = list(sample_frames(info, 3, seed=4))
+    path = tmp_path / "robot"
+    write_bag(path, info, frames, namespace="/robot1/D455_1/", depth_only=True, frame_prefix="D455_1")
+    rec = open_recording(path)
+    assert rec.stream_counts == {"depth": 3} and rec.info.color_intrinsics is None
+    assert rec.metadata["source"]["topics"] == {"depth": "/robot1/D455_1/depth/image_rect_raw"}
+    for a, b in zip(frames, rec.frames(), strict=True):
+        np.testing.assert_array_equal(a.depth, b.depth)
+        assert a.timestamp_ns == b.timestamp_ns and b.color is None
+    assert rec.info.baseline_m == pytest.approx(0.095, rel=1e-9)  # from the infra2 TF of the tree
+    code, out, err = _cli(["capture", "info", str(path), "--json"], capsys)
+    assert code == 0, err
+    assert json.loads(out)[0]["frames_read"] == 3
+
+
+def test_topics_by_name_and_colour_stamps_apart(tmp_path: Path) -> None:
+    """An unusual name needs --depth-topic; colour 7 ms after depth still pairs, and its stamp is kept."""
+    info = sample_info()
+    frames = list(sample_frames(info, 3, seed=5))
+    path = tmp_path / "odd"
+    write_bag(path, info, frames, namespace="/cams/front/", color_offset_ns=7_000_000, depth_float=True,
+              compressed=True)
+    rec = open_recording(path, topics=TopicChoice(depth="/cams/front/depth/image_rect_raw/compressedDepth"))
+    got = list(rec.frames())
+    assert len(got) == 3 and all(f.color is not None for f in got)
+    assert got[1].metadata["stream_timestamps_ns"]["color"] == frames[1].timestamp_ns + 7_000_000
+    np.testing.assert_allclose(rec.info.depth_to_color.matrix, info.depth_to_color.matrix, atol=1e-12)
+    # 32FC1 through compressedDepth (inverse depth, quantised): within its step, rounded to 1 mm
+    a, b = frames[0].depth, got[0].depth
+    keep = (a > 200) & (a < 9000)
+    step_mm = (a[keep] / 1000.0) ** 2 / (100 * 101 / 1000.0)
+    assert np.all(np.abs(b[keep].astype(float) - a[keep]) <= step_mm + 1.0)
+
+
+def test_bag_without_depth_names_the_topics(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    path = tmp_path / "colour_only"
+    with Writer(path, version=8) as w:
+        c = w.add_connection("/camera/camera/color/image_raw", "sensor_msgs/msg/Image", typestore=ts)
+        T = ts.types
+        msg = T["sensor_msgs/msg/Image"](
+            header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0),
+                                            frame_id="x"),
+            height=1, width=1, encoding="rgb8", is_bigendian=0, step=3, data=np.zeros(3, np.uint8))
+        w.write(c, 10**9, ts.serialize_cdr(msg, "sensor_msgs/msg/Image"))
+    code, _, err = _cli(["capture", "info", str(path)], capsys)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "/camera/camera/color/image_raw" in lines[0] and "--depth-topic" in lines[0]
+    assert "Traceback" not in err
+    code, _, err = _cli(["capture", "info", str(path), "--depth-topic", "/nope"], capsys)
+    assert code == 2 and "/nope" in err and "/camera/camera/color/image_raw" in err
+
+
+def test_our_mcap_time_range_and_rewrite(simulated: dict[str, Any]) -> None:
+    """No message at 1970: the summary's range is the frames' span; a rosbags rewrite (the MCAP's
+    metadata records gone) still reads and evaluates identically."""
+    from mcap.reader import make_reader
+    from ros_bags import rewrite
+
+    rec = simulated["recs"][1]
+    stamps = [f.timestamp_ns for f in rec.frames()]
+    with rec.path.open("rb") as fh:
+        stats = make_reader(fh).get_summary().statistics
+    assert (stats.message_start_time, stats.message_end_time) == (min(stamps), max(stamps))
+    out = rewrite(rec.path, simulated["root"] / "rewritten")
+    again = open_recording(out)
+    assert type(again).__name__ == "RosRecording"
+    _same_geometry(rec, again)
+    assert [f.index for f in again.frames()] == [f.index for f in rec.frames()]
+    got = _row(again, simulated["board"])
+    for k in FIGURES:
+        assert got[k] == pytest.approx(simulated["rows"][1][k], rel=1e-6, abs=1e-9), k
+
+
+def test_export_rosbag2_and_db3_read_back(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    info = sample_info(infrared=True)
+    frames = list(sample_frames(info, 3, seed=6))
+    src = tmp_path / "a.mcap"
+    write_mcap(src, info, frames)
+    code, _, err = _cli(["capture", "export", str(src), "--to", "rosbag2", "--out", str(tmp_path / "ros")],
+                        capsys)
+    assert code == 0, err
+    bag = open_recording(tmp_path / "ros" / "a")
+    assert bag.metadata["source"]["topics"]["depth"] == "/camera/camera/depth/image_rect_raw"
+    assert bag.metadata["source"]["extrinsics"] == "/camera/camera/extrinsics/depth_to_color"
+    np.testing.assert_allclose(bag.info.depth_to_color.matrix, info.depth_to_color.matrix, atol=1e-12)
+    for a, b in zip(frames, bag.frames(), strict=True):
+        assert a.timestamp_ns == b.timestamp_ns
+        for k in ("depth", "color", "infrared"):
+            np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+    code, _, err = _cli(["capture", "export", str(src), "--to", "rosbag2", "--out", str(tmp_path / "ros")],
+                        capsys)
+    assert code == 2 and "not empty" in err  # never overwrites
+    # TUM: ORB-SLAM3's associations (rgb first, no comment), the infrared imager as 'rgb'
+    code, _, err = _cli(["capture", "export", str(src), "--to", "tum", "--out", str(tmp_path / "tum")],
+                        capsys)
+    assert code == 0, err
+    lines = (tmp_path / "tum" / "a" / "associations.txt").read_text().splitlines()
+    assert len(lines) == 3 and all(len(x.split()) == 4 and x.split()[1].startswith("rgb/") for x in lines)
+    import cv2
+
+    rgb = cv2.imread(str(tmp_path / "tum" / "a" / lines[0].split()[1]), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(rgb, frames[0].infrared)
+    if sys.modules.get("pyrealsense2") is None:
+        pytest.importorskip("pyrealsense2")
+    code, _, err = _cli(["capture", "export", str(src), "--to", "db3", "--out", str(tmp_path / "rs")], capsys)
+    assert code == 0, err
+    rs = open_recording(tmp_path / "rs" / "a.db3")
+    assert type(rs).__name__ == "RealsenseRecording"
+    np.testing.assert_array_equal(next(rs.frames()).depth, frames[0].depth)
+
+
+def _cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    """Run the console script's main() in-process: (exit code, stdout, stderr)."""
+    from depthstation.app import cli
+
+    old = sys.argv
+    sys.argv = ["depthstation", *args]
+    code = 0
+    try:
+        cli.main()
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    finally:
+        sys.argv = old
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
