@@ -69,7 +69,9 @@ def _say_warnings(found: list[RunWarning]) -> None:
 def main() -> None:
     """Entry point: one-line errors on stderr, exit 2 for bad input, 1 for other failures, 3 for
     warnings under --strict; every warning of the run is printed at the end, one line each."""
-    sys.exit(run_cli(sys.argv[1:]))
+    code = run_cli(sys.argv[1:])
+    if code:
+        sys.exit(code)
 
 
 def run_cli(argv: list[str]) -> int:
