@@ -16,12 +16,14 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from depthstation.core.camera_model import Intrinsics
 from depthstation.core.capture.registry import open_recording
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSource
 from depthstation.core.grid import PackedGrid, pack_grid, unpack_grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn
-from depthstation.evaluate.scan.raycast import MeshCaster
+from depthstation.evaluate.scan.rasterise import make_renderer
+from depthstation.evaluate.scan.raycast import FrameRenderer
 from depthstation.evaluate.scan.study import ChunkResult, FrameCallback, StudyConfig, evaluate_chunk
 from depthstation.evaluate.scan.trajectory import Trajectory
 
@@ -42,19 +44,30 @@ class ScanChunk:
 
 @dataclass
 class _WorkerCache:
-    """One open sequence and one mesh scene per worker process, reused by its following chunks:
+    """One open sequence and one renderer per worker process, reused by its following chunks:
     the mesh is loaded once per worker, not per chunk; only one of each is kept (bounded memory)."""
 
     source_key: object = None
     source: FrameSource | None = None
     mesh_key: object = None
-    caster: MeshCaster | None = None
+    caster: FrameRenderer | None = None
 
 
 _CACHE = _WorkerCache()
 
 
-def _context(chunk: ScanChunk) -> tuple[MeshCaster, FrameSource]:
+def renderer_for(mesh: str | Path, intr: Intrinsics, config: StudyConfig) -> FrameRenderer:
+    """The renderer of `config` over `mesh` for frames of `intr`, kept for the next chunks (and the
+    report's figure frame) of this process: the mesh is loaded and prepared once."""
+    key = (str(mesh), intr, config.nthreads, config.renderer)
+    if _CACHE.caster is None or _CACHE.mesh_key != key:
+        _CACHE.caster = None
+        _CACHE.caster = make_renderer(config.renderer, Path(mesh), intr, config.nthreads)
+        _CACHE.mesh_key = key
+    return _CACHE.caster
+
+
+def _context(chunk: ScanChunk) -> tuple[FrameRenderer, FrameSource]:
     source: FrameSource
     if isinstance(chunk.sequence, str):
         key: object = (chunk.sequence, chunk.intrinsics)
@@ -65,12 +78,7 @@ def _context(chunk: ScanChunk) -> tuple[MeshCaster, FrameSource]:
         source = _CACHE.source
     else:
         source = chunk.sequence
-    key_mesh = (chunk.mesh, source.info.depth_intrinsics, chunk.config.nthreads)
-    if _CACHE.caster is None or _CACHE.mesh_key != key_mesh:
-        _CACHE.caster = None
-        _CACHE.caster = MeshCaster(Path(chunk.mesh), source.info.depth_intrinsics, chunk.config.nthreads)
-        _CACHE.mesh_key = key_mesh
-    return _CACHE.caster, source
+    return renderer_for(chunk.mesh, source.info.depth_intrinsics, chunk.config), source
 
 
 def scan_chunk(chunk: ScanChunk) -> ChunkResult:
@@ -163,7 +171,7 @@ def run_scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajec
     if runner.in_process:
         open_source = source if source is not None else (
             sequence if not isinstance(sequence, Path) else open_recording(sequence, intrinsics=intrinsics))
-        caster = MeshCaster(Path(mesh), open_source.info.depth_intrinsics, config.nthreads)
+        caster = renderer_for(mesh, open_source.info.depth_intrinsics, config)
 
         def here(c: ScanChunk) -> ChunkResult:
             return evaluate_chunk(caster, open_source, c.trajectory, c.config, c.start, c.limit, on_frame)

@@ -10,6 +10,7 @@ from pathlib import Path
 import typer
 
 from depthstation.core.rerun_bridge import RerunTarget
+from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER
 from depthstation.evaluate.scan.run import ScanOptions, run_scan
 
 
@@ -58,6 +59,11 @@ def scan(
     poisson_depth: int = typer.Option(9, "--poisson-depth", help="Poisson octree depth for a cloud."),
     density_quantile: float = typer.Option(0.05, "--density-quantile",
                                            help="Drop Poisson vertices below this density quantile."),
+    renderer: str = typer.Option(DEFAULT_RENDERER, "--renderer",
+                                 help="Reference depth: 'raster' (the mesh rasterised into each frame, "
+                                      "bit for bit what ray casting gives, several times faster) or "
+                                      "'raycast' (Open3D ray casting, the reference implementation). "
+                                      "Streams with lens distortion are always ray cast."),
 ) -> None:
     """The reference-scan study (paper Section 3.2): per-pixel depth error against a TLS reference,
     gridded over distance x inclination."""
@@ -70,7 +76,8 @@ def scan(
                        distance_max_m=distance_max_m, min_count_frame=min_count_frame,
                        min_count_sequence=min_count_sequence, figure_frame=figure_frame,
                        intrinsics=intrinsics, poisson_depth=poisson_depth,
-                       density_quantile=density_quantile, target=RerunTarget(rrd, spawn, serve))
+                       density_quantile=density_quantile, renderer=renderer,
+                       target=RerunTarget(rrd, spawn, serve))
     s = run_scan(sequence, poses, reference, out, opts)
     reg = s["registration"]
     c2c = reg["mean_c2c_m"]

@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING, Any
 
 from depthstation.core.grid import GRID_FILE
 from depthstation.core.results import SUMMARY_FILE, write_json, write_result_info
+from depthstation.evaluate.scan.chunks import renderer_for
 from depthstation.evaluate.scan.figures import frame_figure, grid_figure
-from depthstation.evaluate.scan.raycast import MeshCaster
 from depthstation.evaluate.scan.study import ChunkResult, StudyConfig, evaluate_chunk, frame_images
 
 if TYPE_CHECKING:
@@ -28,11 +28,11 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
     figures: dict[str, str] = {}
     fig_index = (opt.figure_frame if opt.figure_frame is not None
                  else sorted(result.used)[len(result.used) // 2])
-    caster = MeshCaster(job.mesh_path, source.info.depth_intrinsics)
+    caster = renderer_for(job.mesh_path, source.info.depth_intrinsics, job.config)
     images = frame_images(caster, source, job.posed, fig_index, opt.tolerance_s)
     if images is not None:
         frame_cfg = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
-                                tolerance_s=opt.tolerance_s)
+                                tolerance_s=opt.tolerance_s, renderer=opt.renderer)
         one = evaluate_chunk(caster, source, job.posed, frame_cfg, fig_index, 1)
         figures["frame"] = str(frame_figure(images, out / "fig8_frame.png",
                                             f"frame {fig_index}: measured vs reference"))
@@ -60,6 +60,7 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
                  "min_count_frame": opt.min_count_frame, "min_count_sequence": opt.min_count_sequence},
         "figures": figures,
         "chunks": {"count": len(job.chunks), "frames_each": opt.chunk_frames},
+        "reference_depth": caster.describe(),
         "timing_s": {**job.seconds, "total": sum(job.seconds.values())},
     }
     write_json(out / SUMMARY_FILE, summary)

@@ -20,12 +20,12 @@ from numpy.typing import NDArray
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_recording
 from depthstation.core.errors import EvaluationError, InputError
-from depthstation.core.grid import Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn
 from depthstation.core.progress import progress
 from depthstation.core.rerun_bridge import RerunTarget, recording
 from depthstation.evaluate.scan import rerun_log
 from depthstation.evaluate.scan.chunks import ScanChunk, frames_to_read, run_scan_chunks, scan_chunks
+from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, check_renderer
 from depthstation.evaluate.scan.reference import PoissonParams, reference_mesh, sample_reference_points
 from depthstation.evaluate.scan.registration import Registration, read_pass_points, read_similarity, register
 from depthstation.evaluate.scan.report import write_scan
@@ -58,6 +58,7 @@ class ScanOptions:
     intrinsics: Path | None = None
     poisson_depth: int = 9
     density_quantile: float = 0.05
+    renderer: str = DEFAULT_RENDERER
     target: RerunTarget = field(default_factory=RerunTarget)
 
     def to_dict(self) -> dict[str, Any]:
@@ -70,6 +71,7 @@ class ScanOptions:
             raise InputError(None, "give either --similarity or --pass-points, not both")
         if self.every < 1 or self.workers < 1 or self.chunk_frames < 1:
             raise InputError(None, "--every, --workers and --chunk-frames must be at least 1")
+        check_renderer(self.renderer)
 
     @classmethod
     def from_mapping(cls, options: dict[str, Any], paths: dict[str, Path], source: Path | None,
@@ -147,7 +149,8 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     config = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
                          every=opt.every, max_frames=opt.frames, tolerance_s=opt.tolerance_s,
                          nthreads=0 if in_process else 1,
-                         per_frame_dir=out / PER_FRAME_DIR if opt.per_frame_grids else None)
+                         per_frame_dir=out / PER_FRAME_DIR if opt.per_frame_grids else None,
+                         renderer=opt.renderer)
     chunks = scan_chunks(Path(sequence), mesh_path, posed, config, chunk_frames=opt.chunk_frames,
                          intrinsics=opt.intrinsics, source=source)
     return ScanJob(Path(sequence), Path(poses), Path(reference), out, opt, source, traj, posed, reg,
@@ -164,7 +167,7 @@ def run_prepared(job: ScanJob, runner: ChunkRunner, *, rec: Any = None,
     with progress() as bar:
         task = bar.add_task("scan", total=total, status="")
 
-        def on_frame(index: int, grid: Grid, stats: NDArray[np.int64]) -> None:
+        def on_frame(index: int, stats: NDArray[np.int64]) -> None:
             bar.update(task, completed=index + 1, status=f"{int(stats[3])} px")
             rerun_log.log_frame(rec, index, stats)
 
