@@ -587,16 +587,74 @@ def _gather_normals(tid: Any, nrm: Any, out: Any) -> None:
             out[i, 2] = nrm[k, 2]
 
 
-def _morton_order(centroids: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Triangle order along a 3-D Morton (Z-order) curve of the centroids: neighbours stay together."""
-    lo = centroids.min(axis=0)
-    span = max(float((centroids.max(axis=0) - lo).max()), 1e-12)
-    q = np.clip(((centroids - lo) / span * 1023.0).astype(np.int64), 0, 1023)
-    code = np.zeros(len(q), np.int64)
-    for bit in range(10):
-        for axis in range(3):
-            code |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
-    return np.argsort(code, kind="stable")
+@numba.njit(cache=True, nogil=True)
+def _morton_codes(vx: Any, tri: Any) -> Any:
+    """3-D Morton (Z-order) code of each triangle's centroid, 10 bits per axis."""
+    m = tri.shape[0]
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    cen = np.empty((m, 3))
+    for s in range(m):
+        for ax in range(3):
+            c = (float(vx[tri[s, 0], ax]) + float(vx[tri[s, 1], ax]) + float(vx[tri[s, 2], ax])) / 3.0
+            cen[s, ax] = c
+            lo[ax] = min(lo[ax], c)
+            hi[ax] = max(hi[ax], c)
+    span = max(max(hi[0] - lo[0], hi[1] - lo[1]), max(hi[2] - lo[2], 1e-12))
+    code = np.zeros(m, np.int64)
+    for s in range(m):
+        c = 0
+        for ax in range(3):
+            q = min(max(int((cen[s, ax] - lo[ax]) / span * 1023.0), 0), 1023)
+            for bit in range(10):
+                c |= ((q >> bit) & 1) << (3 * bit + ax)
+        code[s] = c
+    return code
+
+
+@numba.njit(cache=True, nogil=True)
+def _prepare(vx: Any, tri: Any, cluster_size: int) -> Any:
+    """Per triangle (in cluster order) its unit normal and plane offset; per cluster its bounding
+    box and its own copy of its vertices, with the triangles' indices local to it."""
+    m = tri.shape[0]
+    nc = (m + cluster_size - 1) // cluster_size
+    unit_n = np.zeros((m, 3))
+    plane_d = np.zeros(m)
+    cl_start = np.empty(nc + 1, np.int64)
+    cl_lo = np.full((nc, 3), np.inf)
+    cl_hi = np.full((nc, 3), -np.inf)
+    cl_vstart = np.empty(nc + 1, np.int64)
+    lvx = np.empty((3 * m, 3), np.float32)
+    ltri = np.empty((m, 3), np.int32)
+    seen = np.full(vx.shape[0], -1, np.int64)
+    local = np.zeros(vx.shape[0], np.int32)
+    nv = 0
+    for cl in range(nc):
+        cl_start[cl] = cl * cluster_size
+        cl_vstart[cl] = nv
+        for s in range(cl * cluster_size, min(m, (cl + 1) * cluster_size)):
+            for k in range(3):
+                v = tri[s, k]
+                if seen[v] != cl:
+                    seen[v] = cl
+                    local[v] = nv - cl_vstart[cl]
+                    lvx[nv, 0], lvx[nv, 1], lvx[nv, 2] = vx[v, 0], vx[v, 1], vx[v, 2]
+                    nv += 1
+                ltri[s, k] = local[v]
+                for ax in range(3):
+                    cl_lo[cl, ax] = min(cl_lo[cl, ax], float(vx[v, ax]))
+                    cl_hi[cl, ax] = max(cl_hi[cl, ax], float(vx[v, ax]))
+            a, b, c = tri[s, 0], tri[s, 1], tri[s, 2]
+            e1x, e1y, e1z = float(vx[b, 0]) - vx[a, 0], float(vx[b, 1]) - vx[a, 1], float(vx[b, 2]) - vx[a, 2]
+            e2x, e2y, e2z = float(vx[c, 0]) - vx[a, 0], float(vx[c, 1]) - vx[a, 1], float(vx[c, 2]) - vx[a, 2]
+            nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+            nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if nn > 0.0:
+                unit_n[s, 0], unit_n[s, 1], unit_n[s, 2] = nx / nn, ny / nn, nz / nn
+                plane_d[s] = unit_n[s, 0] * vx[a, 0] + unit_n[s, 1] * vx[a, 1] + unit_n[s, 2] * vx[a, 2]
+    cl_start[nc] = m
+    cl_vstart[nc] = nv
+    return unit_n, plane_d, cl_start, cl_lo, cl_hi, cl_vstart, lvx[:nv].copy(), ltri
 
 
 class MeshRaster:
@@ -610,36 +668,17 @@ class MeshRaster:
     def __init__(self, vertices: NDArray[Any], triangles: NDArray[Any], cluster_size: int = CLUSTER_SIZE,
                  margin_scale: float = 1.0) -> None:
         vx = np.ascontiguousarray(vertices, dtype=np.float32)
-        tri = np.ascontiguousarray(triangles, dtype=np.int64).reshape(-1, 3)
+        tri = np.ascontiguousarray(triangles, dtype=np.int32).reshape(-1, 3)
         self.n_triangles = m = len(tri)
-        v64 = vx.astype(np.float64)
-        order = _morton_order(v64[tri].mean(axis=1)) if m else np.zeros(0, np.int64)
+        if m and (tri.min() < 0 or tri.max() >= len(vx)):
+            raise ValueError("triangle vertex index out of range")
+        order = np.argsort(_morton_codes(vx, tri), kind="stable") if m else np.zeros(0, np.int64)
         self.perm = np.ascontiguousarray(order.astype(np.int32))
-        tri = tri[order]
-        corners = v64[tri]  # M x 3 x 3
-        n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-        norm = np.linalg.norm(n, axis=1)
-        norm[norm == 0] = 1.0
-        self.unit_n = np.ascontiguousarray(n / norm[:, None])
-        self.plane_d = np.ascontiguousarray((self.unit_n * corners[:, 0]).sum(axis=1))
-        starts = np.arange(0, m, cluster_size)
-        self.cl_start = np.append(starts, m).astype(np.int64)
-        empty = np.zeros((0, 3))
-        self.cl_lo = np.ascontiguousarray(np.minimum.reduceat(corners.min(axis=1), starts) if m else empty)
-        self.cl_hi = np.ascontiguousarray(np.maximum.reduceat(corners.max(axis=1), starts) if m else empty)
-        # each cluster gets its own copy of its vertices (local indices), so a frame transforms
-        # each vertex of a kept cluster once
-        cluster = np.repeat(np.arange(len(starts)), np.diff(self.cl_start))
-        keys = (cluster[:, None] * len(vx) + tri).ravel()
-        uniq, inverse = np.unique(keys, return_inverse=True)
-        owner = uniq // max(len(vx), 1)
-        self.cl_vstart = np.searchsorted(owner, np.arange(len(starts) + 1)).astype(np.int64)
-        self.lvx = np.ascontiguousarray(vx[uniq % max(len(vx), 1)])
-        local = inverse.reshape(-1, 3) - self.cl_vstart[cluster][:, None]
-        self.ltri = np.ascontiguousarray(local.astype(np.int32))
+        (self.unit_n, self.plane_d, self.cl_start, self.cl_lo, self.cl_hi, self.cl_vstart, self.lvx,
+         self.ltri) = _prepare(vx, np.ascontiguousarray(tri[order]), cluster_size)
         self.margin_scale = float(margin_scale)
         self.vx = vx
-        self.tri = np.ascontiguousarray(triangles, dtype=np.int32).reshape(-1, 3)
+        self.tri = tri
         self.stats = np.zeros(4, np.int64)
         self._tie = np.zeros(0, np.bool_)
         self._scene: Any = None
