@@ -78,19 +78,30 @@ def _welford_cell(cells: Any, k: int, j: int, x: float) -> None:
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _fused_bin(t_hit: Any, normals: Any, rays: Any, inv_norm: Any, depth: Any, depth_scale: float,
                cells: Any, fcells: Any, per_frame: bool, d_lo: float, d_step: float, nd: int,
-               cos_edges: Any, i_lo: float, i_step: float, ni: int, stats: Any) -> None:
+               cos_edges: Any, i_lo: float, i_step: float, ni: int, stats: Any, kk: Any, jj: Any, ee: Any,
+               tk: Any, tj: Any, te: Any, start: Any, jstart: Any) -> None:
     """One frame: reference z, inclination, error, Welford into the cells (and the frame's);
     counts into stats.
 
     stats: [pixels, no_depth, no_hit, evaluated (hit and depth), binned]. inv_norm: 1/|ray| per
-    pixel (rotation keeps it, so it is computed once per camera).
+    pixel (rotation keeps it, so it is computed once per camera). Why in passes: a frame's
+    pixels land on cells all over the grid, and Welford updates in pixel order stalled on cache
+    misses. The binned pixels are sorted by cell (a stable two-pass counting sort, inclination bin
+    then distance bin, so every cell still sees its pixels in pixel order: the same floats) and
+    then added cell after cell, walking the grid's memory forwards. kk, jj, ee, tk, tj, te (one
+    per pixel), start (distance bins + 1) and jstart (inclination bins + 1) are scratch.
     """
     n = depth.shape[0]
     no_depth = 0
     no_hit = 0
     evaluated = 0
     binned = 0
+    for k in range(nd + 1):
+        start[k] = 0
+    for j in range(ni + 1):
+        jstart[j] = 0
     for i in range(n):
+        kk[i] = -1
         raw = depth[i]
         hit = np.isfinite(t_hit[i])
         if raw == 0:
@@ -112,11 +123,35 @@ def _fused_bin(t_hit: Any, normals: Any, rays: Any, inv_norm: Any, depth: Any, d
         j = _inclination_bin(c, cos_edges, i_lo, i_step, ni)
         if j < 0:
             continue
-        err = raw * depth_scale - z_ref
-        _welford_cell(cells, k, j, err)
-        if per_frame:
-            _welford_cell(fcells, k, j, err)
+        kk[i] = k
+        jj[i] = j
+        ee[i] = raw * depth_scale - z_ref
+        start[k + 1] += 1
+        jstart[j + 1] += 1
         binned += 1
+    for j in range(ni):
+        jstart[j + 1] += jstart[j]
+    for k in range(nd):
+        start[k + 1] += start[k]
+    for i in range(n):  # by inclination bin (values move with the key: the next pass reads in order)
+        if kk[i] >= 0:
+            j = jj[i]
+            q = jstart[j]
+            jstart[j] = q + 1
+            tk[q] = kk[i]
+            tj[q] = j
+            te[q] = ee[i]
+    for p in range(binned):  # then by distance bin, into kk, jj, ee
+        k = tk[p]
+        q = start[k]
+        start[k] = q + 1
+        kk[q] = k
+        jj[q] = tj[p]
+        ee[q] = te[p]
+    for q in range(binned):
+        _welford_cell(cells, kk[q], jj[q], ee[q])
+        if per_frame:
+            _welford_cell(fcells, kk[q], jj[q], ee[q])
     stats[0] += n
     stats[1] += no_depth
     stats[2] += no_hit
@@ -206,6 +241,7 @@ class FrameRenderer:
         self.dirs = pixel_rays(intr).reshape(-1, 3)
         self.inv_norm = (1.0 / np.linalg.norm(self.dirs.astype(np.float64), axis=1)).astype(np.float32)
         self.rays = np.empty((self.dirs.shape[0], 6), dtype=np.float32)
+        self._scratch: tuple[NDArray[Any], ...] | None = None
 
     def cast(self, pose: F64) -> tuple[F32, F32]:
         """(t_hit (inf = miss), unit normals) of every pixel for a camera-to-reference pose;
@@ -222,9 +258,16 @@ class FrameRenderer:
         t_hit, normals = self.cast(pose)
         fc = frame_cells if frame_cells is not None else cells
         d_lo, d_step, nd, i_lo, i_step, ni = cells.grid.bins
+        n = self.dirs.shape[0]
+        sc = self._scratch
+        if sc is None or sc[6].shape[0] != nd + 1 or sc[7].shape[0] != ni + 1:
+            self._scratch = (np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n), np.empty(n, np.int32),
+                             np.empty(n, np.int32), np.empty(n), np.empty(nd + 1, np.int64),
+                             np.empty(ni + 1, np.int64))
+        kk, jj, ee, tk, tj, te, start, jstart = self._scratch
         _fused_bin(t_hit, normals, self.rays, self.inv_norm, np.ascontiguousarray(depth).ravel(),
                    float(depth_scale), cells.cells, fc.cells, frame_cells is not None, d_lo, d_step, nd,
-                   cos_edges(cells.grid), i_lo, i_step, ni, stats)
+                   cos_edges(cells.grid), i_lo, i_step, ni, stats, kk, jj, ee, tk, tj, te, start, jstart)
 
     def images(self, pose: F64, depth: NDArray[Any], depth_scale: float) -> FrameImages:
         """The per-pixel maps of one frame (for figures and tests, not the hot loop)."""
