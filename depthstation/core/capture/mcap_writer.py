@@ -38,6 +38,10 @@ COLOR_FRAME_ID = "camera_color_optical_frame"
 INFRARED_FRAME_ID = "camera_infra1_optical_frame"
 
 COMPRESSIONS = ("none", "lz4", "zstd")
+# Chunk compression by default (docs/capture-format.md, "Compression", for the measurements):
+# simulated and imported captures are written offline, zstd makes them ~1.6x smaller than lz4
+# (~2x smaller than raw) and reads back at well over the studies' rates.
+SIMULATION_COMPRESSION = "zstd"
 
 
 def _json(value: Any) -> str:
