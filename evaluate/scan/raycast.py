@@ -261,10 +261,10 @@ class FrameRenderer:
         n = self.dirs.shape[0]
         sc = self._scratch
         if sc is None or sc[6].shape[0] != nd + 1 or sc[7].shape[0] != ni + 1:
-            self._scratch = (np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n), np.empty(n, np.int32),
-                             np.empty(n, np.int32), np.empty(n), np.empty(nd + 1, np.int64),
-                             np.empty(ni + 1, np.int64))
-        kk, jj, ee, tk, tj, te, start, jstart = self._scratch
+            sc = (np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n), np.empty(n, np.int32),
+                  np.empty(n, np.int32), np.empty(n), np.empty(nd + 1, np.int64), np.empty(ni + 1, np.int64))
+            self._scratch = sc
+        kk, jj, ee, tk, tj, te, start, jstart = sc
         _fused_bin(t_hit, normals, self.rays, self.inv_norm, np.ascontiguousarray(depth).ravel(),
                    float(depth_scale), cells.cells, fc.cells, frame_cells is not None, d_lo, d_step, nd,
                    cos_edges(cells.grid), i_lo, i_step, ni, stats, kk, jj, ee, tk, tj, te, start, jstart)
