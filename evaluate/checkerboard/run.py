@@ -7,6 +7,7 @@ One path for everyone: the command, `evaluate batch`, explain's real side and th
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -116,13 +117,16 @@ def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames:
         task = bar.add_task("checkerboard", total=total,
                             status="" if runner.in_process else f"{len(recs)} standpoints on workers")
         step = [0]
+        lock = threading.Lock()
 
         def frame_hook(r: Recording) -> Any:
             bar.update(task, status=r.name)
 
-            def on_frame(fs: FrameSet, res: FrameResult) -> None:
-                rerun_log.log_frame(rec, step[0], r.name, fs, res, r.info.depth_units_m)
-                step[0] += 1
+            def on_frame(fs: FrameSet, res: FrameResult) -> None:  # from the standpoints' threads
+                with lock:
+                    k = step[0]
+                    step[0] += 1
+                rerun_log.log_frame(rec, k, r.name, fs, res, r.info.depth_units_m)
                 bar.advance(task)
             return on_frame
 

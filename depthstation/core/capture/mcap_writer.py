@@ -38,9 +38,11 @@ COLOR_FRAME_ID = "camera_color_optical_frame"
 INFRARED_FRAME_ID = "camera_infra1_optical_frame"
 
 COMPRESSIONS = ("none", "lz4", "zstd")
-# Chunk compression by default (docs/capture-format.md, "Compression", for the measurements):
-# simulated and imported captures are written offline, zstd makes them ~1.6x smaller than lz4
-# (~2x smaller than raw) and reads back at well over the studies' rates.
+# Chunk compression by default (docs/capture-format.md, "Compression", has the measurements):
+# live capture and imports use lz4, which keeps 30 fps of 1280x720 depth + colour on two busy
+# cores with no drop and reads back at > 300 frame sets/s; simulated sequences are written
+# offline, where zstd (level 3) makes them ~1.6x smaller than lz4 (~2x smaller than raw).
+CAPTURE_COMPRESSION = "lz4"
 SIMULATION_COMPRESSION = "zstd"
 
 
