@@ -27,6 +27,7 @@ from depthstation.evaluate.checkerboard.chunks import (
     StandpointOptions,
     run_standpoints,
 )
+from depthstation.evaluate.checkerboard.figures import preload_plotting
 from depthstation.evaluate.checkerboard.frame import FrameResult
 from depthstation.evaluate.checkerboard.report import standpoint_row, write_study
 from depthstation.evaluate.checkerboard.study import StandpointResult
@@ -109,9 +110,13 @@ def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames:
                                                            collect_samples=collect_samples))
     target = target or RerunTarget()
     recs = job.recordings
+    # the figures' plotting library loads while the standpoints are evaluated (their threads
+    # spend their time in native code), not after them
+    threading.Thread(target=preload_plotting, daemon=True).start()
+    blueprint = rerun_log.study_blueprint() if target.enabled else None  # rerun loads only when used
     with ChunkRunner(workers, cluster) as runner, \
-            recording("depthstation_checkerboard", target, rerun_log.study_blueprint(),
-                      rerun_log.DESCRIPTION) as rec, progress() as bar:
+            recording("depthstation_checkerboard", target, blueprint, rerun_log.DESCRIPTION) as rec, \
+            progress() as bar:
         total = (sum(min(r.frame_count or frames, frames) for r in recs) if runner.in_process
                  else len(recs))
         task = bar.add_task("checkerboard", total=total,
