@@ -43,6 +43,7 @@ class GeometryMaps:
     edge_distance_px: F32  # HxW distance to the nearest depth edge (0.5 next to it; inf if none)
     intrinsics: Intrinsics
     cam_to_world: NDArray[np.float64]
+    cos_inc: F32 | None = None  # HxW cosine of the inclination (0 where nothing is hit)
 
     def context(self, baseline_m: float, time_s: float = 0.0, temperature_c: float = 40.0,
                 stereo: Intrinsics | None = None) -> PixelContext:
@@ -146,15 +147,17 @@ def edge_distance(z: F32, jump: float = EDGE_JUMP) -> F32:
 
 @njit(cache=True, nogil=True)
 def _geometry_maps(t_hit: Any, gids: Any, normals: Any, rays: Any, dirs: Any, rot: Any,
-                   surface_albedo: Any, z: Any, n_c: Any, inc: Any, gid: Any, pts: Any,
-                   albedo: Any) -> None:  # pragma: no cover
+                   surface_albedo: Any, z: Any, n_c: Any, inc: Any, cos_inc: Any, gid: Any, pts: Any,
+                   albedo: Any, want_inc: bool) -> None:  # pragma: no cover
     """Per pixel: z-depth, the normal in the camera frame turned to face the camera, inclination
-    (degrees), surface index, world hit point and the surface's albedo (NaN/-1 on a miss)."""
+    (degrees, when `want_inc`; its arccos is most of the pass) and its cosine, surface index,
+    world hit point and the surface's albedo (NaN/-1, cosine 0 on a miss)."""
     for i in range(t_hit.shape[0]):
         t = t_hit[i]
         if not np.isfinite(t):
             z[i] = np.nan
             inc[i] = np.nan
+            cos_inc[i] = 0.0
             gid[i] = -1
             albedo[i] = np.nan
             for k in range(3):
@@ -173,15 +176,17 @@ def _geometry_maps(t_hit: Any, gids: Any, normals: Any, rays: Any, dirs: Any, ro
             nc0, nc1, nc2, dot = -nc0, -nc1, -nc2, -dot
         n_c[i, 0], n_c[i, 1], n_c[i, 2] = nc0, nc1, nc2
         c = np.float32(min(max(-dot / np.sqrt(x * x + y * y + 1.0), 0.0), 1.0))
-        inc[i] = np.degrees(np.arccos(c))  # float32: the maps are float32
+        cos_inc[i] = c
+        inc[i] = np.degrees(np.arccos(c)) if want_inc else np.nan  # float32: the maps are float32
         for k in range(3):
             pts[i, k] = rays[i, k] + rays[i, 3 + k] * t
         albedo[i] = surface_albedo[g]
 
 
 def render_geometry(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any],
-                    rc: Any = None, edges: bool = True) -> GeometryMaps:
-    """Cast one ray per pixel centre and return the per-pixel truth of the view."""
+                    rc: Any = None, edges: bool = True, inclination: bool = True) -> GeometryMaps:
+    """Cast one ray per pixel centre and return the per-pixel truth of the view (`inclination`
+    False: `inclination_deg` stays NaN, `cos_inc` is filled, as shading needs no more)."""
     rc = rc if rc is not None else scene.raycasting_scene()
     pose = np.asarray(cam_to_world, dtype=np.float64)
     rays = camera_rays(intr, pose)
@@ -190,6 +195,7 @@ def render_geometry(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any],
     z = np.empty((h, w), np.float32)
     n_c = np.empty((h, w, 3), np.float32)
     inc = np.empty((h, w), np.float32)
+    cos_inc = np.empty((h, w), np.float32)
     gid = np.empty((h, w), np.int32)
     pts = np.empty((h, w, 3), np.float32)
     albedo = np.empty((h, w), np.float32)
@@ -198,14 +204,15 @@ def render_geometry(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any],
                    res["primitive_normals"].reshape(-1, 3), rays.reshape(-1, 6),
                    _pixel_rays(intr).reshape(-1, 3),
                    np.ascontiguousarray(pose[:3, :3]), surface_albedo, z.reshape(-1), n_c.reshape(-1, 3),
-                   inc.reshape(-1), gid.reshape(-1), pts.reshape(-1, 3), albedo.reshape(-1))
+                   inc.reshape(-1), cos_inc.reshape(-1), gid.reshape(-1), pts.reshape(-1, 3),
+                   albedo.reshape(-1), inclination)
     for i, s in enumerate(scene.surfaces):
         if s.board_face:
             m = gid == i
             if m.any():
                 albedo[m] = scene.board_albedo(pts[m, 0], pts[m, 1])
     edist = edge_distance(z) if edges else np.full(z.shape, np.inf, dtype=np.float32)
-    return GeometryMaps(z, n_c, inc, albedo, gid, pts, edist, intr, pose)
+    return GeometryMaps(z, n_c, inc, albedo, gid, pts, edist, intr, pose, cos_inc)
 
 
 def _shade(albedo: NDArray[Any], tint: NDArray[Any], cos_inc: NDArray[Any]) -> F32:
@@ -235,9 +242,10 @@ def render_color_linear(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[An
         map_v = (d[..., 1] * intr.fy + intr.ppy).astype(np.float32)
         return np.asarray(cv2.remap(ideal, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
                           dtype=np.float32)
-    g = render_geometry(scene, intr, cam_to_world, rc, edges=False)
+    g = render_geometry(scene, intr, cam_to_world, rc, edges=False, inclination=False)
     tints = np.array([s.tint for s in scene.surfaces] + [(0.0, 0.0, 0.0)], dtype=np.float32)
-    cos = np.cos(np.radians(np.nan_to_num(g.inclination_deg, nan=90.0)))
+    assert g.cos_inc is not None
+    cos = g.cos_inc
     alb = np.nan_to_num(g.albedo, nan=0.0)
     img = _shade(alb, tints[g.surface], cos)
     board_ids = [i for i, s in enumerate(scene.surfaces) if s.board_face]
