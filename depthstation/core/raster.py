@@ -26,7 +26,9 @@ with distortion the rays are not a grid and callers fall back to ray casting (`I
 
 from __future__ import annotations
 
+import copy
 import platform
+import threading
 from functools import cache
 from typing import Any
 
@@ -677,15 +679,23 @@ class MeshRaster:
         (self.unit_n, self.plane_d, self.cl_start, self.cl_lo, self.cl_hi, self.cl_vstart, self.lvx,
          self.ltri) = _prepare(vx, np.ascontiguousarray(tri[order]), cluster_size)
         self.margin_scale = float(margin_scale)
-        self.vx = vx
-        self.tri = tri
+        self._ties = _TieCaster(vx, tri)
+        self._buffers()
+
+    def _buffers(self) -> None:
+        """The per-instance scratch (one instance per thread; the mesh arrays are shared)."""
         self.stats = np.zeros(4, np.int64)
         self._tie = np.zeros(0, np.bool_)
-        self._scene: Any = None
-        self._nrm = np.zeros((max(m, 1), 3), np.float32)
-        nmax = int(np.diff(self.cl_vstart).max()) if m else 0
+        self._nrm = np.zeros((max(self.n_triangles, 1), 3), np.float32)
+        nmax = int(np.diff(self.cl_vstart).max()) if self.n_triangles else 0
         self._work = np.zeros((16, max(nmax, 16)))
         self._tab = np.zeros((6, 0))
+
+    def sibling(self) -> MeshRaster:
+        """The same prepared mesh (shared, read only) with its own buffers: for another thread."""
+        other = copy.copy(self)
+        other._buffers()
+        return other
 
     @classmethod
     def from_open3d(cls, mesh: Any, **kw: Any) -> MeshRaster:
@@ -729,17 +739,10 @@ class MeshRaster:
                       normals: NDArray[np.float32] | None) -> None:
         """Pixels whose ray meets two triangles at the same nearest depth (through a shared edge):
         which one ray casting reports depends on its tree, so those few rays are ray cast."""
-        if self._scene is None:
-            o3d = open3d()
-            mesh = o3d.t.geometry.TriangleMesh()
-            mesh.vertex.positions = o3d.core.Tensor(self.vx)
-            mesh.triangle.indices = o3d.core.Tensor(self.tri)
-            self._scene = o3d.t.geometry.RaycastingScene()
-            self._scene.add_triangles(mesh)
         dirs = pixel_rays(intr).reshape(-1, 3)[ties]
         rays = np.empty((ties.size, 6), np.float32)
         fill_rays(rays, np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(pose[:3, :3]), dirs)
-        ans = self._scene.cast_rays(open3d().core.Tensor(rays), nthreads=1)
+        ans = self._ties.cast(rays)
         t = ans["t_hit"].numpy()
         hit = np.isfinite(t)
         t_hit[ties] = t
@@ -753,6 +756,29 @@ class MeshRaster:
         if self._tab.shape[1] < n:
             self._tab = np.zeros((6, n))
         return self._tab
+
+
+class _TieCaster:
+    """Open3D's scene of the mesh, built when the first tie needs it, shared by siblings."""
+
+    def __init__(self, vx: NDArray[np.float32], tri: NDArray[np.int32]) -> None:
+        self.vx = vx
+        self.tri = tri
+        self.scene: Any = None
+        self.lock = threading.Lock()
+
+    def cast(self, rays: NDArray[np.float32]) -> Any:
+        with self.lock:  # the build, and Open3D's commit on the first cast, are not thread-safe
+            if self.scene is None:
+                o3d = open3d()
+                mesh = o3d.t.geometry.TriangleMesh()
+                mesh.vertex.positions = o3d.core.Tensor(self.vx)
+                mesh.triangle.indices = o3d.core.Tensor(self.tri)
+                scene = o3d.t.geometry.RaycastingScene()
+                scene.add_triangles(mesh)
+                scene.cast_rays(o3d.core.Tensor(rays[:1]), nthreads=1)
+                self.scene = scene
+        return self.scene.cast_rays(open3d().core.Tensor(rays), nthreads=1)
 
 
 @cache

@@ -27,7 +27,7 @@ from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet, FrameSource
 from depthstation.core.grid import PackedGrid, pack_grid, unpack_grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn
-from depthstation.evaluate.scan.rasterise import make_renderer
+from depthstation.evaluate.scan.rasterise import MeshRasteriser, make_renderer
 from depthstation.evaluate.scan.raycast import FrameRenderer
 from depthstation.evaluate.scan.study import ChunkResult, FrameCallback, StudyConfig, evaluate_chunk
 from depthstation.evaluate.scan.trajectory import Trajectory
@@ -228,9 +228,11 @@ def _run_here(source: FrameSource, mesh: str | Path, chunks: list[ScanChunk], co
     n = _threads(config, len(chunks))
     intr = source.info.depth_intrinsics
     renderers: Queue[FrameRenderer] = Queue()
-    renderers.put(renderer_for(mesh, intr, config))
+    base = renderer_for(mesh, intr, config)
+    renderers.put(base)
     for _ in range(n - 1):
-        renderers.put(make_renderer(config.renderer, Path(mesh), intr, config.nthreads))
+        renderers.put(base.sibling() if isinstance(base, MeshRasteriser)
+                      else make_renderer(config.renderer, Path(mesh), intr, config.nthreads))
     frames = iter(source.frames())
 
     def evaluate(c: ScanChunk, items: list[FrameSet]) -> ChunkResult:

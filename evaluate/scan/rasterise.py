@@ -41,10 +41,12 @@ class MeshRasteriser(FrameRenderer):
 
     name = "raster"
 
-    def __init__(self, mesh: Any, intr: Intrinsics) -> None:
+    def __init__(self, mesh: Any, intr: Intrinsics, raster: MeshRaster | None = None) -> None:
         super().__init__(intr)
-        vertices, triangles = mesh_arrays(mesh)
-        self.raster = MeshRaster(vertices, triangles)
+        if raster is None:
+            vertices, triangles = mesh_arrays(mesh)
+            raster = MeshRaster(vertices, triangles)
+        self.raster = raster
         n = self.dirs.shape[0]
         self._t = np.empty(n, np.float32)
         self._ids = np.empty(n, np.int32)
@@ -59,6 +61,10 @@ class MeshRasteriser(FrameRenderer):
 
     def describe(self) -> dict[str, Any]:
         return {"renderer": self.name, **arithmetic_report()}
+
+    def sibling(self) -> MeshRasteriser:
+        """Another renderer over the same prepared mesh (for another thread)."""
+        return MeshRasteriser(None, self.intr, self.raster.sibling())
 
 
 class _FallbackCaster(MeshCaster):
