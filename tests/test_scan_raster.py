@@ -183,3 +183,19 @@ def test_study_grid_is_the_same_with_either_renderer() -> None:
     assert np.array_equal(a.stats, b.stats)
     assert np.array_equal(a.grid.count, b.grid.count)
     assert np.array_equal(a.grid.mean, b.grid.mean) and np.array_equal(a.grid.m2, b.grid.m2)
+
+
+def test_unknown_renderer_is_a_one_line_input_error(tmp_path: Any) -> None:
+    import subprocess
+    from pathlib import Path
+
+    exe = str(Path(__file__).resolve().parents[1] / ".venv" / "bin" / "depthstation")
+    for name in ("seq.mcap", "poses.txt", "ref.ply"):
+        (tmp_path / name).write_text("x")
+    proc = subprocess.run([exe, "evaluate", "scan", "--sequence", str(tmp_path / "seq.mcap"), "--poses",
+                           str(tmp_path / "poses.txt"), "--reference", str(tmp_path / "ref.ply"),
+                           "--out", str(tmp_path / "out"), "--renderer", "embree"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == ["depthstation: error: unknown renderer 'embree' "
+                                                "(known: raster, raycast)"]
