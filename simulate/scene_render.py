@@ -19,7 +19,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from depthstation.core.camera_model import Intrinsics, pixel_rays
-from depthstation.core.raster import MeshRaster, fill_rays
+from depthstation.core.raster import MeshRaster, clip_polygon, fill_rays
 from depthstation.simulate.effects.base import PixelContext
 from depthstation.simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO, Scene
 
@@ -444,37 +444,6 @@ def _line(acc: NDArray[np.float64], h: int, x0: float, y0: float, x1: float,
 
 
 @njit(cache=True, nogil=True)
-def _clip(px: NDArray[np.float64], py: NDArray[np.float64], n: int, axis: int, bound: float,
-          keep_above: bool) -> int:  # pragma: no cover
-    """Sutherland-Hodgman: clip the polygon (px, py)[:n] in place to x or y >= / <= bound."""
-    ox = np.empty(n * 2 + 2)
-    oy = np.empty(n * 2 + 2)
-    m = 0
-    for i in range(n):
-        j = (i + 1) % n
-        ai = px[i] if axis == 0 else py[i]
-        aj = px[j] if axis == 0 else py[j]
-        ini = ai >= bound if keep_above else ai <= bound
-        inj = aj >= bound if keep_above else aj <= bound
-        if ini:
-            ox[m] = px[i]
-            oy[m] = py[i]
-            m += 1
-        if ini != inj:
-            t = (bound - ai) / (aj - ai)
-            ox[m] = px[i] + t * (px[j] - px[i])
-            oy[m] = py[i] + t * (py[j] - py[i])
-            if axis == 0:
-                ox[m] = bound
-            else:
-                oy[m] = bound
-            m += 1
-    px[:m] = ox[:m]
-    py[:m] = oy[:m]
-    return m
-
-
-@njit(cache=True, nogil=True)
 def _rasterize_quads(quads: NDArray[np.float64], fx: float, fy: float, ppx: float, ppy: float,
                      w: int, h: int, near: float) -> NDArray[np.float64]:  # pragma: no cover
     """Accumulation buffer (H x W+2) of camera-frame quads: near-clip, project, clip, rasterise."""
@@ -484,6 +453,8 @@ def _rasterize_quads(quads: NDArray[np.float64], fx: float, fy: float, ppx: floa
     cz = np.empty(16)
     px = np.empty(32)
     py = np.empty(32)
+    ox = np.empty(32)
+    oy = np.empty(32)
     for q in range(quads.shape[0]):
         # clip to z >= near in 3-D (a homography is only a polygon map in front of the camera)
         n = 0
@@ -505,13 +476,13 @@ def _rasterize_quads(quads: NDArray[np.float64], fx: float, fy: float, ppx: floa
         for i in range(n):
             px[i] = fx * cx[i] / cz[i] + ppx + 0.5
             py[i] = fy * cy[i] / cz[i] + ppy + 0.5
-        n = _clip(px, py, n, 0, 0.0, True)
+        n = clip_polygon(px, py, n, 0, 0.0, True, ox, oy)
         if n >= 3:
-            n = _clip(px, py, n, 0, float(w), False)
+            n = clip_polygon(px, py, n, 0, float(w), False, ox, oy)
         if n >= 3:
-            n = _clip(px, py, n, 1, 0.0, True)
+            n = clip_polygon(px, py, n, 1, 0.0, True, ox, oy)
         if n >= 3:
-            n = _clip(px, py, n, 1, float(h), False)
+            n = clip_polygon(px, py, n, 1, float(h), False, ox, oy)
         if n < 3:
             continue
         for i in range(n):

@@ -256,9 +256,12 @@ def _extent(pu: Any, pv: Any, n: int) -> tuple[float, float, float, float]:
 
 
 @numba.njit(inline="always")
-def _clip(pu: Any, pv: Any, n: int, axis: int, bound: float, keep_above: bool, cu: Any, cv: Any) -> int:
-    """Clip the convex polygon (pu, pv)[:n] in place to the half-plane coordinate >= bound
-    (keep_above) or <= bound along axis 0 (u) or 1 (v); returns the new vertex count."""
+def clip_polygon(pu: Any, pv: Any, n: int, axis: int, bound: float, keep_above: bool, cu: Any,
+                 cv: Any) -> int:
+    """Sutherland-Hodgman: clip the convex polygon (pu, pv)[:n] in place to the half-plane
+    coordinate >= bound (keep_above) or <= bound along axis 0 (u) or 1 (v); the new vertices on
+    the boundary get exactly `bound`. pu, pv and the scratch cu, cv hold at least n + 1 values
+    (a convex polygon gains at most one vertex). Returns the new count."""
     m = 0
     for k in range(n):
         l = k + 1 if k + 1 < n else 0
@@ -274,6 +277,10 @@ def _clip(pu: Any, pv: Any, n: int, axis: int, bound: float, keep_above: bool, c
             f = (bound - a) / (b - a)
             cu[m] = pu[k] + f * (pu[l] - pu[k])
             cv[m] = pv[k] + f * (pv[l] - pv[k])
+            if axis == 0:
+                cu[m] = bound
+            else:
+                cv[m] = bound
             m += 1
     for k in range(m):
         pu[k] = cu[k]
@@ -298,10 +305,10 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
         # a polygon reaching out of the image is clipped to it (widened by m): its box then
         # holds only lines that can meet pixels
         if umin < -m or umax > width - 1.0 + m or vmin < -m or vmax > height - 1.0 + m:
-            npoly = _clip(pu, pv, npoly, 0, -m, True, cu, cv)
-            npoly = _clip(pu, pv, npoly, 0, width - 1.0 + m, False, cu, cv)
-            npoly = _clip(pu, pv, npoly, 1, -m, True, cu, cv)
-            npoly = _clip(pu, pv, npoly, 1, height - 1.0 + m, False, cu, cv)
+            npoly = clip_polygon(pu, pv, npoly, 0, -m, True, cu, cv)
+            npoly = clip_polygon(pu, pv, npoly, 0, width - 1.0 + m, False, cu, cv)
+            npoly = clip_polygon(pu, pv, npoly, 1, -m, True, cu, cv)
+            npoly = clip_polygon(pu, pv, npoly, 1, height - 1.0 + m, False, cu, cv)
             if npoly == 0:
                 return 0, 0
             umin, umax, vmin, vmax = _extent(pu, pv, npoly)
