@@ -1,6 +1,14 @@
-"""Benchmark of the reference-scan study: the paper's workload (1334 frames of 640x480 against a
-mesh of >= 1 M triangles, target <= 60 s on 2 cores) and the nearest-neighbour approach the paper
-rejected (scipy cKDTree on the reference points), timed in the same run on a subset, as a ratio.
+"""Benchmark of the reference-scan study on the paper's workload (1334 frames of 640x480 against a
+mesh of >= 1 M triangles), in one run:
+
+1. Open3D ray casting alone (the reference renderer, both cores, rays prepared),
+2. the rasteriser alone (`--renderer raster`, one core per process) and its equality with (1),
+3. the whole study with each renderer (2 processes, chunks merged; the grids compared),
+4. the nearest-neighbour approach the paper rejected (scipy cKDTree on the reference points).
+
+Goals (issue 17): whole study <= 0.5 x Open3D's casting alone, >= 15 x faster than nearest
+neighbours, memory < 4 GiB. Wall times depend on what else runs on the machine; the CPU seconds
+(this process and its workers) and the ratios between runs of the same invocation do much less.
 
 Run by hand:  .venv/bin/python benchmarks/bench_scan.py [--frames 1334] [--distinct 32]
 Frames cycle over `--distinct` rendered depth images and poses (rendering 1334 frames would cost
@@ -46,8 +54,7 @@ def make_workload(frames: int, distinct: int, width: int, height: int) -> Any:
 
 
 def cpu_seconds() -> float:
-    """User + system CPU of this process and its reaped children: a figure that other load on a
-    shared machine does not inflate (wall time on 2 quiet cores is about cpu / 2 when parallel)."""
+    """User + system CPU of this process and its reaped children."""
     import resource
 
     a = resource.getrusage(resource.RUSAGE_SELF)
@@ -55,59 +62,86 @@ def cpu_seconds() -> float:
     return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
 
 
-def time_study(seq: Any, mesh_path: Path, workers: int, nthreads: int,
-               chunk: int) -> tuple[float, float, Any]:
+def _proc_stats(pid: int) -> tuple[float, float]:
+    """(CPU seconds, peak resident GiB) of a live process, from /proc."""
+    with Path(f"/proc/{pid}/stat").open() as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    peak = 0.0
+    with Path(f"/proc/{pid}/status").open() as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                peak = int(line.split()[1]) / 2**20
+    return cpu, peak
+
+
+def time_study(seq: Any, mesh_path: Path, workers: int, renderer: str, chunk: int) -> dict[str, Any]:
+    """The whole study (chunks on `workers` processes, merged): wall, CPU and peak memory of this
+    process plus its workers (read before the pool closes: forkserver workers are not our children)."""
     from depthstation.core.parallel import ChunkRunner
     from depthstation.evaluate.scan.chunks import run_scan_chunks
     from depthstation.evaluate.scan.study import StudyConfig
     from depthstation.evaluate.scan.trajectory import Trajectory
 
     traj = Trajectory(np.asarray(seq.timestamps_ns) * 1e-9, seq.poses)
-    config = StudyConfig(nthreads=nthreads)
-    c = cpu_seconds()
+    config = StudyConfig(nthreads=0 if workers == 1 else 1, renderer=renderer)
+    c0 = cpu_seconds()
     t = time.perf_counter()
     with ChunkRunner(workers) as runner:
         res = run_scan_chunks(seq, mesh_path, traj, config, runner, chunk_frames=chunk)
-    return time.perf_counter() - t, cpu_seconds() - c, res
+        wall = time.perf_counter() - t
+        pool = getattr(runner, "_pool", None)
+        pids = list(getattr(pool, "_processes", {}) or {})
+        worker = [_proc_stats(p) for p in pids]
+    cpu = cpu_seconds() - c0 + sum(c for c, _ in worker)
+    peak = _proc_stats(os.getpid())[1] + sum(m for _, m in worker)
+    return {"wall": wall, "cpu": cpu, "peak_gib": peak, "result": res}
 
 
-def time_breakdown(seq: Any, mesh: Any, n: int) -> tuple[float, float, float]:
-    """CPU seconds per frame (one thread) of ray filling + casting, and of the fused numba pass."""
-    from depthstation.core.grid import Grid
-    from depthstation.evaluate.scan.raycast import STAT_NAMES, MeshCaster, _fused_bin, cos_edges
-
-    caster = MeshCaster(mesh, seq.info.depth_intrinsics, 1)
-    grid = Grid.empty()
-    stats = np.zeros(len(STAT_NAMES), np.int64)
-    caster.bin_frame(seq.poses[0], seq.depth[0], seq.info.depth_units_m, grid, stats)
-    t_cast = t_fused = 0.0
+def time_renderer(renderer: Any, poses: Any, n: int) -> tuple[float, float]:
+    """(wall, CPU) seconds per frame of `renderer.cast` over n poses (one pass over the first 8
+    warms up: compiled kernels, and the rasteriser's scene for ties, built once per process)."""
+    for pose in poses[:8]:
+        renderer.cast(pose)
+    t = time.perf_counter()
+    c = time.process_time()
     for k in range(n):
-        t = time.process_time()
-        t_hit, normals = caster.cast(seq.poses[k])
-        t_cast += time.process_time() - t
-        t = time.process_time()
-        d_lo, d_step, nd, i_lo, i_step, ni = grid.bins
-        _fused_bin(t_hit, normals, caster.rays, caster.inv_norm, seq.depth[k].ravel(),
-                   seq.info.depth_units_m, grid.count, grid.mean, grid.m2, grid.count, grid.mean,
-                   grid.m2, False, d_lo, d_step, nd, cos_edges(grid), i_lo, i_step, ni, stats)
-        t_fused += time.process_time() - t
-    t = time.process_time()
-    part = grid.like()
-    grid.merge(part)
-    t_merge = time.process_time() - t
-    return t_cast / n, t_fused / n, t_merge
+        renderer.cast(poses[k % len(poses)])
+    return (time.perf_counter() - t) / n, (time.process_time() - c) / n
 
 
-def time_raycast_only(seq: Any, mesh: Any, n: int, nthreads: int) -> float:
-    """Open3D cast_rays alone (rays prepared), the floor under the study's time."""
+def compare_renderers(mesh: Any, seq: Any, n: int) -> dict[str, float]:
+    """Pixel by pixel, the rasteriser against Open3D's ray casting over n frames."""
+    from depthstation.core.lazy_open3d import open3d
+    from depthstation.evaluate.scan.rasterise import MeshRasteriser
     from depthstation.evaluate.scan.raycast import MeshCaster
 
-    caster = MeshCaster(mesh, seq.info.depth_intrinsics, nthreads)
-    caster.cast(seq.poses[0])
-    t = time.perf_counter()
+    o3d = open3d()
+    intr = seq.info.depth_intrinsics
+    caster = MeshCaster(mesh, intr, 0)
+    raster = MeshRasteriser(mesh, intr)
+    tot = {"pixels": 0, "hit_agree": 0, "both_hit": 0, "t_equal": 0, "triangle_equal": 0, "normal_equal": 0}
+    max_dt = 0.0
     for k in range(n):
-        caster.cast(seq.poses[k])
-    return (time.perf_counter() - t) / n
+        pose = seq.poses[k % len(seq.poses)]
+        t_r, n_r = raster.cast(pose)
+        ids_r = raster._ids.copy()
+        caster.cast(pose)
+        ans = caster.scene.cast_rays(o3d.core.Tensor.from_numpy(caster.rays), nthreads=0)
+        t_c = ans["t_hit"].numpy()
+        ids_c = np.where(np.isfinite(t_c), ans["primitive_ids"].numpy().astype(np.int64), -1)
+        n_c = ans["primitive_normals"].numpy()
+        hit_r, hit_c = ids_r >= 0, ids_c >= 0
+        both = hit_r & hit_c
+        tot["pixels"] += t_c.size
+        tot["hit_agree"] += int(np.sum(hit_r == hit_c))
+        tot["both_hit"] += int(both.sum())
+        tot["t_equal"] += int(np.sum(t_r[both] == t_c[both]))
+        tot["triangle_equal"] += int(np.sum(ids_r[both] == ids_c[both]))
+        tot["normal_equal"] += int(np.sum(np.all(n_r[both] == n_c[both], axis=1)))
+        if both.any():
+            max_dt = max(max_dt, float(np.abs(t_r[both].astype(np.float64) - t_c[both]).max()))
+    return {**tot, "max_abs_dt_m": max_dt}
 
 
 def time_kdtree(seq: Any, mesh: Any, n: int, points: int) -> tuple[float, float, float]:
@@ -131,7 +165,7 @@ def time_kdtree(seq: Any, mesh: Any, n: int, points: int) -> tuple[float, float,
     y = ((v - intr.ppy) / intr.fy).ravel()
     grid = Grid.empty()
     t = time.perf_counter()
-    c0 = time.process_time()
+    c0 = cpu_seconds()
     for k in range(n):
         pose = seq.poses[k]
         z = seq.depth[k].ravel() * seq.info.depth_units_m
@@ -145,7 +179,7 @@ def time_kdtree(seq: Any, mesh: Any, n: int, points: int) -> tuple[float, float,
         ray = pc_cam / np.linalg.norm(pc_cam, axis=1, keepdims=True)
         inc = np.degrees(np.arccos(np.clip(np.abs((n_cam * ray).sum(1)), 0, 1)))
         grid.add(z_ref, inc, z[ok] - z_ref)
-    return (time.perf_counter() - t) / n, t_build, (time.process_time() - c0) / n
+    return (time.perf_counter() - t) / n, t_build, (cpu_seconds() - c0) / n
 
 
 def main() -> None:
@@ -156,67 +190,100 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--subdivide", type=int, default=8, help="wall subdivisions (12 * 4^n triangles)")
     ap.add_argument("--segments", type=int, default=100_000, help="table segments (3 triangles each)")
+    ap.add_argument("--render-frames", type=int, default=40, help="frames for the renderers alone")
     ap.add_argument("--kdtree-frames", type=int, default=20)
     ap.add_argument("--kdtree-points", type=int, default=2_000_000)
-    ap.add_argument("--skip", default="", help="comma list of runs to skip: w1,w2,cast,kdtree")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--skip", default="",
+                    help="comma list of runs to skip: alone,compare,raster,raster-w1,raycast,kdtree")
     args = ap.parse_args()
     skip = set(filter(None, args.skip.split(",")))
 
     from depthstation.core.lazy_open3d import open3d
+    from depthstation.core.raster import arithmetic_report
+    from depthstation.evaluate.scan.rasterise import MeshRasteriser
+    from depthstation.evaluate.scan.raycast import MeshCaster
 
     o3d = open3d()
-    print(f"cpus available: {len(os.sched_getaffinity(0))}")
+    load = os.getloadavg()
+    print(f"cpus available: {len(os.sched_getaffinity(0))}; "
+          f"load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")
     t = time.perf_counter()
     _, mesh = build_mesh(args.subdivide, args.segments)
     seq = make_workload(args.frames, args.distinct, args.width, args.height)
     tmp = Path(tempfile.mkdtemp(prefix="bench_scan_"))
     mesh_path = tmp / "mesh.ply"
     o3d.io.write_triangle_mesh(str(mesh_path), mesh)
-    rays = args.frames * args.width * args.height
+    px = args.width * args.height
+    rays = args.frames * px
     print(f"mesh: {len(mesh.triangles):,} triangles; workload: {args.frames} frames of "
-          f"{args.width}x{args.height} = {rays / 1e6:.0f} M rays (setup {time.perf_counter() - t:.1f} s)")
+          f"{args.width}x{args.height} = {rays / 1e6:.0f} M rays (setup {time.perf_counter() - t:.1f} s); "
+          f"rasteriser arithmetic: {arithmetic_report()}")
 
-    cast_s = None
-    cpu_frame = None
-    if "breakdown" not in skip:
-        bc, bf, bm = time_breakdown(seq, mesh, 10)
-        cpu_frame = bc + bf
-        px = args.width * args.height
-        print(f"per frame, one thread (CPU): rays + cast {bc * 1000:.1f} ms ({px / bc / 1e6:.1f} M rays/s), "
-              f"fused z/inclination/error/Welford {bf * 1000:.1f} ms ({px / bf / 1e6:.0f} M px/s); "
-              f"one full-grid merge {bm * 1000:.1f} ms")
-        print(f"  -> CPU-bound projection for the workload on 2 quiet cores: "
-              f"{(bc + bf) * args.frames / 2:.1f} s")
-    if "cast" not in skip:
-        cast_s = time_raycast_only(seq, mesh, 20, 0)
-        print(f"ray casting alone (nthreads=0): {args.width * args.height / cast_s / 1e6:.1f} M rays/s "
-              f"-> {cast_s * args.frames:.1f} s for the workload")
-    results: dict[str, tuple[float, Any]] = {}
-    for name, workers, nthreads in (("w2", 2, 1), ("w1", 1, 0)):
-        if name in skip:
+    cast_wall = None
+    if "alone" not in skip:
+        n = args.render_frames
+        cw, cc = time_renderer(MeshCaster(mesh, seq.info.depth_intrinsics, 0), seq.poses, n)
+        rw, rc = time_renderer(MeshRasteriser(mesh, seq.info.depth_intrinsics), seq.poses, n)
+        cast_wall = cw * args.frames
+        print(f"Open3D ray casting alone (nthreads=0, {n} frames): {cw * 1000:.1f} ms/frame wall, "
+              f"{cc * 1000:.1f} ms CPU -> {cast_wall:.1f} s for the workload ({px / cw / 1e6:.1f} M rays/s)")
+        print(f"rasteriser alone (one thread, {n} frames): {rw * 1000:.1f} ms/frame wall, "
+              f"{rc * 1000:.1f} ms CPU -> {rw * args.frames / 2:.1f} s for the workload on 2 cores; "
+              f"{cc / rc:.2f}x less CPU than ray casting")
+    if "compare" not in skip:
+        cmp = compare_renderers(mesh, seq, min(args.distinct, 32))
+        b = max(cmp["both_hit"], 1)
+        print(f"rasteriser vs ray casting, {cmp['pixels']:,} pixels: hit/miss agree "
+              f"{cmp['hit_agree'] / cmp['pixels']:.6%}; where both hit: depth bit-equal "
+              f"{cmp['t_equal'] / b:.6%} "
+              f"(max |dt| {cmp['max_abs_dt_m']:.2g} m), same triangle {cmp['triangle_equal'] / b:.6%}, "
+              f"same normal {cmp['normal_equal'] / b:.6%}")
+    studies: dict[str, dict[str, Any]] = {}
+    runs = [("raster", args.workers), ("raster", 1), ("raycast", args.workers)]
+    for renderer, workers in runs:
+        key = renderer if workers == args.workers else f"{renderer}-w{workers}"
+        if renderer in skip or key in skip:
             continue
-        secs, cpu, res = time_study(seq, mesh_path, workers, nthreads, chunk=64)
-        results[name] = (secs, res)
-        label = f"{workers} process{'es' if workers > 1 else ''} x nthreads={nthreads or 'auto'}"
-        print(f"study, {label}: {secs:.1f} s wall, {args.frames / secs:.1f} frames/s, "
-              f"{rays / secs / 1e6:.1f} M rays/s, {res.grid.total:,} samples binned "
-              f"[{'PASS' if secs <= 60 else 'over'} 60 s target]; CPU {cpu:.1f} s "
-              f"(= {cpu / 2:.1f} s on 2 quiet cores, {rays / (cpu / 2) / 1e6:.1f} M rays/s)")
-    if "w1" in results and "w2" in results:
-        a, b = results["w1"][1].grid, results["w2"][1].grid
-        same = np.array_equal(a.count, b.count) and np.allclose(a.mean, b.mean, rtol=0, atol=1e-12)
-        print(f"1 process vs 2 processes merged: counts equal and means within 1e-12 m: {same}")
+        s = time_study(seq, mesh_path, workers, renderer, chunk=64)
+        studies[key] = s
+        res = s["result"]
+        vs = f"; {s['wall'] / cast_wall:.2f}x Open3D's casting alone" if cast_wall else ""
+        one = "1 process, a thread per core" if renderer == "raster" else "1 process"
+        how = f"{workers} processes" if workers > 1 else one
+        print(f"whole study, --renderer {renderer}, {how}: {s['wall']:.1f} s wall "
+              f"({args.frames / s['wall']:.1f} frames/s{vs}), CPU {s['cpu']:.1f} s "
+              f"(= {s['cpu'] / 2:.1f} s on 2 quiet cores), peak memory {s['peak_gib']:.2f} GiB, "
+              f"{res.grid.total:,} samples binned")
+    if "raster-w1" in studies and "raster" in studies:
+        a, b2 = studies["raster-w1"]["result"].grid, studies["raster"]["result"].grid
+        print(f"1 process vs {args.workers} processes: counts equal {np.array_equal(a.count, b2.count)}, "
+              f"means within 1e-12 m {bool(np.allclose(a.mean, b2.mean, rtol=0, atol=1e-12))}")
+    if "raster" in studies and "raycast" in studies:
+        a, b2 = studies["raster"]["result"].grid, studies["raycast"]["result"].grid
+        same = np.array_equal(a.count, b2.count)
+        both = (a.count > 0) & (b2.count > 0)
+        dm = float(np.abs(a.mean[both] - b2.mean[both]).max()) if both.any() else 0.0
+        bit = same and np.array_equal(a.mean, b2.mean) and np.array_equal(a.m2, b2.m2)
+        ra, rc_ = studies["raster"], studies["raycast"]
+        print(f"grids of the two studies: counts equal {same}, max |mean difference| per cell {dm:.3g} m, "
+              f"bit-identical {bit}; raster study {rc_['wall'] / ra['wall']:.2f}x faster in wall time, "
+              f"{rc_['cpu'] / ra['cpu']:.2f}x less CPU")
     if "kdtree" not in skip:
-        best = min((s for s, _ in results.values()), default=None)
-        per_frame_rc = best / args.frames if best is not None else (cast_s or cpu_frame or float("nan"))
+        raster_runs = [v for k, v in studies.items() if k.startswith("raster")]
+        best = min(raster_runs, key=lambda v: v["wall"]) if raster_runs else studies.get("raycast")
         kd, build, kd_cpu = time_kdtree(seq, mesh, args.kdtree_frames, args.kdtree_points)
-        print(f"nearest neighbour (cKDTree, {args.kdtree_points:,} points, build {build:.1f} s): "
-              f"{kd * 1000:.0f} ms/frame wall vs ray casting study {per_frame_rc * 1000:.0f} ms/frame "
-              f"-> {kd / per_frame_rc:.1f}x slower ({args.kdtree_frames} frames; whole workload "
-              f"~{kd * args.frames:.0f} s)")
-        if cpu_frame is not None:
-            print(f"  in CPU time: cKDTree {kd_cpu * 1000:.0f} ms/frame vs ray cast + fused pass "
-                  f"{cpu_frame * 1000:.0f} ms/frame -> {kd_cpu / cpu_frame:.1f}x")
+        if best is not None:
+            per_frame = best["wall"] / args.frames
+            per_frame_cpu = best["cpu"] / args.frames
+            print(f"nearest neighbour (cKDTree, {args.kdtree_points:,} points, build {build:.1f} s): "
+                  f"{kd * 1000:.0f} ms/frame wall vs the whole study {per_frame * 1000:.1f} ms/frame -> "
+                  f"{kd / per_frame:.1f}x slower ({args.kdtree_frames} frames; whole workload "
+                  f"~{kd * args.frames:.0f} s); in CPU {kd_cpu * 1000:.0f} vs "
+                  f"{per_frame_cpu * 1000:.1f} ms/frame "
+                  f"-> {kd_cpu / per_frame_cpu:.1f}x")
+    load = os.getloadavg()
+    print(f"load average at the end {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")
 
 
 if __name__ == "__main__":

@@ -3,6 +3,11 @@
 Run: .venv/bin/python benchmarks/bench_simulate.py [--frames 150] [--standpoint standpoint_07]
 Prints the time of each stage, the frame rate, and the ratio to the 10 s budget, for
 (a) rendering the frames only and (b) the whole `simulate_checkerboard` call writing the MCAP.
+
+`--scan [--frames 1257]`: `simulate scan` of the walk round the room's table (640x480 depth +
+colour, the rasteriser, zstd chunks) as a whole call: frames/s (target >= 30 on 2 cores) and the
+file size, against the same frames written as before (lz4 chunks; `--baseline-frames` of them,
+size scaled to the walk).
 """
 
 from __future__ import annotations
@@ -20,7 +25,12 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--standpoint", default="standpoint_07")  # 3.4 m, frontal
     ap.add_argument("--compression", default="lz4")
+    ap.add_argument("--scan", action="store_true", help="simulate scan of the walk instead")
+    ap.add_argument("--baseline-frames", type=int, default=200, help="--scan: frames written with lz4")
     args = ap.parse_args()
+    if args.scan:
+        scan(args.frames if args.frames != 150 else 1257, args.baseline_frames)
+        return
 
     t0 = time.perf_counter()
     import open3d  # noqa: F401  (import cost reported apart)
@@ -87,6 +97,40 @@ def main() -> None:
           f"fully serial: (a) {cpu_a:.2f} s, (b) {cpu_b:.2f} s")
     print(f"machine load average (1 min): {__import__('os').getloadavg()[0]:.1f} on "
           f"{__import__('os').cpu_count()} cores (other work slows every figure)")
+
+
+def scan(frames: int, baseline_frames: int) -> None:
+    """`simulate_scan` of the walk as a whole call, and its file against lz4 chunks (before)."""
+    import os
+    import resource
+
+    from depthstation.simulate.scan_sequence import simulate_scan
+
+    def cpu() -> float:
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+
+    with tempfile.TemporaryDirectory() as tmp:
+        simulate_scan("room", "walk", "d455", Path(tmp) / "warm", frames=2)  # compiled kernels, imports
+        t = time.perf_counter()
+        c = cpu()
+        out = simulate_scan("room", "walk", "d455", Path(tmp) / "walk", frames=frames)
+        wall = time.perf_counter() - t
+        c = cpu() - c
+        size = (out / "sequence.mcap").stat().st_size
+        t = time.perf_counter()
+        old = simulate_scan("room", "walk", "d455", Path(tmp) / "lz4", frames=baseline_frames,
+                            compression="lz4", threads=1)
+        t_old = time.perf_counter() - t
+        old_size = (old / "sequence.mcap").stat().st_size * frames / baseline_frames
+    print(f"simulate scan, {frames} frames 640x480 depth + colour (rasteriser, 2 renderers, zstd chunks): "
+          f"{wall:.1f} s wall = {frames / wall:.1f} frames/s (target 30 -> ratio {frames / wall / 30:.2f}); "
+          f"CPU {c:.1f} s ({frames / c * 2:.1f} frames/s if spread over 2 cores)")
+    print(f"file {size / 1e6:.0f} MB vs {old_size / 1e6:.0f} MB with lz4 chunks (the former default; "
+          f"{baseline_frames} frames written, scaled): {old_size / size:.2f}x smaller "
+          f"({size / frames / 1e3:.0f} vs {old_size / frames / 1e3:.0f} kB per frame set); raw frame sets "
+          f"are {(640 * 480 * 5) / 1e3:.0f} kB; lz4 run {baseline_frames / t_old:.1f} frames/s on one thread")
+    print(f"machine load average (1 min): {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
 
 if __name__ == "__main__":

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
+from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -10,6 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from depthstation.core.capture.mcap_writer import SIMULATION_COMPRESSION
 from depthstation.core.capture.session import Session
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
@@ -20,6 +24,7 @@ from depthstation.simulate.checkerboard_session import START_NS, TRUTH_FILE, WAR
 from depthstation.simulate.model import SensorModel, load_model
 from depthstation.simulate.poses import read_tum, walk_around, write_tum
 from depthstation.simulate.scene import Scene, load_scene
+from depthstation.simulate.scene_render import SceneRaster
 from depthstation.simulate.view_renderer import ViewRenderer
 
 SEQUENCE_NAME = "sequence"
@@ -43,11 +48,12 @@ def scan_trajectory(trajectory: str | Path, scene: Scene, fps: float,
 def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: SensorModel | str | Path,
                   out_dir: Path, *, seed: int = 0, frames: int | None = None, width: int = 640,
                   height: int = 480, fps: float = 30.0, color: bool = True, progress: bool = False,
-                  compression: str = "lz4") -> Path:
+                  compression: str = SIMULATION_COMPRESSION, threads: int | None = None) -> Path:
     """Render a sequence along a trajectory into a capture session; returns out_dir.
 
     out_dir gets session.json + sequence.mcap (our format), trajectory.txt (true depth-camera
     poses, TUM, what ORB-SLAM3 would estimate), scene.ply (the reference mesh) and truth.json.
+    `threads`: frames rendered side by side (default: up to 2, the cores this process may use).
     """
 
     mdl = load_model(model)
@@ -66,7 +72,18 @@ def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: Sens
                              scan={"scene": sc.meta, "trajectory": str(trajectory)})
     write_tum(out / TRAJECTORY_FILE, START_NS / 1e9 + stamps, poses)  # the frames' epoch time stamps
     sc.save_mesh(out / MESH_FILE)
-    renderer = ViewRenderer(sc, mdl, info, seed=seed, color=color)
+    # the room is rasterised (the hits ray casting would give, several times faster); frames are
+    # rendered by `threads` renderers side by side (the kernels release the GIL); every frame
+    # depends only on its pose, index and the seed, so the sequence is the same for any count
+    n_threads = max(1, threads if threads is not None else min(2, len(os.sched_getaffinity(0))))
+    renderers = [ViewRenderer(sc, mdl, info, seed=seed, color=color, rc=SceneRaster(sc))
+                 for _ in range(n_threads)]
+
+    def render(i: int) -> FrameSet:
+        r = renderers[i % n_threads]
+        r.set_pose(poses[i])
+        stamp = START_NS + round(float(stamps[i]) * 1e9)
+        return r.frame(i, stamp, float(stamps[i]), WARM_TEMPERATURE_C, rng=np.random.default_rng([seed, i]))
 
     def gen() -> Iterator[FrameSet]:
         bar = None
@@ -75,15 +92,22 @@ def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: Sens
             bar = make_progress()
             bar.start()
             task = bar.add_task("simulate scan", total=len(poses), status="")
+        pools = [ThreadPoolExecutor(1) for _ in range(n_threads)]
         try:
-            for i, (t, pose) in enumerate(zip(stamps, poses, strict=True)):
-                renderer.set_pose(pose)
-                rng = np.random.default_rng([seed, i])
-                stamp = START_NS + round(float(t) * 1e9)
-                yield renderer.frame(i, stamp, float(t), WARM_TEMPERATURE_C, rng=rng)
+            pending: deque[Future[FrameSet]] = deque()
+            for i in range(len(poses)):
+                pending.append(pools[i % n_threads].submit(render, i))
+                if len(pending) >= 2 * n_threads:
+                    yield pending.popleft().result()
+                    if bar is not None:
+                        bar.advance(task)
+            while pending:
+                yield pending.popleft().result()
                 if bar is not None:
                     bar.advance(task)
         finally:
+            for p in pools:
+                p.shutdown(wait=True, cancel_futures=True)
             if bar is not None:
                 bar.stop()
 

@@ -1,13 +1,16 @@
 """Ray casting of a scene into per-pixel truth: z-depth, normal, inclination, albedo, edges; colour and IR.
 
 Rays go through pixel centres at integer (u, v) (librealsense convention; Open3D's own
-create_rays_pinhole adds 0.5, so the rays are built here). Directions have z = 1 in the camera
-frame, so the hit parameter t of RaycastingScene is the z-depth itself.
+create_rays_pinhole adds 0.5, so the rays are built here, by `core.raster.fill_rays`). Directions
+have z = 1 in the camera frame, so the hit parameter t of RaycastingScene is the z-depth itself.
+A `SceneRaster` (the scene's mesh rasterised, `core.raster`) gives the same hits as Open3D's ray
+casting for pinhole views at a fraction of the cost; `simulate scan` renders its frames with it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import cv2
@@ -16,6 +19,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from depthstation.core.camera_model import Intrinsics, pixel_rays
+from depthstation.core.raster import MeshRaster, clip_polygon, fill_rays
 from depthstation.simulate.effects.base import PixelContext
 from depthstation.simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO, Scene
 
@@ -39,6 +43,7 @@ class GeometryMaps:
     edge_distance_px: F32  # HxW distance to the nearest depth edge (0.5 next to it; inf if none)
     intrinsics: Intrinsics
     cam_to_world: NDArray[np.float64]
+    cos_inc: F32 | None = None  # HxW cosine of the inclination (0 where nothing is hit)
 
     def context(self, baseline_m: float, time_s: float = 0.0, temperature_c: float = 40.0,
                 stereo: Intrinsics | None = None) -> PixelContext:
@@ -62,18 +67,60 @@ class GeometryMaps:
                             baseline_m=baseline_m)
 
 
+@lru_cache(maxsize=8)
+def _pixel_rays(intr: Intrinsics) -> F32:
+    """`pixel_rays` of a stream, computed once (every view of a sequence needs them); read-only."""
+    d = pixel_rays(intr)
+    d.setflags(write=False)
+    return d
+
+
 def camera_rays(intr: Intrinsics, cam_to_world: NDArray[Any]) -> F32:
     """HxWx6 world rays (origin, direction with camera-frame z = 1) through the pixel centres."""
     pose = np.asarray(cam_to_world, dtype=np.float64)
-    d = pixel_rays(intr)
-    r = pose[:3, :3].astype(np.float32)
     rays = np.empty((intr.height, intr.width, 6), dtype=np.float32)
-    rays[..., :3] = pose[:3, 3]
-    rays[..., 3:] = d @ r.T
+    fill_rays(rays.reshape(-1, 6), np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(pose[:3, :3]),
+              _pixel_rays(intr).reshape(-1, 3))
     return rays
 
 
-def _cast(rc: Any, rays: F32) -> dict[str, NDArray[Any]]:
+class SceneRaster:
+    """The scene's surfaces as one rasterised mesh (`core.raster.MeshRaster`): for a pinhole view
+    the hits Open3D's ray casting gives (geometry id = surface index), for a view with lens
+    distortion the rays are cast by an Open3D scene built when first needed."""
+
+    def __init__(self, scene: Scene) -> None:
+        verts, tris, off = [], [], 0
+        for s in scene.surfaces:
+            verts.append(np.asarray(s.vertices, dtype=np.float64))
+            tris.append(np.asarray(s.triangles, dtype=np.int64) + off)
+            off += len(s.vertices)
+        self.scene = scene
+        self.raster = MeshRaster(np.concatenate(verts), np.concatenate(tris))
+        self.surface_of = np.repeat(np.arange(len(scene.surfaces), dtype=np.int64),
+                                    [len(t) for t in tris]).astype(np.uint32)
+        self._rc: Any = None
+
+    def cast(self, intr: Intrinsics, cam_to_world: NDArray[Any], rays: F32) -> dict[str, NDArray[Any]]:
+        """t_hit, geometry_ids and primitive_normals of `rays` (= camera_rays(intr, cam_to_world))."""
+        if intr.has_distortion:
+            if self._rc is None:
+                self._rc = self.scene.raycasting_scene()
+            return _cast(self._rc, intr, cam_to_world, rays)
+        n = intr.width * intr.height
+        t = np.empty(n, np.float32)
+        ids = np.empty(n, np.int32)
+        normals = np.empty((n, 3), np.float32)
+        self.raster.render(intr, cam_to_world, t, ids, normals)
+        gid = np.where(ids >= 0, self.surface_of[np.maximum(ids, 0)], np.uint32(0xFFFFFFFF))
+        shape = (intr.height, intr.width)
+        return {"t_hit": t.reshape(shape), "geometry_ids": gid.reshape(shape),
+                "primitive_normals": normals.reshape((*shape, 3))}
+
+
+def _cast(rc: Any, intr: Intrinsics, cam_to_world: NDArray[Any], rays: F32) -> dict[str, NDArray[Any]]:
+    if isinstance(rc, SceneRaster):
+        return rc.cast(intr, cam_to_world, rays)
     import open3d
 
     o3d: Any = open3d
@@ -98,39 +145,74 @@ def edge_distance(z: F32, jump: float = EDGE_JUMP) -> F32:
     return (dist + 0.5).astype(np.float32)
 
 
+@njit(cache=True, nogil=True)
+def _geometry_maps(t_hit: Any, gids: Any, normals: Any, rays: Any, dirs: Any, rot: Any,
+                   surface_albedo: Any, z: Any, n_c: Any, inc: Any, cos_inc: Any, gid: Any, pts: Any,
+                   albedo: Any, want_inc: bool) -> None:  # pragma: no cover
+    """Per pixel: z-depth, the normal in the camera frame turned to face the camera, inclination
+    (degrees, when `want_inc`; its arccos is most of the pass) and its cosine, surface index,
+    world hit point and the surface's albedo (NaN/-1, cosine 0 on a miss)."""
+    for i in range(t_hit.shape[0]):
+        t = t_hit[i]
+        if not np.isfinite(t):
+            z[i] = np.nan
+            inc[i] = np.nan
+            cos_inc[i] = 0.0
+            gid[i] = -1
+            albedo[i] = np.nan
+            for k in range(3):
+                n_c[i, k] = 0.0
+                pts[i, k] = np.nan
+            continue
+        g = gids[i]
+        gid[i] = g
+        z[i] = t
+        nc0 = normals[i, 0] * rot[0, 0] + normals[i, 1] * rot[1, 0] + normals[i, 2] * rot[2, 0]
+        nc1 = normals[i, 0] * rot[0, 1] + normals[i, 1] * rot[1, 1] + normals[i, 2] * rot[2, 1]
+        nc2 = normals[i, 0] * rot[0, 2] + normals[i, 1] * rot[1, 2] + normals[i, 2] * rot[2, 2]
+        x, y = dirs[i, 0], dirs[i, 1]
+        dot = nc0 * x + nc1 * y + nc2
+        if dot > 0:  # face the camera
+            nc0, nc1, nc2, dot = -nc0, -nc1, -nc2, -dot
+        n_c[i, 0], n_c[i, 1], n_c[i, 2] = nc0, nc1, nc2
+        c = np.float32(min(max(-dot / np.sqrt(x * x + y * y + 1.0), 0.0), 1.0))
+        cos_inc[i] = c
+        inc[i] = np.degrees(np.arccos(c)) if want_inc else np.nan  # float32: the maps are float32
+        for k in range(3):
+            pts[i, k] = rays[i, k] + rays[i, 3 + k] * t
+        albedo[i] = surface_albedo[g]
+
+
 def render_geometry(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any],
-                    rc: Any = None, edges: bool = True) -> GeometryMaps:
-    """Cast one ray per pixel centre and return the per-pixel truth of the view."""
+                    rc: Any = None, edges: bool = True, inclination: bool = True) -> GeometryMaps:
+    """Cast one ray per pixel centre and return the per-pixel truth of the view (`inclination`
+    False: `inclination_deg` stays NaN, `cos_inc` is filled, as shading needs no more)."""
     rc = rc if rc is not None else scene.raycasting_scene()
     pose = np.asarray(cam_to_world, dtype=np.float64)
     rays = camera_rays(intr, pose)
-    res = _cast(rc, rays)
-    t = res["t_hit"]
-    hit = np.isfinite(t)
-    gid = np.where(hit, res["geometry_ids"].astype(np.int32), np.int32(-1))
-    z = np.where(hit, t, np.float32(np.nan)).astype(np.float32)
-    # normals into the camera frame: n_c = R^T n_w
-    n_c = res["primitive_normals"] @ pose[:3, :3].astype(np.float32)
-    d = pixel_rays(intr)
-    x, y = d[..., 0], d[..., 1]
-    dot = n_c[..., 0] * x + n_c[..., 1] * y + n_c[..., 2]
-    flip = dot > 0  # face the camera
-    n_c[flip] *= -1
-    ray_len = np.sqrt(x ** 2 + y ** 2 + 1.0)
-    cos = np.abs(dot) / ray_len
-    inc = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))).astype(np.float32)
-    inc[~hit] = np.nan
-    zt = np.where(hit, t, np.float32(0.0))
-    pts = rays[..., :3] + rays[..., 3:] * zt[..., None]
-    pts[~hit] = np.nan
-    albedo = np.full(z.shape, np.nan, dtype=np.float32)
+    res = _cast(rc, intr, pose, rays)
+    h, w = intr.height, intr.width
+    z = np.empty((h, w), np.float32)
+    n_c = np.empty((h, w, 3), np.float32)
+    inc = np.empty((h, w), np.float32)
+    cos_inc = np.empty((h, w), np.float32)
+    gid = np.empty((h, w), np.int32)
+    pts = np.empty((h, w, 3), np.float32)
+    albedo = np.empty((h, w), np.float32)
+    surface_albedo = np.array([np.nan if s.board_face else s.albedo for s in scene.surfaces], np.float32)
+    _geometry_maps(res["t_hit"].reshape(-1), res["geometry_ids"].reshape(-1).astype(np.int64),
+                   res["primitive_normals"].reshape(-1, 3), rays.reshape(-1, 6),
+                   _pixel_rays(intr).reshape(-1, 3),
+                   np.ascontiguousarray(pose[:3, :3]), surface_albedo, z.reshape(-1), n_c.reshape(-1, 3),
+                   inc.reshape(-1), cos_inc.reshape(-1), gid.reshape(-1), pts.reshape(-1, 3),
+                   albedo.reshape(-1), inclination)
     for i, s in enumerate(scene.surfaces):
-        m = gid == i
-        if not m.any():
-            continue
-        albedo[m] = scene.board_albedo(pts[m, 0], pts[m, 1]) if s.board_face else s.albedo
+        if s.board_face:
+            m = gid == i
+            if m.any():
+                albedo[m] = scene.board_albedo(pts[m, 0], pts[m, 1])
     edist = edge_distance(z) if edges else np.full(z.shape, np.inf, dtype=np.float32)
-    return GeometryMaps(z, n_c, inc, albedo, gid, pts, edist, intr, pose)
+    return GeometryMaps(z, n_c, inc, albedo, gid, pts, edist, intr, pose, cos_inc)
 
 
 def _shade(albedo: NDArray[Any], tint: NDArray[Any], cos_inc: NDArray[Any]) -> F32:
@@ -155,14 +237,15 @@ def render_color_linear(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[An
         # the print's exact coverage is a pinhole construction: render the ideal image, then let
         # the lens bend it (each distorted pixel samples the pinhole image along its own ray)
         ideal = render_color_linear(scene, intr.pinhole(), cam_to_world, rc, psf_sigma_px)
-        d = pixel_rays(intr)
+        d = _pixel_rays(intr)
         map_u = (d[..., 0] * intr.fx + intr.ppx).astype(np.float32)
         map_v = (d[..., 1] * intr.fy + intr.ppy).astype(np.float32)
         return np.asarray(cv2.remap(ideal, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
                           dtype=np.float32)
-    g = render_geometry(scene, intr, cam_to_world, rc, edges=False)
+    g = render_geometry(scene, intr, cam_to_world, rc, edges=False, inclination=False)
     tints = np.array([s.tint for s in scene.surfaces] + [(0.0, 0.0, 0.0)], dtype=np.float32)
-    cos = np.cos(np.radians(np.nan_to_num(g.inclination_deg, nan=90.0)))
+    assert g.cos_inc is not None
+    cos = g.cos_inc
     alb = np.nan_to_num(g.albedo, nan=0.0)
     img = _shade(alb, tints[g.surface], cos)
     board_ids = [i for i, s in enumerate(scene.surfaces) if s.board_face]
@@ -361,37 +444,6 @@ def _line(acc: NDArray[np.float64], h: int, x0: float, y0: float, x1: float,
 
 
 @njit(cache=True, nogil=True)
-def _clip(px: NDArray[np.float64], py: NDArray[np.float64], n: int, axis: int, bound: float,
-          keep_above: bool) -> int:  # pragma: no cover
-    """Sutherland-Hodgman: clip the polygon (px, py)[:n] in place to x or y >= / <= bound."""
-    ox = np.empty(n * 2 + 2)
-    oy = np.empty(n * 2 + 2)
-    m = 0
-    for i in range(n):
-        j = (i + 1) % n
-        ai = px[i] if axis == 0 else py[i]
-        aj = px[j] if axis == 0 else py[j]
-        ini = ai >= bound if keep_above else ai <= bound
-        inj = aj >= bound if keep_above else aj <= bound
-        if ini:
-            ox[m] = px[i]
-            oy[m] = py[i]
-            m += 1
-        if ini != inj:
-            t = (bound - ai) / (aj - ai)
-            ox[m] = px[i] + t * (px[j] - px[i])
-            oy[m] = py[i] + t * (py[j] - py[i])
-            if axis == 0:
-                ox[m] = bound
-            else:
-                oy[m] = bound
-            m += 1
-    px[:m] = ox[:m]
-    py[:m] = oy[:m]
-    return m
-
-
-@njit(cache=True, nogil=True)
 def _rasterize_quads(quads: NDArray[np.float64], fx: float, fy: float, ppx: float, ppy: float,
                      w: int, h: int, near: float) -> NDArray[np.float64]:  # pragma: no cover
     """Accumulation buffer (H x W+2) of camera-frame quads: near-clip, project, clip, rasterise."""
@@ -401,6 +453,8 @@ def _rasterize_quads(quads: NDArray[np.float64], fx: float, fy: float, ppx: floa
     cz = np.empty(16)
     px = np.empty(32)
     py = np.empty(32)
+    ox = np.empty(32)
+    oy = np.empty(32)
     for q in range(quads.shape[0]):
         # clip to z >= near in 3-D (a homography is only a polygon map in front of the camera)
         n = 0
@@ -422,13 +476,13 @@ def _rasterize_quads(quads: NDArray[np.float64], fx: float, fy: float, ppx: floa
         for i in range(n):
             px[i] = fx * cx[i] / cz[i] + ppx + 0.5
             py[i] = fy * cy[i] / cz[i] + ppy + 0.5
-        n = _clip(px, py, n, 0, 0.0, True)
+        n = clip_polygon(px, py, n, 0, 0.0, True, ox, oy)
         if n >= 3:
-            n = _clip(px, py, n, 0, float(w), False)
+            n = clip_polygon(px, py, n, 0, float(w), False, ox, oy)
         if n >= 3:
-            n = _clip(px, py, n, 1, 0.0, True)
+            n = clip_polygon(px, py, n, 1, 0.0, True, ox, oy)
         if n >= 3:
-            n = _clip(px, py, n, 1, float(h), False)
+            n = clip_polygon(px, py, n, 1, float(h), False, ox, oy)
         if n < 3:
             continue
         for i in range(n):

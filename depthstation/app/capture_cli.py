@@ -13,7 +13,7 @@ from rich.table import Table
 from depthstation.core.capture.export import TARGETS, export_recordings
 from depthstation.core.capture.importer import import_recordings
 from depthstation.core.capture.mcap_reader import McapRecording
-from depthstation.core.capture.mcap_writer import write_mcap
+from depthstation.core.capture.mcap_writer import CAPTURE_COMPRESSION, write_mcap
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs, open_recording
 from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, TopicChoice, topic_choice
@@ -30,7 +30,9 @@ def import_cmd(
         list[Path], typer.Argument(help=".bag, .db3, .mcap files, PNG folders or dataset roots")
     ],
     out: Annotated[Path, typer.Option("--out", "-o", help="new session directory")],
-    compression: Annotated[str, typer.Option(help="none (default, fastest to read), lz4 or zstd")] = "none",
+    compression: Annotated[str, typer.Option(help="lz4 (default: ~1.4x smaller, reads at > 300 frame "
+                                                  "sets/s), zstd (~2x smaller, slower to read) or none")]
+    = CAPTURE_COMPRESSION,
     depth_topic: DepthTopic = None,
     color_topic: ColorTopic = None,
     infrared_topic: InfraredTopic = None,

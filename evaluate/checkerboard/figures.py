@@ -21,6 +21,11 @@ def _plt() -> Any:
     return plt
 
 
+def preload_plotting() -> None:
+    """Import matplotlib (with the Agg backend) ahead of the figures, e.g. from a thread."""
+    _plt()
+
+
 def fig1_poses(path: Path, results: list[StandpointResult], board: Board, caption: str = "") -> Path:
     """Averaged colour-camera poses around the board (axes x, y, z in red, green, blue; 20 cm)."""
     plt = _plt()

@@ -7,6 +7,7 @@ One path for everyone: the command, `evaluate batch`, explain's real side and th
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ from depthstation.evaluate.checkerboard.chunks import (
     run_standpoints,
 )
 from depthstation.evaluate.checkerboard.dqt import EXPECTED_SUBPIXEL_PX
+from depthstation.evaluate.checkerboard.figures import preload_plotting
 from depthstation.evaluate.checkerboard.frame import FrameResult
 from depthstation.evaluate.checkerboard.report import standpoint_row, write_study
 from depthstation.evaluate.checkerboard.study import DEFAULT_FRAMES, StandpointResult
@@ -165,21 +167,28 @@ def _run(job: CheckerboardJob, out: Path, target: RerunTarget, workers: int,
          cluster: str | None) -> list[dict[str, Any]]:
     frames = job.options.frames or DEFAULT_FRAMES
     recs = job.recordings
+    # the figures' plotting library loads while the standpoints are evaluated (their threads
+    # spend their time in native code), not after them
+    threading.Thread(target=preload_plotting, daemon=True).start()
+    blueprint = rerun_log.study_blueprint() if target.enabled else None  # rerun loads only when used
     with ChunkRunner(workers, cluster) as runner, \
-            recording("depthstation_checkerboard", target, rerun_log.study_blueprint(),
-                      rerun_log.DESCRIPTION) as rec, progress() as bar:
+            recording("depthstation_checkerboard", target, blueprint, rerun_log.DESCRIPTION) as rec, \
+            progress() as bar:
         total = (sum(min(r.frame_count or frames, frames) for r in recs) if runner.in_process
                  else len(recs))
         task = bar.add_task("checkerboard", total=total,
                             status="" if runner.in_process else f"{len(recs)} standpoints on workers")
         step = [0]
+        lock = threading.Lock()
 
         def frame_hook(r: Recording) -> Any:
             bar.update(task, status=r.name)
 
-            def on_frame(fs: FrameSet, res: FrameResult) -> None:
-                rerun_log.log_frame(rec, step[0], r.name, fs, res, r.info.depth_units_m)
-                step[0] += 1
+            def on_frame(fs: FrameSet, res: FrameResult) -> None:  # from the standpoints' threads
+                with lock:
+                    k = step[0]
+                    step[0] += 1
+                rerun_log.log_frame(rec, k, r.name, fs, res, r.info.depth_units_m)
                 bar.advance(task)
             return on_frame
 

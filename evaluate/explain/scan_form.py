@@ -33,12 +33,13 @@ from depthstation.evaluate.explain.figures import residual_grid_figure
 from depthstation.evaluate.explain.run import present_effects
 from depthstation.evaluate.explain.samples import FloatArray, Samples
 from depthstation.evaluate.scan.chunks import chunk_ranges
-from depthstation.evaluate.scan.raycast import MeshCaster
+from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, make_renderer
 from depthstation.evaluate.scan.run import ScanOptions, prepare_scan
 from depthstation.evaluate.scan.study import StudyConfig, evaluate_chunk
 from depthstation.evaluate.scan.trajectory import Trajectory
 from depthstation.simulate.model import SensorModel
 from depthstation.simulate.scene import mesh_scene
+from depthstation.simulate.scene_render import SceneRaster
 from depthstation.simulate.view_renderer import ViewRenderer
 
 DISTANCE_BIN_M = 0.1
@@ -80,7 +81,8 @@ class SimulatedSequence:
         self.trajectory = trajectory
         self.tolerance_s = tolerance_s
         self.seed = seed
-        self.renderer = ViewRenderer(mesh_scene(Path(mesh_path)), model, info, seed=seed, color=False)
+        scene = mesh_scene(Path(mesh_path))
+        self.renderer = ViewRenderer(scene, model, info, seed=seed, color=False, rc=SceneRaster(scene))
 
     @property
     def frame_count(self) -> int | None:
@@ -115,7 +117,7 @@ def block_grids(source: FrameSource, mesh_path: Path, trajectory: Trajectory, bl
     """One coarse distance x inclination Grid per block of `block_frames` consecutive frames."""
 
     config = StudyConfig(DISTANCE_BIN_M, INCLINATION_BIN_DEG, 6.0, 90.0, tolerance_s=tolerance_s)
-    caster = MeshCaster(mesh_path, source.info.depth_intrinsics)
+    caster = make_renderer(DEFAULT_RENDERER, mesh_path, source.info.depth_intrinsics)
     n = source.frame_count
     if n is None:
         raise EvaluationError("the sequence does not say how many frames it has")

@@ -9,20 +9,27 @@ callback per frame (progress, the live rerun view).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import islice
 from pathlib import Path
+from queue import Queue
 
 import numpy as np
 from numpy.typing import NDArray
 
+from depthstation.core.camera_model import Intrinsics, StreamInfo
 from depthstation.core.capture.registry import open_recording
 from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
-from depthstation.core.frames import FrameSource
+from depthstation.core.frames import FrameSet, FrameSource
 from depthstation.core.grid import PackedGrid, pack_grid, unpack_grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn
-from depthstation.evaluate.scan.raycast import MeshCaster
+from depthstation.evaluate.scan.rasterise import MeshRasteriser, make_renderer
+from depthstation.evaluate.scan.raycast import FrameRenderer
 from depthstation.evaluate.scan.study import ChunkResult, FrameCallback, StudyConfig, evaluate_chunk
 from depthstation.evaluate.scan.trajectory import Trajectory
 
@@ -44,19 +51,30 @@ class ScanChunk:
 
 @dataclass
 class _WorkerCache:
-    """One open sequence and one mesh scene per worker process, reused by its following chunks:
+    """One open sequence and one renderer per worker process, reused by its following chunks:
     the mesh is loaded once per worker, not per chunk; only one of each is kept (bounded memory)."""
 
     source_key: object = None
     source: FrameSource | None = None
     mesh_key: object = None
-    caster: MeshCaster | None = None
+    caster: FrameRenderer | None = None
 
 
 _CACHE = _WorkerCache()
 
 
-def _context(chunk: ScanChunk) -> tuple[MeshCaster, FrameSource]:
+def renderer_for(mesh: str | Path, intr: Intrinsics, config: StudyConfig) -> FrameRenderer:
+    """The renderer of `config` over `mesh` for frames of `intr`, kept for the next chunks (and the
+    report's figure frame) of this process: the mesh is loaded and prepared once."""
+    key = (str(mesh), intr, config.nthreads, config.renderer)
+    if _CACHE.caster is None or _CACHE.mesh_key != key:
+        _CACHE.caster = None
+        _CACHE.caster = make_renderer(config.renderer, Path(mesh), intr, config.nthreads)
+        _CACHE.mesh_key = key
+    return _CACHE.caster
+
+
+def _context(chunk: ScanChunk) -> tuple[FrameRenderer, FrameSource]:
     source: FrameSource
     if isinstance(chunk.sequence, str):
         key: object = (chunk.sequence, chunk.intrinsics, chunk.topics)
@@ -67,12 +85,7 @@ def _context(chunk: ScanChunk) -> tuple[MeshCaster, FrameSource]:
         source = _CACHE.source
     else:
         source = chunk.sequence
-    key_mesh = (chunk.mesh, source.info.depth_intrinsics, chunk.config.nthreads)
-    if _CACHE.caster is None or _CACHE.mesh_key != key_mesh:
-        _CACHE.caster = None
-        _CACHE.caster = MeshCaster(Path(chunk.mesh), source.info.depth_intrinsics, chunk.config.nthreads)
-        _CACHE.mesh_key = key_mesh
-    return _CACHE.caster, source
+    return renderer_for(chunk.mesh, source.info.depth_intrinsics, chunk.config), source
 
 
 def scan_chunk(chunk: ScanChunk) -> ChunkResult:
@@ -168,12 +181,7 @@ def run_scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajec
         open_source = source if source is not None else (
             sequence if not isinstance(sequence, Path)
             else open_recording(sequence, intrinsics=intrinsics, topics=topics))
-        caster = MeshCaster(Path(mesh), open_source.info.depth_intrinsics, config.nthreads)
-
-        def here(c: ScanChunk) -> ChunkResult:
-            return evaluate_chunk(caster, open_source, c.trajectory, c.config, c.start, c.limit, on_frame)
-
-        result = runner.reduce(here, chunks, merge, progress=progress or _quiet)
+        result = _run_here(open_source, mesh, chunks, config, merge, on_frame, progress or _quiet)
     else:
         if chunks[0].limit is None:
             raise InputError(sequence if isinstance(sequence, Path) else None,
@@ -188,3 +196,74 @@ def run_scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajec
 
 def _quiet(done: int, total: int) -> None:
     return None
+
+
+@dataclass
+class _ChunkFrames:
+    """The frame sets of one chunk, taken from the one pass over the open sequence (a FrameSource)."""
+
+    name: str
+    info: StreamInfo
+    items: list[FrameSet]
+
+    @property
+    def frame_count(self) -> int:
+        return len(self.items)
+
+    def frames(self, limit: int | None = None, start: int = 0) -> Iterator[FrameSet]:
+        return iter(self.items if limit is None else self.items[:limit])
+
+
+def _threads(config: StudyConfig, chunks: int) -> int:
+    """Chunks evaluated side by side in this process: the rasteriser is one thread, so up to the
+    cores it may use (`nthreads`, 0 = all); Open3D's ray casting uses its own threads."""
+    if config.renderer != "raster":
+        return 1
+    n = config.nthreads or len(os.sched_getaffinity(0))
+    return max(1, min(n, chunks))
+
+
+def _run_here(source: FrameSource, mesh: str | Path, chunks: list[ScanChunk], config: StudyConfig,
+              merge: Callable[[ChunkResult, ChunkResult], ChunkResult], on_frame: FrameCallback | None,
+              progress: ProgressFn) -> ChunkResult:
+    """The chunks in this process: the sequence is read once, in order (a chunk's frames are
+    taken where the previous chunk stopped, not re-read from the start), and the chunks are
+    evaluated on `_threads` threads, each with its own renderer (the kernels release the GIL);
+    results are merged in chunk order, so the grid is the same for any thread count."""
+    n = _threads(config, len(chunks))
+    intr = source.info.depth_intrinsics
+    renderers: Queue[FrameRenderer] = Queue()
+    base = renderer_for(mesh, intr, config)
+    renderers.put(base)
+    for _ in range(n - 1):
+        renderers.put(base.sibling() if isinstance(base, MeshRasteriser)
+                      else make_renderer(config.renderer, Path(mesh), intr, config.nthreads))
+    frames = iter(source.frames())
+
+    def evaluate(c: ScanChunk, items: list[FrameSet]) -> ChunkResult:
+        r = renderers.get()
+        try:
+            return evaluate_chunk(r, _ChunkFrames(source.name, source.info, items), c.trajectory, c.config,
+                                  0, None, on_frame)
+        finally:
+            renderers.put(r)
+
+    acc: list[ChunkResult] = []
+    done = [0]
+
+    def fold(res: ChunkResult) -> None:
+        acc[:] = [res if not acc else merge(acc[0], res)]
+        done[0] += 1
+        progress(done[0], len(chunks))
+
+    progress(0, len(chunks))
+    with ThreadPoolExecutor(n) as pool:
+        pending: deque[Future[ChunkResult]] = deque()
+        for c in chunks:
+            items = list(frames) if c.limit is None else list(islice(frames, c.limit))
+            pending.append(pool.submit(evaluate, c, items))
+            while len(pending) > n:
+                fold(pending.popleft().result())
+        while pending:
+            fold(pending.popleft().result())
+    return acc[0]

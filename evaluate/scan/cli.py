@@ -11,6 +11,7 @@ import typer
 
 from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic
 from depthstation.core.rerun_bridge import RerunTarget
+from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER
 from depthstation.evaluate.scan.run import ScanOptions, run_scan
 
 
@@ -69,6 +70,11 @@ def scan(
     depth_topic: DepthTopic = None,
     color_topic: ColorTopic = None,
     infrared_topic: InfraredTopic = None,
+    renderer: str = typer.Option(DEFAULT_RENDERER, "--renderer",
+                                 help="Reference depth: 'raster' (the mesh rasterised into each frame, "
+                                      "bit for bit what ray casting gives, several times faster) or "
+                                      "'raycast' (Open3D ray casting, the reference implementation). "
+                                      "Streams with lens distortion are always ray cast."),
 ) -> None:
     """The reference-scan study (paper Section 3.2): per-pixel depth error against a TLS reference,
     gridded over distance x inclination."""
@@ -82,7 +88,7 @@ def scan(
                        min_count_sequence=min_count_sequence, figure_frame=figure_frame,
                        intrinsics=intrinsics, poisson_depth=poisson_depth,
                        density_quantile=density_quantile, force=force, depth_topic=depth_topic,
-                       color_topic=color_topic, infrared_topic=infrared_topic,
+                       color_topic=color_topic, infrared_topic=infrared_topic, renderer=renderer,
                        target=RerunTarget(rrd, spawn, serve, force))
     s = run_scan(sequence, poses, reference, out, opts)
     typer.echo(f"{s['frames']['used']} frames, {s['pixels']['evaluated']} pixels evaluated; "

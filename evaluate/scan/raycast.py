@@ -21,28 +21,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.core.camera_model import Intrinsics, pixel_rays
-from depthstation.core.grid import _FAST, Grid, bin_index, welford_add
+from depthstation.core.grid import _FAST, Grid, bin_index
 from depthstation.core.lazy_open3d import open3d
+from depthstation.core.raster import fill_rays
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
-
-
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _fill_rays(rays: Any, origin: Any, rot: Any, dirs: Any) -> None:
-    """rays[i] = (origin, rot @ dirs[i]) in float32, rot = camera-to-reference rotation."""
-    o0, o1, o2 = origin[0], origin[1], origin[2]
-    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
-    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
-    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
-    for i in range(dirs.shape[0]):
-        x, y, z = dirs[i, 0], dirs[i, 1], dirs[i, 2]
-        rays[i, 0] = o0
-        rays[i, 1] = o1
-        rays[i, 2] = o2
-        rays[i, 3] = r00 * x + r01 * y + r02 * z
-        rays[i, 4] = r10 * x + r11 * y + r12 * z
-        rays[i, 5] = r20 * x + r21 * y + r22 * z
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
@@ -81,21 +65,43 @@ def _inclination_bin(c: float, cos_edges: Any, i_lo: float, i_step: float, ni: i
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _welford_cell(cells: Any, k: int, j: int, x: float) -> None:
+    """`core.grid.welford_add` on a cell-major (count, mean, M2) array: the same operations."""
+    n = cells[k, j, 0] + 1.0
+    cells[k, j, 0] = n
+    delta = x - cells[k, j, 1]
+    mu = cells[k, j, 1] + delta / n
+    cells[k, j, 1] = mu
+    cells[k, j, 2] += delta * (x - mu)
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _fused_bin(t_hit: Any, normals: Any, rays: Any, inv_norm: Any, depth: Any, depth_scale: float,
-               count: Any, mean: Any, m2: Any, fcount: Any, fmean: Any, fm2: Any, per_frame: bool,
-               d_lo: float, d_step: float, nd: int, cos_edges: Any, i_lo: float, i_step: float,
-               ni: int, stats: Any) -> None:
-    """One frame: reference z, inclination, error, Welford into the grid(s); counts into stats.
+               cells: Any, fcells: Any, per_frame: bool, d_lo: float, d_step: float, nd: int,
+               cos_edges: Any, i_lo: float, i_step: float, ni: int, stats: Any, kk: Any, jj: Any, ee: Any,
+               tk: Any, tj: Any, te: Any, start: Any, jstart: Any) -> None:
+    """One frame: reference z, inclination, error, Welford into the cells (and the frame's);
+    counts into stats.
 
     stats: [pixels, no_depth, no_hit, evaluated (hit and depth), binned]. inv_norm: 1/|ray| per
-    pixel (rotation keeps it, so it is computed once per camera).
+    pixel (rotation keeps it, so it is computed once per camera). Why in passes: a frame's
+    pixels land on cells all over the grid, and Welford updates in pixel order stalled on cache
+    misses. The binned pixels are sorted by cell (a stable two-pass counting sort, inclination bin
+    then distance bin, so every cell still sees its pixels in pixel order: the same floats) and
+    then added cell after cell, walking the grid's memory forwards. kk, jj, ee, tk, tj, te (one
+    per pixel), start (distance bins + 1) and jstart (inclination bins + 1) are scratch.
     """
     n = depth.shape[0]
     no_depth = 0
     no_hit = 0
     evaluated = 0
     binned = 0
+    for k in range(nd + 1):
+        start[k] = 0
+    for j in range(ni + 1):
+        jstart[j] = 0
     for i in range(n):
+        kk[i] = -1
         raw = depth[i]
         hit = np.isfinite(t_hit[i])
         if raw == 0:
@@ -117,11 +123,35 @@ def _fused_bin(t_hit: Any, normals: Any, rays: Any, inv_norm: Any, depth: Any, d
         j = _inclination_bin(c, cos_edges, i_lo, i_step, ni)
         if j < 0:
             continue
-        err = raw * depth_scale - z_ref
-        welford_add(count, mean, m2, k, j, err)
-        if per_frame:
-            welford_add(fcount, fmean, fm2, k, j, err)
+        kk[i] = k
+        jj[i] = j
+        ee[i] = raw * depth_scale - z_ref
+        start[k + 1] += 1
+        jstart[j + 1] += 1
         binned += 1
+    for j in range(ni):
+        jstart[j + 1] += jstart[j]
+    for k in range(nd):
+        start[k + 1] += start[k]
+    for i in range(n):  # by inclination bin (values move with the key: the next pass reads in order)
+        if kk[i] >= 0:
+            j = jj[i]
+            q = jstart[j]
+            jstart[j] = q + 1
+            tk[q] = kk[i]
+            tj[q] = j
+            te[q] = ee[i]
+    for p in range(binned):  # then by distance bin, into kk, jj, ee
+        k = tk[p]
+        q = start[k]
+        start[k] = q + 1
+        kk[q] = k
+        jj[q] = tj[p]
+        ee[q] = te[p]
+    for q in range(binned):
+        _welford_cell(cells, kk[q], jj[q], ee[q])
+        if per_frame:
+            _welford_cell(fcells, kk[q], jj[q], ee[q])
     stats[0] += n
     stats[1] += no_depth
     stats[2] += no_hit
@@ -172,41 +202,72 @@ class FrameImages:
         return self.measured_m - self.reference_m
 
 
-class MeshCaster:
-    """An Open3D RaycastingScene over one mesh plus reusable ray buffers for one image size."""
+@dataclass
+class CellAccumulator:
+    """Welford count, mean and M2 of a grid's cells side by side (cell-major, count as float).
 
-    def __init__(self, mesh: Any, intr: Intrinsics, nthreads: int = 0) -> None:
-        o3d = open3d()
+    Why: the per-pixel pass lands on cells of a 26 MB grid in an order no cache predicts; with
+    the three numbers of a cell in one cache line an update costs one miss instead of three.
+    The operations are those of `core.grid.welford_add` in the same order, so `to_grid` gives
+    the grid the separate arrays would hold, bit for bit.
+    """
 
-        if isinstance(mesh, (str, Path)):
-            mesh = o3d.io.read_triangle_mesh(str(mesh))
-        if isinstance(mesh, o3d.geometry.TriangleMesh):
-            mesh = o3d.t.geometry.TriangleMesh.from_legacy(mesh)
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(mesh)
-        self.nthreads = int(nthreads)
+    grid: Grid  # the bins (its arrays are not used)
+    cells: F64  # (distance bins, inclination bins, 3)
+
+    @classmethod
+    def for_grid(cls, grid: Grid) -> CellAccumulator:
+        return cls(grid, np.zeros((*grid.count.shape, 3)))
+
+    def reset(self) -> None:
+        self.cells[:] = 0.0
+
+    def to_grid(self) -> Grid:
+        g = self.grid.like()
+        g.count[:] = self.cells[..., 0].astype(np.int64)
+        g.mean[:] = self.cells[..., 1]
+        g.m2[:] = self.cells[..., 2]
+        return g
+
+
+class FrameRenderer:
+    """Reference z-depth and hit normal of every pixel centre of a posed frame, and the fused
+    per-pixel pass on top (`bin_frame`, `images`). Subclasses fill `cast`."""
+
+    name = "renderer"
+
+    def __init__(self, intr: Intrinsics) -> None:
         self.intr = intr
         self.dirs = pixel_rays(intr).reshape(-1, 3)
         self.inv_norm = (1.0 / np.linalg.norm(self.dirs.astype(np.float64), axis=1)).astype(np.float32)
         self.rays = np.empty((self.dirs.shape[0], 6), dtype=np.float32)
-        self._rays_t = o3d.core.Tensor.from_numpy(self.rays)
+        self._scratch: tuple[NDArray[Any], ...] | None = None
 
     def cast(self, pose: F64) -> tuple[F32, F32]:
-        """Cast all pixels of a camera with camera-to-reference pose (4x4 rigid); (t_hit, normals)."""
-        pose = np.asarray(pose, dtype=np.float64)
-        _fill_rays(self.rays, pose[:3, 3].copy(), pose[:3, :3].copy(), self.dirs)
-        ans = self.scene.cast_rays(self._rays_t, nthreads=self.nthreads)
-        return ans["t_hit"].numpy(), ans["primitive_normals"].numpy()
+        """(t_hit (inf = miss), unit normals) of every pixel for a camera-to-reference pose;
+        `self.rays` holds the frame's rays afterwards."""
+        raise NotImplementedError
 
-    def bin_frame(self, pose: F64, depth: NDArray[Any], depth_scale: float, grid: Grid,
-                  stats: NDArray[np.int64], frame_grid: Grid | None = None) -> None:
-        """Cast one frame and Welford its errors into `grid` (and `frame_grid`)."""
+    def describe(self) -> dict[str, Any]:
+        """What result.json records about the renderer."""
+        return {"renderer": self.name}
+
+    def bin_frame(self, pose: F64, depth: NDArray[Any], depth_scale: float, cells: CellAccumulator,
+                  stats: NDArray[np.int64], frame_cells: CellAccumulator | None = None) -> None:
+        """Render one frame and Welford its errors into `cells` (and `frame_cells`)."""
         t_hit, normals = self.cast(pose)
-        fg = frame_grid if frame_grid is not None else grid
-        d_lo, d_step, nd, i_lo, i_step, ni = grid.bins
+        fc = frame_cells if frame_cells is not None else cells
+        d_lo, d_step, nd, i_lo, i_step, ni = cells.grid.bins
+        n = self.dirs.shape[0]
+        sc = self._scratch
+        if sc is None or sc[6].shape[0] != nd + 1 or sc[7].shape[0] != ni + 1:
+            sc = (np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n), np.empty(n, np.int32),
+                  np.empty(n, np.int32), np.empty(n), np.empty(nd + 1, np.int64), np.empty(ni + 1, np.int64))
+            self._scratch = sc
+        kk, jj, ee, tk, tj, te, start, jstart = sc
         _fused_bin(t_hit, normals, self.rays, self.inv_norm, np.ascontiguousarray(depth).ravel(),
-                   float(depth_scale), grid.count, grid.mean, grid.m2, fg.count, fg.mean, fg.m2,
-                   frame_grid is not None, d_lo, d_step, nd, cos_edges(grid), i_lo, i_step, ni, stats)
+                   float(depth_scale), cells.cells, fc.cells, frame_cells is not None, d_lo, d_step, nd,
+                   cos_edges(cells.grid), i_lo, i_step, ni, stats, kk, jj, ee, tk, tj, te, start, jstart)
 
     def images(self, pose: F64, depth: NDArray[Any], depth_scale: float) -> FrameImages:
         """The per-pixel maps of one frame (for figures and tests, not the hot loop)."""
@@ -219,3 +280,29 @@ class MeshCaster:
                       z_ref, inc, z_meas)
         shape = (self.intr.height, self.intr.width)
         return FrameImages(z_meas.reshape(shape), z_ref.reshape(shape), inc.reshape(shape))
+
+
+class MeshCaster(FrameRenderer):
+    """Open3D ray casting (`RaycastingScene.cast_rays`) of every pixel: the reference renderer."""
+
+    name = "raycast"
+
+    def __init__(self, mesh: Any, intr: Intrinsics, nthreads: int = 0) -> None:
+        super().__init__(intr)
+        o3d = open3d()
+
+        if isinstance(mesh, (str, Path)):
+            mesh = o3d.io.read_triangle_mesh(str(mesh))
+        if isinstance(mesh, o3d.geometry.TriangleMesh):
+            mesh = o3d.t.geometry.TriangleMesh.from_legacy(mesh)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(mesh)
+        self.nthreads = int(nthreads)
+        self._rays_t = o3d.core.Tensor.from_numpy(self.rays)
+
+    def cast(self, pose: F64) -> tuple[F32, F32]:
+        """Cast all pixels of a camera with camera-to-reference pose (4x4 rigid); (t_hit, normals)."""
+        pose = np.asarray(pose, dtype=np.float64)
+        fill_rays(self.rays, pose[:3, 3].copy(), pose[:3, :3].copy(), self.dirs)
+        ans = self.scene.cast_rays(self._rays_t, nthreads=self.nthreads)
+        return ans["t_hit"].numpy(), ans["primitive_normals"].numpy()

@@ -12,8 +12,8 @@ from depthstation.core.grid import GRID_FILE
 from depthstation.core.lazy_open3d import open3d
 from depthstation.core.results import SUMMARY_FILE, inside, write_json, write_result_info
 from depthstation.core.run_warnings import warn
+from depthstation.evaluate.scan.chunks import renderer_for
 from depthstation.evaluate.scan.figures import frame_figure, grid_figure
-from depthstation.evaluate.scan.raycast import MeshCaster
 from depthstation.evaluate.scan.reference import appearance_image
 from depthstation.evaluate.scan.study import ChunkResult, StudyConfig, evaluate_chunk, frame_images
 
@@ -37,11 +37,11 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
                  else sorted(result.used)[len(result.used) // 2])
     intr = source.info.depth_intrinsics
     stream = f"depth {intr.width}x{intr.height}"
-    caster = MeshCaster(job.mesh_path, source.info.depth_intrinsics)
+    caster = renderer_for(job.mesh_path, source.info.depth_intrinsics, job.config)
     images = frame_images(caster, source, job.posed, fig_index, opt.tolerance_s)
     if images is not None:
         frame_cfg = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
-                                tolerance_s=opt.tolerance_s)
+                                tolerance_s=opt.tolerance_s, renderer=opt.renderer)
         one = evaluate_chunk(caster, source, job.posed, frame_cfg, fig_index, 1)
         look = job.mesh_info.get("appearance")
         pose = job.posed.match(_stamp_s(source, fig_index), opt.tolerance_s) if look else None
@@ -84,6 +84,7 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
                  "min_count_frame": opt.min_count_frame, "min_count_sequence": opt.min_count_sequence},
         "figures": figures,
         "chunks": {"count": len(job.chunks), "frames_each": opt.chunk_frames},
+        "reference_depth": caster.describe(),
         "timing_s": {**job.seconds, "total": sum(job.seconds.values())},
     }
     write_json(out / SUMMARY_FILE, summary)

@@ -21,15 +21,20 @@ from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_recording
 from depthstation.core.capture.topics import TopicChoice, topic_choice
 from depthstation.core.errors import EvaluationError, InputError
-from depthstation.core.grid import Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn
 from depthstation.core.progress import progress
 from depthstation.core.rerun_bridge import RerunTarget, recording
 from depthstation.core.results import result_folder
 from depthstation.core.run_warnings import warn
 from depthstation.evaluate.scan import rerun_log
-from depthstation.evaluate.scan.chunks import ScanChunk, frames_to_read, run_scan_chunks, scan_chunks
-from depthstation.evaluate.scan.raycast import MeshCaster
+from depthstation.evaluate.scan.chunks import (
+    ScanChunk,
+    frames_to_read,
+    renderer_for,
+    run_scan_chunks,
+    scan_chunks,
+)
+from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, check_renderer
 from depthstation.evaluate.scan.reference import PoissonParams, reference_mesh, sample_reference_points
 from depthstation.evaluate.scan.registration import (
     REGISTER_MODES,
@@ -74,6 +79,7 @@ class ScanOptions:
     depth_topic: str | None = None      # ROS recordings: topics (None: the realsense-ros layout)
     color_topic: str | None = None
     infrared_topic: str | None = None
+    renderer: str = DEFAULT_RENDERER
     target: RerunTarget = field(default_factory=RerunTarget)
 
     @property
@@ -91,6 +97,9 @@ class ScanOptions:
         if self.register not in REGISTER_MODES:
             raise InputError(None, f"--register must be one of {', '.join(REGISTER_MODES)}, "
                                    f"not '{self.register}'")
+        if self.every < 1 or self.workers < 1 or self.chunk_frames < 1:
+            raise InputError(None, "--every, --workers and --chunk-frames must be at least 1")
+        check_renderer(self.renderer)
 
     @property
     def register_mode(self) -> str:
@@ -102,8 +111,6 @@ class ScanOptions:
              "(a fitted scale hides the depth-scale error the study measures; see docs/scan-study.md)",
              code="deprecated")
         return mode
-        if self.every < 1 or self.workers < 1 or self.chunk_frames < 1:
-            raise InputError(None, "--every, --workers and --chunk-frames must be at least 1")
 
     @classmethod
     def from_mapping(cls, options: dict[str, Any], paths: dict[str, Path], source: Path | None,
@@ -184,14 +191,15 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                    similarity=similarity, pass_points=pass_points, band_m=opt.icp_band_m,
                    tolerance_s=opt.tolerance_s, every=opt.icp_every, local=local if local.any else None)
     posed = traj.transformed(reg.matrix)
-    fit = fit_check(MeshCaster(mesh_path, source.info.depth_intrinsics), source, posed,
-                    tolerance_s=opt.tolerance_s)
-    say_registration(reg, fit, Path(sequence))
-    t_reg = time.perf_counter()
     config = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
                          every=opt.every, max_frames=opt.frames, tolerance_s=opt.tolerance_s,
                          nthreads=0 if in_process else 1,
-                         per_frame_dir=out / PER_FRAME_DIR if opt.per_frame_grids else None)
+                         per_frame_dir=out / PER_FRAME_DIR if opt.per_frame_grids else None,
+                         renderer=opt.renderer)
+    fit = fit_check(renderer_for(mesh_path, source.info.depth_intrinsics, config), source, posed,
+                    tolerance_s=opt.tolerance_s)
+    say_registration(reg, fit, Path(sequence))
+    t_reg = time.perf_counter()
     chunks = scan_chunks(Path(sequence), mesh_path, posed, config, chunk_frames=opt.chunk_frames,
                          intrinsics=opt.intrinsics, source=source, topics=opt.topics)
     return ScanJob(Path(sequence), Path(poses), Path(reference), out, opt, source, given, posed, reg,
@@ -236,7 +244,7 @@ def run_prepared(job: ScanJob, runner: ChunkRunner, *, rec: Any = None,
     with progress() as bar:
         task = bar.add_task("scan", total=total, status="")
 
-        def on_frame(index: int, grid: Grid, stats: NDArray[np.int64]) -> None:
+        def on_frame(index: int, stats: NDArray[np.int64]) -> None:
             bar.update(task, completed=index + 1, status=f"{int(stats[3])} px")
             rerun_log.log_frame(rec, index, stats)
 

@@ -2,9 +2,10 @@
 out. `evaluate_chunk` does frames [start, start + limit); `chunks.py` runs chunks on a ChunkRunner
 and merges them (Chan) to the same result.
 
-Why processes: Open3D's ray casting holds the GIL, so threads do not add; two processes with one
-ray-casting thread each beat one process with two on a two-core machine (PERF-NOTES). Partial
-grids are merged once per chunk, in chunk order, never per frame.
+Why processes: the renderers hold one core each (the rasteriser is one thread, Open3D's ray
+casting holds the GIL), so chunks run in processes; partial grids are merged once per chunk, in
+chunk order, never per frame. Within a chunk the pixels are Welford-added into a cell-major
+accumulator (`CellAccumulator`), turned into the chunk's Grid at its end.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from numpy.typing import NDArray
 from depthstation.core.errors import EvaluationError
 from depthstation.core.frames import FrameSource
 from depthstation.core.grid import Grid
-from depthstation.evaluate.scan.raycast import STAT_NAMES, FrameImages, MeshCaster
+from depthstation.evaluate.scan.raycast import STAT_NAMES, CellAccumulator, FrameImages, FrameRenderer
 from depthstation.evaluate.scan.trajectory import Trajectory
 
 PER_FRAME_DIR = "frame_grids"
@@ -28,7 +29,8 @@ PER_FRAME_DIR = "frame_grids"
 
 @dataclass(frozen=True)
 class StudyConfig:
-    """Grid bins, frame selection and pose matching; ray-casting threads per process."""
+    """Grid bins, frame selection and pose matching; the renderer ('raster' or 'raycast') and
+    Open3D's ray-casting threads per process."""
 
     distance_bin_m: float = 0.005
     inclination_bin_deg: float = 0.1
@@ -39,6 +41,7 @@ class StudyConfig:
     tolerance_s: float = 0.01
     nthreads: int = 0
     per_frame_dir: Path | None = None
+    renderer: str = "raster"
 
     def empty_grid(self) -> Grid:
         return Grid.empty(self.distance_bin_m, self.inclination_bin_deg, self.distance_max_m,
@@ -70,17 +73,18 @@ class ChunkResult:
                 "grid": self.grid.summary()}
 
 
-FrameCallback = Callable[[int, Grid, NDArray[np.int64]], None]
+FrameCallback = Callable[[int, NDArray[np.int64]], None]  # (frame index, its pixel counts)
 
 
-def evaluate_chunk(caster: MeshCaster, source: FrameSource, trajectory: Trajectory, config: StudyConfig,
+def evaluate_chunk(caster: FrameRenderer, source: FrameSource, trajectory: Trajectory, config: StudyConfig,
                    start: int = 0, limit: int | None = None,
                    on_frame: FrameCallback | None = None) -> ChunkResult:
     """Frames [start, start+limit) of the source, posed by `trajectory` (camera-to-reference)."""
     res = ChunkResult(config.empty_grid())
     units = source.info.depth_units_m
     intr = caster.intr
-    frame_grid = res.grid.like() if config.per_frame_dir is not None else None
+    cells = CellAccumulator.for_grid(res.grid)
+    frame_cells = CellAccumulator.for_grid(res.grid) if config.per_frame_dir is not None else None
     for fs in source.frames(limit=limit, start=start):
         if fs.index % config.every:
             continue
@@ -96,21 +100,20 @@ def evaluate_chunk(caster: MeshCaster, source: FrameSource, trajectory: Trajecto
         if pose is None:
             res.no_pose.append(fs.index)
             continue
-        if frame_grid is not None:
-            frame_grid.count[:] = 0
-            frame_grid.mean[:] = 0
-            frame_grid.m2[:] = 0
         before = res.stats.copy()
-        caster.bin_frame(pose, fs.depth, units, res.grid, res.stats, frame_grid)
+        caster.bin_frame(pose, fs.depth, units, cells, res.stats, frame_cells)
         res.used.append(fs.index)
-        if frame_grid is not None and config.per_frame_dir is not None:
-            frame_grid.save(Path(config.per_frame_dir) / f"frame_{fs.index:06d}.npz", compressed=True)
+        if frame_cells is not None and config.per_frame_dir is not None:
+            path = Path(config.per_frame_dir) / f"frame_{fs.index:06d}.npz"
+            frame_cells.to_grid().save(path, compressed=True)
+            frame_cells.reset()
         if on_frame is not None:
-            on_frame(fs.index, res.grid, res.stats - before)
+            on_frame(fs.index, res.stats - before)
+    res.grid = cells.to_grid()
     return res
 
 
-def frame_images(caster: MeshCaster, source: FrameSource, trajectory: Trajectory, index: int,
+def frame_images(caster: FrameRenderer, source: FrameSource, trajectory: Trajectory, index: int,
                  tolerance_s: float = 0.01) -> FrameImages | None:
     """Measured depth, reference depth and inclination maps of one frame (paper Fig. 8)."""
     for fs in source.frames(limit=1, start=index):
@@ -148,7 +151,7 @@ class FitCheck:
                         f"{SUBPIXEL_PX} px / (f B)); the trajectory fits when at most {FIT_SHARE:.0%} are"}
 
 
-def fit_check(caster: MeshCaster, source: FrameSource, trajectory: Trajectory, *, frames: int = 10,
+def fit_check(caster: FrameRenderer, source: FrameSource, trajectory: Trajectory, *, frames: int = 10,
               tolerance_s: float = 0.01) -> FitCheck | None:
     """Cast `frames` frames spread over the sequence and count the pixels that miss the reference
     by more than the depth noise explains; None when no frame has a pose."""

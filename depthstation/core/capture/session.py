@@ -22,7 +22,7 @@ from typing import Any
 
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture.mcap_reader import McapRecording, open_mcap
-from depthstation.core.capture.mcap_writer import McapFileWriter
+from depthstation.core.capture.mcap_writer import CAPTURE_COMPRESSION, McapFileWriter
 from depthstation.core.errors import CaptureError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.results import _jsonable
@@ -221,7 +221,7 @@ class Session:
         info: StreamInfo,
         standpoint: dict[str, Any] | None = None,
         *,
-        compression: str = "none",
+        compression: str = CAPTURE_COMPRESSION,
         queue_frames: int = 64,
         metadata: dict[str, Any] | None = None,
         blocking: bool = False,

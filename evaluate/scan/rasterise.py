@@ -1,0 +1,91 @@
+"""The study's reference depth by rasterising the mesh (`core.raster`), and the choice of renderer.
+
+Why: every frame is a pinhole view, so projecting the triangles onto the pixel grid (frustum
+culled clusters, a z-buffer, the reference arithmetic for each candidate pixel) gives what Open3D's
+ray casting gives for the same rays, bit for bit, at a fraction of its cost (benchmarks/bench_scan.py).
+Open3D ray casting stays the reference (`--renderer raycast`), and takes over for streams with
+lens distortion, whose rays are not a pinhole grid.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from depthstation.core.camera_model import Intrinsics
+from depthstation.core.errors import InputError
+from depthstation.core.lazy_open3d import open3d
+from depthstation.core.raster import MeshRaster, arithmetic_report, fill_rays
+from depthstation.evaluate.scan.raycast import F32, F64, FrameRenderer, MeshCaster
+
+RENDERERS = ("raster", "raycast")
+DEFAULT_RENDERER = "raster"
+DISTORTION_FALLBACK = "lens distortion: the pixel rays are not a pinhole grid, so they are ray cast"
+
+
+def mesh_arrays(mesh: Any) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """(vertices, triangles) of a mesh file or an Open3D mesh (legacy or tensor)."""
+    if isinstance(mesh, (str, Path)):
+        mesh = open3d().io.read_triangle_mesh(str(mesh))
+    if hasattr(mesh, "vertex"):
+        return (mesh.vertex.positions.numpy().astype(np.float64),
+                mesh.triangle.indices.numpy().astype(np.int64))
+    return np.asarray(mesh.vertices), np.asarray(mesh.triangles).astype(np.int64)
+
+
+class MeshRasteriser(FrameRenderer):
+    """The mesh rasterised into each posed frame (`core.raster.MeshRaster`); one thread."""
+
+    name = "raster"
+
+    def __init__(self, mesh: Any, intr: Intrinsics, raster: MeshRaster | None = None) -> None:
+        super().__init__(intr)
+        if raster is None:
+            vertices, triangles = mesh_arrays(mesh)
+            raster = MeshRaster(vertices, triangles)
+        self.raster = raster
+        n = self.dirs.shape[0]
+        self._t = np.empty(n, np.float32)
+        self._ids = np.empty(n, np.int32)
+        self._normals = np.empty((n, 3), np.float32)
+
+    def cast(self, pose: F64) -> tuple[F32, F32]:
+        """(t_hit, normals) as Open3D would cast them; the arrays are reused by the next frame."""
+        pose = np.asarray(pose, dtype=np.float64)
+        fill_rays(self.rays, pose[:3, 3].copy(), pose[:3, :3].copy(), self.dirs)
+        self.raster.render(self.intr, pose, self._t, self._ids, self._normals)
+        return self._t, self._normals
+
+    def describe(self) -> dict[str, Any]:
+        return {"renderer": self.name, **arithmetic_report()}
+
+    def sibling(self) -> MeshRasteriser:
+        """Another renderer over the same prepared mesh (for another thread)."""
+        return MeshRasteriser(None, self.intr, self.raster.sibling())
+
+
+class _FallbackCaster(MeshCaster):
+    """Ray casting where the rasteriser was asked for but cannot serve (lens distortion)."""
+
+    def describe(self) -> dict[str, Any]:
+        return {"renderer": self.name, "requested": "raster", "reason": DISTORTION_FALLBACK}
+
+
+def check_renderer(name: str) -> str:
+    if name not in RENDERERS:
+        raise InputError(None, f"unknown renderer {name!r} (known: {', '.join(RENDERERS)})")
+    return name
+
+
+def make_renderer(name: str, mesh: Any, intr: Intrinsics, nthreads: int = 0) -> FrameRenderer:
+    """The renderer `name` ('raster' or 'raycast') over `mesh` for frames of `intr`;
+    `nthreads`: Open3D's ray-casting threads (0 = all)."""
+    check_renderer(name)
+    if name == "raster":
+        if not intr.has_distortion:
+            return MeshRasteriser(mesh, intr)
+        return _FallbackCaster(mesh, intr, nthreads)
+    return MeshCaster(mesh, intr, nthreads)
