@@ -13,6 +13,7 @@ import tomllib
 from depthstation.core.errors import InputError, SimulationError
 from depthstation.simulate.effects import EFFECTS
 from depthstation.simulate.effects.base import Array, Effect, PixelContext
+from depthstation.simulate.effects.generic import term_class
 from depthstation.simulate.fastpath import FusedSampler, fusable
 from depthstation.simulate.presets import PRESETS, CameraPreset
 
@@ -120,11 +121,13 @@ def _toml_value(v: Any) -> str:
 
 
 def make_effect(name: str, params: dict[str, Any] | None = None) -> Effect:
-    """Instantiate a catalogue effect by name."""
-    if name not in EFFECTS:
-        raise SimulationError(f"unknown effect '{name}' (catalogue: {', '.join(EFFECTS)})")
+    """Instantiate a catalogue effect or a generic term (`term_...`, simulate.effects.generic) by name."""
+    cls = EFFECTS.get(name) or term_class(name)
+    if cls is None:
+        raise SimulationError(f"unknown effect '{name}' (catalogue: {', '.join(EFFECTS)}; "
+                              "or a generic term_<bias|noise>_<axes>_<basis>)")
     try:
-        return EFFECTS[name](params or {})
+        return cls(params or {})
     except ValueError as exc:
         raise SimulationError(f"effect '{name}': {exc}") from exc
 
