@@ -185,12 +185,13 @@ def select_table(t: Table, catalogue: Sequence[Candidate], lib: Sequence[Candida
                  fits: dict[str, CandidateFit], present: dict[str, dict[str, float]], real: Samples,
                  max_terms: int = 4) -> tuple[list[DiscoveredTerm], list[dict[str, Any]], list[dict[str, Any]]]:
     """Discovery on one table (updates `fits` in place): the catalogue's choice continued with the
-    library; if that found a generic term, the same from an empty model too, and the lower BIC wins
-    (a catalogue effect that only absorbed part of an outside signal is then not kept)."""
+    library; if the catalogue chose anything, the same from an empty model too, and the lower BIC
+    wins (catalogue effects that only approximated an outside signal are then not kept; where the
+    catalogue is right, both paths pick it and the catalogue's choice stands)."""
     start = [f.effect for f in fits.values() if f.selected and f.effect in t.X]
     seq = _select(t, catalogue, lib, copy_fits(fits), present, real, start, max_terms)
     best = seq
-    if seq.terms and start:
+    if start:
         fresh = copy_fits(fits)
         for f in fresh.values():
             f.selected, f.step, f.near_ties = False, None, []

@@ -284,15 +284,16 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
 
 def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, *, frames: int,
                 seed: int = 0, resimulate: bool = True, workers: int = 1, cluster: str | None = None,
-                parameters: dict[str, Any] | None = None, target: RerunTarget | None = None,
-                tick: Progress | None = None) -> dict[str, Any]:
+                discovery: bool = True, parameters: dict[str, Any] | None = None,
+                target: RerunTarget | None = None, tick: Progress | None = None) -> dict[str, Any]:
     """`depthstation explain` of checkerboard captures: evaluate the real standpoints, simulate them
     with `model`, locate, attribute, refit, check, and write the result folder; its explain.json."""
     brd = board if isinstance(board, Board) else load_board(board)
     real_side = evaluate_real(real, brd, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
                               workers=workers, cluster=cluster)
     sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
-    ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, tick=tick)
+    ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, discovery=discovery,
+                       tick=tick)
     data = write_outputs(ex, out, [str(p) for p in real], dict(parameters or {}))
     if target is not None and target.enabled:
         log_explanation(ex, target)
