@@ -318,7 +318,7 @@ def variance_table(real: Samples, sim: Samples, candidates: Sequence[Candidate],
     rows_sp: list[IntArray] = []
     rows_x: dict[str, list[FloatArray]] = {}
     var_cands = [c for c in candidates if c.kind == "variance" and c.table == "tiles"]
-    cols_r = {c.name: c.columns(real)[:, 0] for c in var_cands if c.correlation is not None}
+    cols_r = {c.name: c.columns(real) for c in var_cands if c.correlation is not None}
     nsp = len(real.names)
 
     def per_sp(sp_idx: IntArray, values: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -346,10 +346,14 @@ def variance_table(real: Samples, sim: Samples, candidates: Sequence[Candidate],
         rows_sp.append(g)
         du, dv = (lag, 0.0) if axis == "u" else (0.0, lag)
         for c in var_cands:
+            if c.name not in X:
+                continue
+            k = X[c.name].shape[1]
             if c.correlation is not None:
-                col = per_sp(sp_r, cols_r[c.name][i_r])[0][g] * c.correlation(du, dv)
+                rho = c.correlation(du, dv)
+                col = np.stack([per_sp(sp_r, cols_r[c.name][i_r, j])[0][g] * rho for j in range(k)], axis=1)
             else:
-                col = np.zeros(len(g))
+                col = np.zeros((len(g), k))
             rows_x.setdefault(c.name, []).append(col)
     if rows_y:
         # the lag rows of one standpoint are products of the same deviations at neighbouring lags:
@@ -359,9 +363,10 @@ def variance_table(real: Samples, sim: Samples, candidates: Sequence[Candidate],
         y = np.r_[y, np.concatenate(rows_y)]
         var_y = np.r_[var_y, np.concatenate(rows_v) * per]
         sp = np.r_[sp, np.concatenate(rows_sp)].astype(np.int64)
+        n_lag = sum(len(r) for r in rows_y)
         for name in X:
-            extra = np.concatenate(rows_x[name]) if name in rows_x else np.zeros(sum(len(r) for r in rows_y))
-            X[name] = np.concatenate([X[name], np.repeat(extra[:, None], X[name].shape[1], axis=1)])
+            extra = np.concatenate(rows_x[name]) if name in rows_x else np.zeros((n_lag, X[name].shape[1]))
+            X[name] = np.concatenate([X[name], extra])
     floor = np.median(var_y) * 1e-3 + 1e-30 if len(var_y) else 1e-30
     w = 1.0 / np.maximum(var_y, floor)
     blocks = np.zeros_like(sp)
@@ -619,7 +624,8 @@ def forward_select(t: Table, candidates: Sequence[Candidate], present: dict[str,
         best_d, best = trials[0]
         rec = fits[best]
         improves = rec.heldout_rmse_after_m < rec.heldout_rmse_before_m
-        if best_d < BIC_THRESHOLD and improves and rec.wald_p < WALD_P:
+        if best_d < BIC_THRESHOLD and improves and rec.wald_p < WALD_P \
+                and not negative_variances(t, [*selected, best], by_name, present):
             step += 1
             rec.selected, rec.step = True, step
             # the data barely prefer the winner: say so rather than pick silently
@@ -643,6 +649,32 @@ def forward_select(t: Table, candidates: Sequence[Candidate], present: dict[str,
             rec.params, rec.stderr = _params(c, present, b, se, samples)
             start += k
     return list(fits.values())
+
+
+def negative_variances(t: Table, names: Sequence[str], by_name: dict[str, Candidate],
+                       present: dict[str, dict[str, float]]) -> list[str]:
+    """Variance effects whose total the joint fit takes below zero (nearly collinear columns trading
+    off): the simulator cannot render a negative variance, so such a fit is not a model."""
+    if t.kind != "variance" or not names:
+        return []
+    fit = gls(t, names)
+    out, start = [], 0
+    for n in names:
+        k = t.X[n].shape[1]
+        b = fit.beta[start:start + k]
+        start += k
+        c = by_name.get(n)
+        if c is None:
+            continue
+        if c.generic:
+            own = t.X[n] @ b
+            if own.min() < -0.05 * max(float(own.max()), 0.0):
+                out.append(n)
+        elif c.squared:
+            p0 = float(present.get(n, {}).get(c.params[0], 0.0))
+            if p0 ** 2 + float(b[0]) < 0:
+                out.append(n)
+    return out
 
 
 def _params(c: Candidate, present: dict[str, dict[str, float]], b: FloatArray, se: FloatArray,

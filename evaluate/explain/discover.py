@@ -40,6 +40,7 @@ from depthstation.evaluate.explain.attribute import (
     bic,
     gls,
     heldout_rmse,
+    negative_variances,
     rank,
     wald_p,
 )
@@ -245,10 +246,11 @@ def _select(t: Table, catalogue: Sequence[Candidate], lib: Sequence[Candidate], 
                                             "why": f"delta BIC {d:.1f} >= {limit:.1f}"}
                 continue
             after, p, b, se, why = _guards(t, selected, c.name, base_rmse)
-            if not why and c.generic and c.kind == "variance":
-                own = t.X[c.name] @ np.asarray(b, dtype=np.float64)
-                if own.min() < -0.05 * max(own.max(), 0.0):
-                    why = "its variance goes negative within the data: not a noise"
+            if not why:
+                neg = negative_variances(t, [*selected, c.name], by_name, present)
+                if neg:
+                    why = ("the joint fit takes the variance of " + ", ".join(neg) + " below zero "
+                           "(nearly collinear noises trading off): not a noise the simulator can render")
             if why:
                 first_fail = first_fail or {"term": c.name, "delta_bic": float(d), "wald_p": float(p),
                                             "heldout_rmse_after": after, "heldout_rmse_before": base_rmse,

@@ -18,12 +18,14 @@ discovered signature means", with the references).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 
 from depthstation.evaluate.explain.basis import Candidate
 from depthstation.evaluate.explain.samples import FloatArray, Samples
 from depthstation.simulate.effects import PixelContext
+from depthstation.simulate.effects.base import box_correlation
 from depthstation.simulate.effects.generic import REFERENCE, TermSpec, basis_columns
 
 BIAS_AXES = ("u", "v", "radius", "distance", "disparity", "inclination", "time", "temperature")
@@ -148,13 +150,17 @@ def _columns(spec: TermSpec, fixed: dict[str, float]) -> Callable[[Samples], Flo
     return cols
 
 
-def _candidate(real: Samples, spec: TermSpec, fixed: dict[str, float] | None = None) -> Candidate:
+def _candidate(real: Samples, spec: TermSpec, fixed: dict[str, float] | None = None, key: str = "") -> Candidate:
     fixed = {**_references(real, spec), **(fixed or {})}
     units = tuple(spec.coefficient_unit(c) for c in spec.coefficients)
     kind = "bias" if spec.quantity == "bias" else "variance"
-    return Candidate(spec.name, kind, spec.coefficients, units, spec.expression(), _columns(spec, fixed),
+    corr: Callable[[float, float], float] | None = None
+    if spec.window:
+        def corr(du: float, dv: float, w: float = fixed["window_px"]) -> float:
+            return float(box_correlation(w, du, dv))
+    return Candidate(spec.name + key, kind, spec.coefficients, units, spec.expression(), _columns(spec, fixed),
                      table="frame" if spec.basis == "common" else "tiles", spec=spec, fixed=fixed,
-                     interpretation=interpretation(spec.quantity, spec.axes))
+                     interpretation=interpretation(spec.quantity, spec.axes), correlation=corr)
 
 
 def _usable_axis(real: Samples, axis: str) -> bool:
@@ -173,8 +179,13 @@ def _usable_axis(real: Samples, axis: str) -> bool:
     return True
 
 
-def library(real: Samples) -> list[Candidate]:
-    """All generic terms, simplest first (single axes by degree, edge decays, products, fields, frame)."""
+def library(real: Samples, window_px: float | None = None) -> list[Candidate]:
+    """All generic terms, simplest first (single axes by degree, edge decays, products, fields, frame).
+
+    With `window_px` (the real noise is window-correlated) every noise term comes twice: white, and
+    shared over that window (matching noise of any cause passes through the same window); the
+    neighbour rows of the variance table tell them apart.
+    """
     out: list[Candidate] = []
     for deg in (1, 2, 3):
         for a in BIAS_AXES:
@@ -182,18 +193,21 @@ def library(real: Samples) -> list[Candidate]:
                 out.append(_candidate(real, TermSpec("bias", (a,), f"poly{deg}")))
     if _usable_axis(real, "edge"):
         for length in EDGE_LENGTHS_PX:
-            c = _candidate(real, TermSpec("bias", ("edge",), "exp"), {"length_px": length})
-            out.append(c)
+            out.append(_candidate(real, TermSpec("bias", ("edge",), "exp"), {"length_px": length},
+                                  key=f"@{length:g}px"))
     for a, b in PRODUCTS:
         if _usable_axis(real, a) and _usable_axis(real, b):
             out.append(_candidate(real, TermSpec("bias", (a, b), "product")))
     out += [_candidate(real, TermSpec("bias", ("tile",), f"field{d}")) for d in (2, 3)]
+    noise: list[tuple[TermSpec, dict[str, float]]] = []
     for deg in (1, 2):
-        for a in NOISE_AXES:
-            if _usable_axis(real, a):
-                out.append(_candidate(real, TermSpec("noise", (a,), f"poly{deg}")))
+        noise += [(TermSpec("noise", (a,), f"poly{deg}"), {}) for a in NOISE_AXES if _usable_axis(real, a)]
     if _usable_axis(real, "edge"):
-        out.append(_candidate(real, TermSpec("noise", ("edge",), "exp"), {"length_px": EDGE_LENGTHS_PX[0]}))
-    out.append(_candidate(real, TermSpec("noise", ("tile",), "field2")))
+        noise.append((TermSpec("noise", ("edge",), "exp"), {"length_px": EDGE_LENGTHS_PX[0]}))
+    noise.append((TermSpec("noise", ("tile",), "field2"), {}))
+    for spec, fixed in noise:
+        out.append(_candidate(real, spec, fixed))
+        if window_px is not None:
+            out.append(_candidate(real, replace(spec, window=True), {**fixed, "window_px": float(window_px)}))
     out.append(_candidate(real, TermSpec("noise", ("frame",), "common")))
     return out

@@ -264,7 +264,7 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     corr = structures[0].corr
     # window noise is fitted at the width the real data's neighbour correlation shows
     cands = module_candidates(present, window_px=corr.window_px if corr.fraction > 0.2 else None)
-    lib = library(real.samples) if discovery else []
+    lib = library(real.samples, corr.window_px if corr.fraction > 0.2 else None) if discovery else []
     if tick:
         tick("attribute" + (f" and discover ({len(lib)} generic terms)" if lib else ""))
     attr = attribute(real.samples, sim.samples, [*cands, *lib], present, noise_var=noise_variance(model),

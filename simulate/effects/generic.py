@@ -7,7 +7,9 @@ added disparity variance (px^2). A term's structure is its name,
 
     term_<quantity>_<axis>[_<axis>]_<basis>      e.g. term_bias_v_poly2, term_noise_frame_common
 
-and its parameters are the coefficients (plus fixed references of centred axes):
+(a noise term may end in `_window`: shared by neighbours over a `window_px` box, as the matcher's
+window shares its noise) and its parameters are the coefficients (plus fixed references of
+centred axes, the edge decay length, the window):
 
 | basis | axes | form |
 |---|---|---|
@@ -19,7 +21,7 @@ and its parameters are the coefficients (plus fixed references of centred axes):
 
 Axis variables: u -> x = (u - ppx) / fx, v -> y = (v - ppy) / fx, radius -> r = sqrt(x^2 + y^2)
 (normalised image coordinates), distance -> z (m), disparity -> d = fB/z (px), inclination -> theta
-(rad), albedo -> rho, time -> t - ref_time_s (s), temperature -> T - ref_temperature_c (degC),
+(rad), albedo -> a = 1 - rho (darkness), time -> t - ref_time_s (s), temperature -> T - ref_temperature_c (degC),
 edge -> e (px to the nearest depth edge). A noise term's variance is clipped at 0.
 """
 
@@ -34,6 +36,7 @@ import numpy as np
 from depthstation.core.errors import SimulationError
 from depthstation.simulate.effects.base import (
     Array,
+    CorrelatedJitter,
     DisparityJitter,
     DisparityShift,
     Effect,
@@ -52,14 +55,14 @@ AXIS_INFO: dict[str, tuple[str, str, str]] = {
     "distance": ("z", "m", "z = distance (z-depth, m)"),
     "disparity": ("d", "px", "d = f B / z (px)"),
     "inclination": ("theta", "rad", "theta = inclination (rad)"),
-    "albedo": ("rho", "1", "rho = reflectance of the surface"),
+    "albedo": ("a", "1", "a = 1 - reflectance (darkness: less infrared back)"),
     "time": ("t", "s", "t = time - ref_time_s (s)"),
     "temperature": ("T", "degC", "T = temperature - ref_temperature_c (degC)"),
     "edge": ("e", "px", "e = distance to the nearest depth edge (px)"),
 }
 REFERENCE = {"time": "ref_time_s", "temperature": "ref_temperature_c"}
 FIELD_TERMS = {2: ("x", "y", "xx", "xy", "yy"), 3: ("x", "y", "xx", "xy", "yy", "xxx", "xxy", "xyy", "yyy")}
-_NAME = re.compile(r"^term_(bias|noise)_([a-z_]+)_(poly[123]|product|exp|field[23]|common)$")
+_NAME = re.compile(r"^term_(bias|noise)_([a-z_]+?)_(poly[123]|product|exp|field[23]|common)(_window)?$")
 
 
 @dataclass(frozen=True)
@@ -69,10 +72,11 @@ class TermSpec:
     quantity: str          # "bias" (disparity shift, px) or "noise" (disparity variance, px^2)
     axes: tuple[str, ...]
     basis: str             # poly1..3, product, exp, field2, field3, common
+    window: bool = False   # noise shared by neighbours through the matching window (window_px)
 
     @property
     def name(self) -> str:
-        return f"term_{self.quantity}_{'_'.join(self.axes)}_{self.basis}"
+        return f"term_{self.quantity}_{'_'.join(self.axes)}_{self.basis}" + ("_window" if self.window else "")
 
     @property
     def coefficients(self) -> tuple[str, ...]:
@@ -115,6 +119,8 @@ class TermSpec:
                 out[REFERENCE[a]] = (0.0, unit, f"{a} at which the term is zero")
         if self.basis == "exp":
             out["length_px"] = (5.0, "px", "decay length away from the edge")
+        if self.window:
+            out["window_px"] = (9.0, "px", "width of the matching window that shares the noise")
         return out
 
     def expression(self, values: dict[str, float] | None = None) -> str:
@@ -143,7 +149,7 @@ class TermSpec:
         defs = "; ".join(AXIS_INFO[a][2] for a in axes)
         text = f"{lhs} = {' + '.join(terms)} [{self.unit}]"
         if self.quantity == "noise" and self.basis != "common":
-            text += " (clipped at 0)"
+            text += " (clipped at 0" + (", shared over a window_px box)" if self.window else ")")
         return text + (f"; {defs}" if defs else "")
 
 
@@ -152,7 +158,7 @@ def parse_term(name: str) -> TermSpec | None:
     m = _NAME.match(name)
     if not m:
         return None
-    quantity, axes_s, basis = m.groups()
+    quantity, axes_s, basis, window = m.groups()
     axes = tuple(axes_s.split("_"))
     if any(a not in AXES for a in axes):
         raise SimulationError(f"generic term '{name}': axes must be from {', '.join(AXES)}")
@@ -161,9 +167,9 @@ def parse_term(name: str) -> TermSpec | None:
           or (basis == "exp" and axes == ("edge",))
           or (basis.startswith("field") and axes == ("tile",))
           or (basis == "common" and axes == ("frame",) and quantity == "noise"))
-    if not ok:
+    if not ok or (window and (quantity != "noise" or basis == "common")):
         raise SimulationError(f"generic term '{name}': basis '{basis}' does not go with axes {list(axes)}")
-    return TermSpec(quantity, axes, basis)
+    return TermSpec(quantity, axes, basis, bool(window))
 
 
 def axis_value(ctx: PixelContext, axis: str, params: dict[str, float]) -> Array:
@@ -182,7 +188,7 @@ def axis_value(ctx: PixelContext, axis: str, params: dict[str, float]) -> Array:
     if axis == "inclination":
         return np.asarray(np.radians(np.asarray(ctx.inclination_deg, dtype=np.float64)))
     if axis == "albedo":
-        return np.asarray(ctx.albedo, dtype=np.float64)
+        return np.asarray(1.0 - np.asarray(ctx.albedo, dtype=np.float64))
     if axis == "time":
         return np.asarray(np.asarray(ctx.time_s, dtype=np.float64) - params.get("ref_time_s", 0.0))
     if axis == "temperature":
@@ -240,6 +246,13 @@ class GenericNoise(_Term, DisparityJitter):
         return np.asarray(np.sqrt(np.clip(self.value(ctx), 0.0, None)))
 
 
+class GenericWindowNoise(_Term, CorrelatedJitter):
+    """A generic noise term shared by neighbours through the matching window (window_px)."""
+
+    def sigma_px(self, ctx: PixelContext) -> Array:
+        return np.asarray(np.sqrt(np.clip(self.value(ctx), 0.0, None)))
+
+
 class GenericFrameNoise(_Term, FrameJitter):
     """A frame-common noise term: one disparity draw per frame of variance c (px^2), all pixels alike."""
 
@@ -258,7 +271,8 @@ def term_class(name: str) -> type[Effect] | None:
     if name in _CLASSES:
         return _CLASSES[name]
     base: type[Effect] = (GenericFrameNoise if spec.basis == "common" else
-                          GenericShift if spec.quantity == "bias" else GenericNoise)
+                          GenericShift if spec.quantity == "bias" else
+                          GenericWindowNoise if spec.window else GenericNoise)
     params: dict[str, tuple[float, str, str]] = {
         c: (0.0, spec.coefficient_unit(c), "coefficient of the term") for c in spec.coefficients}
     params.update(spec.fixed)
