@@ -56,18 +56,20 @@ def _xy(u: Any, v: Any, cam: dict[str, float]) -> tuple[Any, Any]:
 ROLL = 2e-3   # rad: right imager rolled about the optical axis
 CASES: dict[str, tuple[Any, bool, str, list[str], dict[str, float]]] = {
     # relative roll: delta = -f roll y, zero-mean over the board (issue 16: "no mismatch reported")
-    "roll_bias_along_v": (lambda z, u, v, b, t, temp, cam: _shift(z, -cam["fx"] * ROLL * _xy(u, v, cam)[1], cam),
+    "roll_bias_along_v": (lambda z, u, v, b, t, temp, cam: _shift(z, -cam["fx"] * ROLL * _xy(u, v, cam)[1],
+                                                                  cam),
                           False, "bias", ["v"], {"c1": -ROLL}),
     # pattern SNR falling like 1/z^2: disparity noise 0.025 px * z/m on top (depth noise ~ z^3)
-    "noise_faster_than_z2": (lambda z, u, v, b, t, temp, cam, rng: _shift(z, 0.025 * z * rng.standard_normal(z.shape),
-                                                                         cam),
+    "noise_faster_than_z2": (lambda z, u, v, b, t, temp, cam, rng: _shift(
+        z, 0.025 * z * rng.standard_normal(z.shape), cam),
                              True, "noise", ["distance"], {"c1": 0.025 ** 2}),
     # one disparity jump per frame, shared by all pixels (micro-thermal yaw jitter), 0.05 px RMS
     "frame_common_noise": (lambda z, u, v, b, t, temp, cam, rng: _shift(z, 0.05 * rng.standard_normal(), cam),
                            True, "noise", ["frame"], {"c": 0.05 ** 2}),
     # a fixed-pattern rectification residual: a saddle over the image, zero-mean
     "saddle_field": (lambda z, u, v, b, t, temp, cam: _shift(
-        z, 0.6 * (_xy(u, v, cam)[0] ** 2 - _xy(u, v, cam)[1] ** 2) + 0.8 * _xy(u, v, cam)[0] * _xy(u, v, cam)[1], cam),
+        z, 0.6 * (_xy(u, v, cam)[0] ** 2 - _xy(u, v, cam)[1] ** 2)
+        + 0.8 * _xy(u, v, cam)[0] * _xy(u, v, cam)[1], cam),
         False, "bias", ["tile"], {"c_x": 0.0, "c_y": 0.0, "c_xx": 0.6, "c_xy": 0.8, "c_yy": -0.6}),
 }
 

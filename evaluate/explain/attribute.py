@@ -332,7 +332,6 @@ def variance_table(real: Samples, sim: Samples, candidates: Sequence[Candidate],
         sp_r, sp_s = real.standpoint[i_r], sim_sp[i_s]
         mpr, npr = per_sp(sp_r, st_r.within[i_r] * st_r.within[j_r])
         mps, nps = per_sp(sp_s, st_s.within[i_s] * st_s.within[j_s])
-        vr, _ = per_sp(sp_r, dr[i_r])
         vs, _ = per_sp(sp_s, ds[i_s])
         ok = (npr >= MIN_TILE * 4) & (nps >= MIN_TILE * 4)
         if not ok.any():
@@ -597,7 +596,8 @@ def _usable(t: Table, name: str) -> bool:
 def forward_select(t: Table, candidates: Sequence[Candidate], present: dict[str, dict[str, float]],
                    samples: Samples | None = None) -> list[CandidateFit]:
     """Forward selection by BIC, gated by held-out RMSE and the mixed-model Wald test; all scored."""
-    pool = [c for c in candidates if c.kind == t.kind and not c.generic and c.name in t.X and _usable(t, c.name)]
+    pool = [c for c in candidates
+            if c.kind == t.kind and not c.generic and c.name in t.X and _usable(t, c.name)]
     by_name = {c.name: c for c in pool}
     selected: list[str] = []
     fits: dict[str, CandidateFit] = {}

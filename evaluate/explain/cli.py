@@ -40,7 +40,8 @@ def explain(
     serve: bool = typer.Option(False, "--serve", help="Serve a local rerun web viewer."),
     no_resimulate: bool = typer.Option(False, "--no-resimulate", help="Skip the check with the new model."),
     discover: bool = typer.Option(True, "--discover/--no-discover",
-                                  help="Search the library of generic terms for physics outside the catalogue."),
+                                  help="Search the library of generic terms for physics outside the "
+                                       "catalogue."),
     workers: int = typer.Option(1, "--workers", help="Local worker processes for the real-side evaluation."),
     cluster: str | None = typer.Option(None, "--cluster", help="Dask scheduler address (tcp://host:8786)."),
 ) -> None:

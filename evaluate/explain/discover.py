@@ -92,7 +92,8 @@ class DiscoveredTerm:
         return {
             "quantity": spec.quantity,
             "axes": list(spec.axes),
-            "expression": spec.expression({**self.coef, **self.candidate.fixed}) + _fixed_text(self.candidate),
+            "expression": (spec.expression({**self.coef, **self.candidate.fixed})
+                           + _fixed_text(self.candidate)),
             "coefficients": {k: {"value": v, "unit": units[k], "stderr": self.stderr.get(k)}
                              for k, v in self.coef.items()},
             "heldout_rmse_before_m": self.heldout_rmse_before_m,
@@ -153,6 +154,9 @@ def _identifiable(t: Table, names: Sequence[str]) -> bool:
     return bool(sv[-1] > 1e-4 * sv[0])
 
 
+MAX_TRIES = 4   # further terms tried at a step when the near ties fail the guards
+
+
 def generic_threshold(n_terms: int) -> float:
     """delta BIC a generic term must beat: the catalogue's -10 plus the extended-BIC price of
     searching n terms, 2 ln n (Chen & Chen 2008): the best of many null terms looks good by chance."""
@@ -184,7 +188,8 @@ class TableResult:
 
 def select_table(t: Table, catalogue: Sequence[Candidate], lib: Sequence[Candidate],
                  fits: dict[str, CandidateFit], present: dict[str, dict[str, float]], real: Samples,
-                 max_terms: int = 4) -> tuple[list[DiscoveredTerm], list[dict[str, Any]], list[dict[str, Any]]]:
+                 max_terms: int = 4
+                 ) -> tuple[list[DiscoveredTerm], list[dict[str, Any]], list[dict[str, Any]]]:
     """Discovery on one table (updates `fits` in place): the catalogue's choice continued with the
     library; if the catalogue chose anything, the same from an empty model too, and the lower BIC
     wins (catalogue effects that only approximated an outside signal are then not kept; where the
@@ -239,7 +244,10 @@ def _select(t: Table, catalogue: Sequence[Candidate], lib: Sequence[Candidate], 
         near.sort(key=lambda x: (x[1].complexity, x[0]))
         accepted: tuple[float, Candidate, Any] | None = None
         first_fail: dict[str, Any] | None = None
-        for d, c in [*c_trials, *near]:
+        # the near ties first (simplest first), then the next best terms, a few at most: a term the
+        # guards reject (e.g. one that needs a negative variance elsewhere) leaves room for another
+        rest = [(d, c) for d, c in g_trials if (d, c) not in near][:MAX_TRIES]
+        for d, c in [*c_trials, *near, *rest]:
             limit = generic_threshold(len(gen)) if c.generic else BIC_THRESHOLD
             if d >= limit:
                 first_fail = first_fail or {"term": c.name, "delta_bic": float(d),
@@ -335,8 +343,9 @@ def discover(attr: Attribution, catalogue: Sequence[Candidate], lib: Sequence[Ca
         if len(t) == 0:
             continue
         kind = "bias" if name == "bias" else "variance"
-        cat = [c for c in catalogue if c.kind == kind and c.table == ("frame" if name == "frame" else "tiles")]
-        gen = [c for c in lib if c.kind == kind and c.table == ("frame" if name == "frame" else "tiles")]
+        where = "frame" if name == "frame" else "tiles"
+        cat = [c for c in catalogue if c.kind == kind and c.table == where]
+        gen = [c for c in lib if c.kind == kind and c.table == where]
         sub = {k: f for k, f in fits.items() if f.kind == kind and k in t.X}
         terms, dropped, rejected = select_table(t, cat, gen, sub, present, real)
         fits.update(sub)
@@ -348,7 +357,8 @@ def discover(attr: Attribution, catalogue: Sequence[Candidate], lib: Sequence[Ca
     return out
 
 
-def best_term(t: Table, lib: Sequence[Candidate], selected: Sequence[str], axes: set[str]
+def best_term(t: Table, lib: Sequence[Candidate], selected: Sequence[str], axes: set[str],
+              catalogue: Sequence[Candidate] = (), present: dict[str, dict[str, float]] | None = None
               ) -> dict[str, Any] | None:
     """The library term along `axes` that would explain most of what remains, and why it is not in
     the model (for regions still significant after the refit)."""
@@ -361,6 +371,10 @@ def best_term(t: Table, lib: Sequence[Candidate], selected: Sequence[str], axes:
     d, c = scored[0]
     base_rmse = heldout_rmse(t, list(selected))
     after, p, _, _, why = _guards(t, list(selected), c.name, base_rmse)
+    neg = negative_variances(t, [*selected, c.name], {x.name: x for x in [*lib, *catalogue]}, present or {})
+    if not why and neg:
+        why = ("the joint fit takes the variance of " + ", ".join(neg) + " below zero (nearly collinear "
+               "noises trading off)")
     limit = generic_threshold(len([x for x in lib if x.name in t.X]))
     if d >= limit:
         why = (f"delta BIC {d:.1f} >= {limit:.1f} (-10 plus the price of searching the library): "
@@ -373,7 +387,9 @@ def best_term(t: Table, lib: Sequence[Candidate], selected: Sequence[str], axes:
 
 
 def remaining(regions: Sequence[dict[str, Any]], attr: Attribution, lib: Sequence[Candidate],
-              discovery: Discovery | None, family_axes: dict[str, tuple[str, ...]]) -> list[dict[str, Any]]:
+              discovery: Discovery | None, family_axes: dict[str, tuple[str, ...]],
+              catalogue: Sequence[Candidate] = (), present: dict[str, dict[str, float]] | None = None,
+              correlation: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """For every region still significant after the refit: the term that would explain it best and
     why it was not selected (a guard it fails), or why no term can."""
     chosen: dict[str, list[str]] = {}
@@ -389,8 +405,8 @@ def remaining(regions: Sequence[dict[str, Any]], attr: Attribution, lib: Sequenc
         axes = tuple(family_axes.get(r["family"], ()))
         table = "bias" if r["kind"] == "bias" else ("frame" if r["family"] == "frame_common" else "variance")
         entry = {"family": r["family"], "kind": r["kind"], "label": r["label"], "axes": list(axes)}
-        t = attr.tables.get(table)
-        if not axes or t is None or not len(t):
+        found = attr.tables.get(table)
+        if not axes or found is None or not len(found):
             entry["term"] = None
             entry["why_not_selected"] = ("a single standpoint differs: a static error of its own (pose of "
                                          "the reference, frozen pattern) that no term shared by "
@@ -398,18 +414,28 @@ def remaining(regions: Sequence[dict[str, Any]], attr: Attribution, lib: Sequenc
                                          else "no fit table for this quantity")
             out.append(entry)
             continue
+        if r["family"].startswith("correlation") and correlation:
+            real, sim = correlation["real"], correlation["sim"]
+            entry["term"] = "window_noise"
+            entry["why_not_selected"] = (
+                f"the real noise is more window-correlated than the model's: correlated fraction "
+                f"{real['correlated_fraction']:.2f} over {real['window_px']:.3g} px against "
+                f"{sim['correlated_fraction']:.2f} over {sim['window_px']:.3g} px re-simulated; the model's "
+                "white noises (disparity_noise and any white term) keep neighbours independent, and a "
+                "window_noise that took their variance would need them below zero")
+            out.append(entry)
+            continue
+        t = found
         key = (table, axes)
         if key not in cache:
             kind = "bias" if table == "bias" else "variance"
-            pool = [c for c in lib if c.kind == kind and c.table == ("frame" if table == "frame" else "tiles")]
-            cache[key] = best_term(t, pool, chosen.get(table, []), set(axes))
+            where = "frame" if table == "frame" else "tiles"
+            pool = [c for c in lib if c.kind == kind and c.table == where]
+            cache[key] = best_term(t, pool, chosen.get(table, []), set(axes), catalogue, present)
         best = cache[key]
         if best is None:
             entry["term"] = None
-            entry["why_not_selected"] = (
-                "the neighbour correlation's shape: window_noise is fitted at one width; a matcher whose "
-                "correlation is not a box window's triangle leaves this" if r["family"].startswith("correlation")
-                else "no library term along these axes")
+            entry["why_not_selected"] = "no library term along these axes"
         else:
             entry.update(best)
         out.append(entry)

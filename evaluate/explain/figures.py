@@ -62,7 +62,8 @@ def _frame_binned(x: NDArray[np.float64], val: NDArray[np.float64], frame: NDArr
 
 
 def term_residual_figure(path: Path, title: str, xlabel: str, ylabel: str,
-                         sides: list[tuple[str, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
+                         sides: list[tuple[str, NDArray[np.float64], NDArray[np.float64],
+                                           NDArray[np.float64]]],
                          curve: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]) -> Path:
     """The residual along a term's axis before and after the refit (bars 2 SE), with the fitted
     curve and its 2 SE band."""

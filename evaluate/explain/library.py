@@ -60,7 +60,8 @@ INTERPRETATION: dict[tuple[str, tuple[str, ...]], tuple[str, ...]] = {
         "(a noise difference shows as a bias) [derived]",
         "range-dependent subpixel bias (lower texture SNR far away) [Shimizu & Okutomi 2005]"),
     ("bias", ("disparity",)): (
-        "baseline or common focal-length error: delta proportional to d, a depth scale [Keselman et al. 2017]",
+        "baseline or common focal-length error: delta proportional to d, a depth scale "
+        "[Keselman et al. 2017]",
         "disparity-dependent subpixel interpolation bias (pixel locking between integers) "
         "[Shimizu & Okutomi 2005; Intel subpixel linearity white paper]"),
     ("bias", ("inclination",)): (
@@ -122,7 +123,7 @@ def interpretation(quantity: str, axes: tuple[str, ...]) -> tuple[str, ...]:
     """The causes of a signature; products of two axes get the generic interaction reading."""
     if (quantity, axes) in INTERPRETATION:
         return INTERPRETATION[(quantity, axes)]
-    if ("bias", ("u", "v")) == (quantity, axes):
+    if (quantity, axes) == ("bias", ("u", "v")):
         return INTERPRETATION[("bias", ("tile",))][1:]
     return PRODUCT_INTERPRETATION
 
@@ -150,7 +151,8 @@ def _columns(spec: TermSpec, fixed: dict[str, float]) -> Callable[[Samples], Flo
     return cols
 
 
-def _candidate(real: Samples, spec: TermSpec, fixed: dict[str, float] | None = None, key: str = "") -> Candidate:
+def _candidate(real: Samples, spec: TermSpec, fixed: dict[str, float] | None = None, key: str = ""
+               ) -> Candidate:
     fixed = {**_references(real, spec), **(fixed or {})}
     units = tuple(spec.coefficient_unit(c) for c in spec.coefficients)
     kind = "bias" if spec.quantity == "bias" else "variance"
@@ -158,7 +160,8 @@ def _candidate(real: Samples, spec: TermSpec, fixed: dict[str, float] | None = N
     if spec.window:
         def corr(du: float, dv: float, w: float = fixed["window_px"]) -> float:
             return float(box_correlation(w, du, dv))
-    return Candidate(spec.name + key, kind, spec.coefficients, units, spec.expression(), _columns(spec, fixed),
+    return Candidate(spec.name + key, kind, spec.coefficients, units, spec.expression(),
+                     _columns(spec, fixed),
                      table="frame" if spec.basis == "common" else "tiles", spec=spec, fixed=fixed,
                      interpretation=interpretation(spec.quantity, spec.axes), correlation=corr)
 

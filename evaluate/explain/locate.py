@@ -477,18 +477,19 @@ def _correlation_tests(real: Samples, sim: Samples, st_r: Structure, st_s: Struc
     """
     out: list[GroupTest] = []
     for axis in ("u", "v"):
-        common = sorted(set(k for k in st_r.pairs if k[0] == axis) & set(k for k in st_s.pairs if k[0] == axis),
+        common = sorted({k for k in st_r.pairs if k[0] == axis} & {k for k in st_s.pairs if k[0] == axis},
                         key=lambda k: k[1])
         if not common:
             continue
-        chosen = [common[0]] + ([k for k in common if k[1] >= 3 * common[0][1]][:1])
+        chosen = [common[0], *[k for k in common if k[1] >= 3 * common[0][1]][:1]]
         for key in chosen:
             vals = []
             for s, st in ((real, st_r), (sim, st_s)):
                 i, j = st.pairs[key]
-                sig2 = np.bincount(s.standpoint, weights=np.nan_to_num(st.dev2), minlength=len(s.names))
-                cnt = np.bincount(s.standpoint, weights=np.isfinite(st.dev2).astype(float), minlength=len(s.names))
-                sig2 = sig2 / np.maximum(cnt, 1)
+                tot = np.bincount(s.standpoint, weights=np.nan_to_num(st.dev2), minlength=len(s.names))
+                cnt = np.bincount(s.standpoint, weights=np.isfinite(st.dev2).astype(float),
+                                  minlength=len(s.names))
+                sig2 = tot / np.maximum(cnt, 1)
                 x = np.full(len(s), np.nan)
                 with np.errstate(invalid="ignore", divide="ignore"):
                     x[i] = st.within[i] * st.within[j] / sig2[s.standpoint[i]]

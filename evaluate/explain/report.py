@@ -19,7 +19,7 @@ from depthstation.evaluate.explain.locate import residual_grid
 from depthstation.evaluate.explain.samples import FloatArray, Samples
 from depthstation.evaluate.explain.structure import decompose, frame_common
 from depthstation.simulate.effects import PixelContext
-from depthstation.simulate.effects.generic import AXIS_INFO, axis_value, basis_columns
+from depthstation.simulate.effects.generic import AXIS_INFO, axis_value
 
 if TYPE_CHECKING:
     from depthstation.evaluate.explain.discover import DiscoveredTerm
@@ -110,7 +110,8 @@ def _term_figure(term: DiscoveredTerm, sides: list[tuple[str, Samples, Samples]]
     assert spec is not None
     fixed = term.candidate.fixed
     coef = np.array([term.coef[c] for c in spec.coefficients])
-    cov = np.asarray(term.cov) if term.cov else np.diag([term.stderr.get(c, 0.0) ** 2 for c in spec.coefficients])
+    cov = (np.asarray(term.cov) if term.cov
+           else np.diag([term.stderr.get(c, 0.0) ** 2 for c in spec.coefficients]))
     unit = spec.unit
     what = "disparity error" if spec.quantity == "bias" else "within-frame disparity variance"
     title = f"{spec.name}: {spec.expression(term.coef)}"
@@ -118,11 +119,10 @@ def _term_figure(term: DiscoveredTerm, sides: list[tuple[str, Samples, Samples]]
         xs, rows = [], []
         for label, real, sim in sides:
             fr, fs = frame_common(real, decompose(real)), frame_common(sim, decompose(sim))
-            idx = {int(g): i for i, g in enumerate(fs.standpoint)}
-            pts = [(i, fr.excess_px2[a] - fs.excess_px2[idx[int(g)]],
-                    float(np.hypot(fr.se_px2()[a], fs.se_px2()[idx[int(g)]])))
-                   for a, (i, g) in enumerate(zip(range(len(fr.standpoint)), fr.standpoint, strict=True))
-                   if int(g) in idx]
+            idx = {sim.names[int(g)]: i for i, g in enumerate(fs.standpoint)}
+            pts = [(a, fr.excess_px2[a] - fs.excess_px2[idx[real.names[int(g)]]],
+                    float(np.hypot(fr.se_px2()[a], fs.se_px2()[idx[real.names[int(g)]]])))
+                   for a, g in enumerate(fr.standpoint) if real.names[int(g)] in idx]
             xs = [p[0] for p in pts]
             rows.append((label, np.array(xs, dtype=float), np.array([p[1] for p in pts]),
                          np.array([p[2] for p in pts]) / 2))
@@ -156,8 +156,10 @@ def _term_figure(term: DiscoveredTerm, sides: list[tuple[str, Samples, Samples]]
         gx, gy = np.meshgrid(xc, yc, indexing="ij")
         cols = [np.prod([gx if ch == "x" else gy for ch in c[2:]], axis=0) for c in spec.coefficients]
         phi = np.stack(cols, axis=-1)
-        fitted = phi @ coef
-        band = 2 * np.sqrt(np.clip(np.einsum("...i,ij,...j->...", phi, cov, phi), 0, None))
+        seen = np.isfinite(panels[0][1])    # the field only where the boards were
+        fitted = np.where(seen, phi @ coef, np.nan)
+        band = np.where(seen, 2 * np.sqrt(np.clip(np.einsum("...i,ij,...j->...", phi, cov, phi), 0, None)),
+                        np.nan)
         panels.insert(1, (f"fitted term ({unit})", fitted))
         panels.append((f"2 SE of the fitted term ({unit})", band))
         return term_field_figure(path, title, unit, xe, ye, panels)
@@ -176,7 +178,8 @@ def _term_figure(term: DiscoveredTerm, sides: list[tuple[str, Samples, Samples]]
     edges = np.linspace(lo, hi + 1e-9 * max(1.0, abs(hi)), 11)
     rows = []
     for label, real, sim in sides:
-        mr, sr = _frame_binned(variable(real), _disparity_residual(real, spec.quantity), real.frame_key, edges)
+        mr, sr = _frame_binned(variable(real), _disparity_residual(real, spec.quantity), real.frame_key,
+                               edges)
         ms, ss = _frame_binned(variable(sim), _disparity_residual(sim, spec.quantity), sim.frame_key, edges)
         rows.append((label, (edges[:-1] + edges[1:]) / 2, mr - ms, np.hypot(sr, ss)))
     xg = np.linspace(lo, hi, 100)
@@ -277,11 +280,13 @@ def _discovered_md(data: dict[str, Any], figs: list[str]) -> list[str]:
                   f"`{d['expression']}`",
                   f"- Coefficients: {coefs}.",
                   f"- Held-out RMSE {d['heldout_rmse_before_m'] * 1e3:.3g} -> "
-                  f"{d['heldout_rmse_after_m'] * 1e3:.3g} mm; delta BIC {det.get('delta_bic', float('nan')):.1f}; "
+                  f"{d['heldout_rmse_after_m'] * 1e3:.3g} mm; "
+                  f"delta BIC {det.get('delta_bic', float('nan')):.1f}; "
                   f"Wald p {det.get('wald_p', float('nan')):.2g}.",
                   "- What makes this signature: " + " / ".join(d["interpretation"]) + "."]
         for t in det.get("near_ties", []):
-            lines.append(f"- Near tie: {t['term']} (BIC gap {t['bic_gap']:.1f}); the data hardly tell them apart.")
+            lines.append(f"- Near tie: {t['term']} (BIC gap {t['bic_gap']:.1f}); the data hardly tell "
+                         "them apart.")
         if k < len(figs):
             lines += ["", f"![{figs[k]}]({figs[k]})", ""]
     for dr in disc.get("dropped_catalogue", []):

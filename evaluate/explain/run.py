@@ -277,8 +277,9 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
         if tick:
             tick("locate after")
         after = locate(real.samples, resim.samples)
-    rest = (remaining(after.summary()["regions"], attr, lib, disc, FAMILY_AXES)
-            if after is not None and lib else None)
+    summary = after.summary() if after is not None else None
+    rest = (remaining(summary["regions"], attr, lib, disc, FAMILY_AXES, cands, present,
+                      summary.get("noise_correlation")) if summary is not None and lib else None)
     return Explanation(real, sim, before, attr, model, new_model, resim, after, cands, disc, lib, rest)
 
 

@@ -116,7 +116,7 @@ class Samples:
         """
         cached = self.__dict__.get("_frame_index")
         if cached is None or cached[0].size != self.err_m.size:
-            uniq, first, inv = np.unique(self.frame_key, return_index=True, return_inverse=True)
+            _, first, inv = np.unique(self.frame_key, return_index=True, return_inverse=True)
             cached = (inv.ravel().astype(np.int64), self.standpoint[first])
             self.__dict__["_frame_index"] = cached
         return cached

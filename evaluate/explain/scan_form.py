@@ -365,7 +365,8 @@ def _var_weights(bc: BlockCells) -> FloatArray:
 
 def _fit_of(rec: dict[str, Any]) -> CandidateFit:
     """A scan candidate record as the fit record discovery works on."""
-    return CandidateFit(rec["effect"], rec["kind"], rec["role"], {k: v["value"] for k, v in rec["params"].items()},
+    return CandidateFit(rec["effect"], rec["kind"], rec["role"],
+                        {k: v["value"] for k, v in rec["params"].items()},
                         {k: v["unit"] for k, v in rec["params"].items()}, rec["meaning"], rec["delta_bic"],
                         rec["heldout_rmse_before_m"], rec["heldout_rmse_after_m"], rec["wald_p"],
                         {k: v["stderr"] for k, v in rec["params"].items()}, rec["selected"], rec["step"])
@@ -379,7 +380,8 @@ def discover_cells(bc: BlockCells, info: StreamInfo, present: dict[str, dict[str
     simplest first, extended BIC, leave-one-block-out RMSE, block-cluster-robust Wald).
     Returns the discovery and the catalogue effects it took out again."""
     s = _pseudo_samples(bc, info, albedo)
-    lib = [c for c in library(s) if c.spec is not None and set(c.spec.axes) <= GRID_AXES and c.table == "tiles"]
+    lib = [c for c in library(s)
+           if c.spec is not None and set(c.spec.axes) <= GRID_AXES and c.table == "tiles"]
     cands = {c.name: c for c in module_candidates(present)}
     out = Discovery(library_size=len(lib))
     dropped: list[str] = []
@@ -493,7 +495,7 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
     candidates, selected = attribute_cells(bc, info, present)
     disc: Discovery | None = None
     if discovery:
-        disc, dropped = discover_cells(bc, info, present, candidates)
+        disc, _ = discover_cells(bc, info, present, candidates)
         selected = [r["effect"] for r in candidates if r["selected"]]
     new_model = model
     for rec in candidates:

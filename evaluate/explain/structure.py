@@ -80,7 +80,7 @@ def _pixel_groups(s: Samples) -> tuple[IntArray, IntArray]:
 
 def _frames(s: Samples) -> tuple[IntArray, IntArray]:
     """Frame index (0..F-1 over the session) of every sample and the standpoint of each frame."""
-    uniq, first, inv = np.unique(s.frame_key, return_index=True, return_inverse=True)
+    _, first, inv = np.unique(s.frame_key, return_index=True, return_inverse=True)
     return inv.ravel(), s.standpoint[first]
 
 
@@ -90,7 +90,8 @@ def _pair_frames(s: Samples, per_standpoint: int) -> np.ndarray:
     for sp in np.unique(s.standpoint):
         m = np.flatnonzero(s.standpoint == sp)
         frames = np.unique(s.frame[m])
-        chosen = frames[np.unique(np.linspace(0, len(frames) - 1, min(per_standpoint, len(frames))).astype(int))]
+        picks = np.linspace(0, len(frames) - 1, min(per_standpoint, len(frames))).astype(int)
+        chosen = frames[np.unique(picks)]
         keep[m[np.isin(s.frame[m], chosen)]] = True
     return keep
 
@@ -186,7 +187,8 @@ def decompose(s: Samples) -> Structure:
         cnt_h = np.bincount(fid[m], minlength=nf)
         halves[:, h] = np.bincount(fid[m], weights=(r / k)[m], minlength=nf) / np.maximum(cnt_h, 1)
         halves[cnt_h == 0, h] = np.nan
-    return Structure(within, dev2, fc[fid], fid, fsp, fc, fmean, fn, fk, halves, density, corr, pairs)
+    return Structure(within, dev2, fc[fid], fid, fsp, fc, fmean, fn.astype(np.float64), fk, halves, density,
+                     corr, pairs)
 
 
 def _corr(x: FloatArray, i: IntArray, j: IntArray) -> float:

@@ -204,7 +204,7 @@ class DisparityJitter(Effect):
         return shift_depth(ctx, z_m, noise)
 
 
-def box_correlated_field(shape: tuple[int, ...], window: int, rng: np.random.Generator) -> Array:
+def box_correlated_field(shape: tuple[int, ...], window: float, rng: np.random.Generator) -> Array:
     """Unit-variance Gaussian field whose neighbours share the error of a `window` x `window` box.
 
     Each value is the mean of window^2 white draws of a field `window - 1` larger than the image
@@ -212,7 +212,7 @@ def box_correlated_field(shape: tuple[int, ...], window: int, rng: np.random.Gen
     two values k_u, k_v apart is (1 - |k_u|/w)+ (1 - |k_v|/w)+ (a box matcher's footprint).
     A 1-D array is filtered along its axis; more dimensions as one image (leading axes, last axis).
     """
-    w = max(1, int(round(window)))
+    w = max(1, round(float(window)))
     if len(shape) == 0:
         return np.asarray(rng.standard_normal(dtype=np.float32))
     if w == 1:
@@ -262,9 +262,10 @@ class CorrelatedJitter(DisparityJitter):
             step = float(abs(u.reshape(-1, shape[-1])[0, 1] - u.reshape(-1, shape[-1])[0, 0]))
             if step > 0:
                 w = w / step
-        return max(1, int(round(w)))
+        return max(1, round(float(w)))
 
-    def field(self, shape: tuple[int, ...], rng: np.random.Generator, ctx: PixelContext | None = None) -> Array:
+    def field(self, shape: tuple[int, ...], rng: np.random.Generator,
+              ctx: PixelContext | None = None) -> Array:
         """One unit-variance draw of the correlated field."""
         return box_correlated_field(shape, self.image_window(ctx, shape), rng)
 

@@ -13,7 +13,7 @@ centred axes, the edge decay length, the window):
 
 | basis | axes | form |
 |---|---|---|
-| poly1..3 | one axis a | sum_k c_k a^k (no constant: that is `disparity_offset` / `disparity_noise`); a noise along distance in even powers, sum_k c_k z^(2k) (the SNR law: sigma_d ~ z or z^2) |
+| poly1..3 | one axis a | sum_k c_k a^k (no constant: `disparity_offset` / `disparity_noise` are that) |
 | product | two axes a, b | c a b |
 | exp | edge | c exp(-e / length_px) |
 | field2, field3 | tile | polynomial field over the image in (x, y) of total degree 2 or 3, no constant |
@@ -21,8 +21,10 @@ centred axes, the edge decay length, the window):
 
 Axis variables: u -> x = (u - ppx) / fx, v -> y = (v - ppy) / fx, radius -> r = sqrt(x^2 + y^2)
 (normalised image coordinates), distance -> z (m), disparity -> d = fB/z (px), inclination -> theta
-(rad), albedo -> a = 1 - rho (darkness), time -> t - ref_time_s (s), temperature -> T - ref_temperature_c (degC),
-edge -> e (px to the nearest depth edge). A noise term's variance is clipped at 0.
+(rad), albedo -> a = 1 - rho (darkness), time -> t - ref_time_s (s), temperature ->
+T - ref_temperature_c (degC), edge -> e (px to the nearest depth edge). A noise term along distance
+goes in even powers, sum_k c_k z^(2k) (the SNR law: sigma_d ~ z or z^2). A noise term's variance
+is clipped at 0.
 """
 
 from __future__ import annotations
@@ -106,7 +108,9 @@ class TermSpec:
             return base if u == "1" else f"{base}/{u}" + (f"^{k}" if k > 1 else "")
         if self.basis == "product":
             units = [AXIS_INFO[a][1] for a in self.axes if AXIS_INFO[a][1] != "1"]
-            return base if not units else f"{base}/({'*'.join(units)})" if len(units) > 1 else f"{base}/{units[0]}"
+            if not units:
+                return base
+            return f"{base}/({'*'.join(units)})" if len(units) > 1 else f"{base}/{units[0]}"
         return base
 
     @property
@@ -212,7 +216,8 @@ def basis_columns(spec: TermSpec, ctx: PixelContext, params: dict[str, float]) -
         cols = [np.where(np.isfinite(e), np.exp(-np.maximum(e, 0.0) / params.get("length_px", 5.0)), 0.0)]
     elif spec.basis.startswith("field"):
         x, y = axis_value(ctx, "u", params), axis_value(ctx, "v", params)
-        cols = [np.prod([x if ch == "x" else y for ch in t], axis=0) for t in FIELD_TERMS[int(spec.basis[5:])]]
+        cols = [np.prod([x if ch == "x" else y for ch in t], axis=0)
+                for t in FIELD_TERMS[int(spec.basis[5:])]]
     else:
         cols = [np.ones(shape)]
     return [np.broadcast_to(np.asarray(c, dtype=np.float64), shape) for c in cols]
@@ -294,4 +299,5 @@ def term_spec(effect: Effect | type[Effect]) -> TermSpec | None:
 def term_value(spec: TermSpec, ctx: PixelContext, params: dict[str, Any]) -> Array:
     """The expression's value (px or px^2) for given coefficients, without building an effect."""
     cols = basis_columns(spec, ctx, {k: float(v) for k, v in params.items()})
-    return np.asarray(sum(float(params.get(c, 0.0)) * col for c, col in zip(spec.coefficients, cols, strict=True)))
+    return np.asarray(sum(float(params.get(c, 0.0)) * col
+                          for c, col in zip(spec.coefficients, cols, strict=True)))
