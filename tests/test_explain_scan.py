@@ -55,16 +55,20 @@ def _conceal(sim: Path, out: Path, c_per_m: float, hidden: Any = None) -> Path:
     return out / "sequence.mcap"
 
 
-def test_scan_concealed_disparity_offset(room: Path, tmp_path: Path) -> None:
-    c = 4e-3       # 4 mm/m^2: 0.05 px at 256x144 (fB ~ 12 px m), half the per-pixel disparity noise
-    real = _conceal(room, tmp_path / "real", c)
-    out = tmp_path / "out"
+def _explain_scan(room: Path, real: Path, out: Path) -> dict[str, Any]:
     r = subprocess.run([str(EXE), "explain", "--scan", str(real), "--poses", str(room / "trajectory.txt"),
                         "--reference", str(room / "scene.ply"), "--model", "d455", "--no-icp",
                         "--block-frames", "4", "--out", str(out), "--seed", "2"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
-    data = json.loads((out / "explain.json").read_text())
+    return dict(json.loads((out / "explain.json").read_text()))
+
+
+def test_scan_concealed_disparity_offset(room: Path, tmp_path: Path) -> None:
+    c = 4e-3       # 4 mm/m^2: 0.05 px at 256x144 (fB ~ 12 px m), half the per-pixel disparity noise
+    real = _conceal(room, tmp_path / "real", c)
+    out = tmp_path / "out"
+    data = _explain_scan(room, real, out)
     info = json.loads((room / "truth.json").read_text())["stream_info"]
     fb = info["baseline_m"] * info["depth_intrinsics"]["fx"]
     assert data["mismatch"]["significant"]
@@ -112,12 +116,7 @@ def test_scan_discovers_bias_along_distance(room: Path, tmp_path: Path) -> None:
 
     real = _conceal(room, tmp_path / "real", 0.0, grows)
     out = tmp_path / "out"
-    r = subprocess.run([str(EXE), "explain", "--scan", str(real), "--poses", str(room / "trajectory.txt"),
-                        "--reference", str(room / "scene.ply"), "--model", "d455", "--no-icp",
-                        "--block-frames", "4", "--out", str(out), "--seed", "2"],
-                       capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr[-2000:]
-    data = json.loads((out / "explain.json").read_text())
+    data = _explain_scan(room, real, out)
     assert data["mismatch"]["significant"]
     assert len(data["discovered"]) == 1
     d = data["discovered"][0]

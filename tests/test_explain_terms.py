@@ -59,7 +59,8 @@ window_px = 5
     ctx = PixelContext(z_m=z, u=u, v=v, albedo=albedo, fx=FX, ppx=PPX, ppy=PPY, baseline_m=B)
     rng = np.random.default_rng(4)
     fb = FX * B
-    d = np.stack([fb / model.sample(ctx, z, rng, fused=fused) for _ in range(400)]).astype(np.float64) - fb / z
+    d = np.stack([fb / model.sample(ctx, z, rng, fused=fused) for _ in range(400)]).astype(np.float64)
+    d -= fb / z
     y = (v - PPY) / FX
     np.testing.assert_allclose(d.mean(axis=0).mean(axis=1), (0.3 * y - 0.5 * y * y).mean(axis=1), atol=0.01)
     frame_mean = d.mean(axis=(1, 2))
@@ -117,12 +118,13 @@ def _session(seed: int, window: int, sigma: float, frames: int = 6) -> Samples:
         for f in range(frames):
             white = rng.standard_normal((u.shape[0] + window - 1, u.shape[1] + window - 1))
             c = np.cumsum(np.cumsum(np.pad(white, ((1, 0), (1, 0))), axis=0), axis=1)
-            box = (c[window:, window:] - c[:-window, window:] - c[window:, :-window] + c[:-window, :-window]) / window
+            w = window
+            box = (c[w:, w:] - c[:-w, w:] - c[w:, :-w] + c[:-w, :-w]) / w
             d = fb / z + sigma * box
-            parts.append(Samples.build(names=names, fx=fx, ppx=ppx, ppy=ppy, baseline_m=B, standpoint=i, frame=f,
-                                       u=u.ravel(), v=v.ravel(), z_ref_m=z.ravel(), err_m=(fb / d - z).ravel(),
-                                       inclination_deg=0.0, albedo=np.where((u // 10 + v // 10) % 2, 0.85, 0.05).ravel(),
-                                       time_s=(i * frames + f) * 1.0))
+            parts.append(Samples.build(
+                names=names, fx=fx, ppx=ppx, ppy=ppy, baseline_m=B, standpoint=i, frame=f, u=u.ravel(),
+                v=v.ravel(), z_ref_m=z.ravel(), err_m=(fb / d - z).ravel(), inclination_deg=0.0,
+                albedo=np.where((u // 10 + v // 10) % 2, 0.85, 0.05).ravel(), time_s=(i * frames + f) * 1.0))
     return concat(parts)
 
 

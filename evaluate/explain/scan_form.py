@@ -232,17 +232,19 @@ def _pseudo_samples(bc: BlockCells, info: StreamInfo, albedo: float) -> Samples:
                          time_s=bc.time_s)
 
 
-def _cell_weights(bc: BlockCells) -> FloatArray:
-    """1/variance of a block-cell difference: each cell's block scatter, floored at a quarter of the
-    median (a cell seen in few blocks would otherwise get an arbitrarily small variance)."""
-    var = np.full(len(bc.bias_m), np.nan)
+def _cell_weights(bc: BlockCells, values: FloatArray | None = None, tiny: float = 1e-12) -> FloatArray:
+    """1/variance of a block-cell difference (the bias, or `values`: the variance differences): each
+    cell's block scatter, floored at a quarter of the median (a cell seen in few blocks would
+    otherwise get an arbitrarily small variance)."""
+    y = bc.bias_m if values is None else values
+    var = np.full(len(y), np.nan)
     for cell in np.unique(bc.cell):
         m = bc.cell == cell
         if m.sum() >= 2:
-            var[m] = np.var(bc.bias_m[m], ddof=1)
-    med = float(np.nanmedian(var)) if np.isfinite(var).any() else float(np.var(bc.bias_m))
+            var[m] = np.var(y[m], ddof=1)
+    med = float(np.nanmedian(var)) if np.isfinite(var).any() else float(np.var(y))
     var = np.where(np.isfinite(var), np.maximum(var, 0.25 * med), med)
-    return 1.0 / np.maximum(var, 1e-12)
+    return 1.0 / np.maximum(var, tiny)
 
 
 def _wls(X: FloatArray, y: FloatArray, w: FloatArray) -> tuple[FloatArray, float]:
@@ -350,19 +352,6 @@ GRID_AXES = {"distance", "disparity", "inclination", "time"}
 GRID_NOISE_EFFECTS = ("disparity_noise", "slant_noise")
 
 
-def _var_weights(bc: BlockCells) -> FloatArray:
-    """1/variance of a block-cell's variance difference: the cell's block scatter (floored)."""
-    assert bc.var_m2 is not None
-    var = np.full(len(bc.var_m2), np.nan)
-    for cell in np.unique(bc.cell):
-        m = bc.cell == cell
-        if m.sum() >= 2:
-            var[m] = np.var(bc.var_m2[m], ddof=1)
-    med = float(np.nanmedian(var)) if np.isfinite(var).any() else float(np.var(bc.var_m2))
-    var = np.where(np.isfinite(var), np.maximum(var, 0.25 * med), med)
-    return 1.0 / np.maximum(var, 1e-30)
-
-
 def _fit_of(rec: dict[str, Any]) -> CandidateFit:
     """A scan candidate record as the fit record discovery works on."""
     return CandidateFit(rec["effect"], rec["kind"], rec["role"],
@@ -421,8 +410,8 @@ def discover_cells(bc: BlockCells, info: StreamInfo, present: dict[str, dict[str
             scale = ((bc.z_m + bias) / bc.z_m) ** 4
             yv = bc.var_m2 + bc.sim_var_m2 * (1.0 - scale)
             xv = {c.name: c.columns(s) for c in [*cat_v, *lib_v]}
-            tables.append((Table("variance", yv, _var_weights(bc), xv, bc.block, bc.block, bc.block,
-                                 name="variance"), cat_v, lib_v, {}))
+            tables.append((Table("variance", yv, _cell_weights(bc, bc.var_m2, 1e-30), xv, bc.block, bc.block,
+                                 bc.block, name="variance"), cat_v, lib_v, {}))
     for r in records:
         if r["effect"] in dropped:
             r["selected"] = False
