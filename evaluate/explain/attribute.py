@@ -151,8 +151,7 @@ def _folds(standpoint: IntArray, block: IntArray) -> IntArray:
 
 def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, blocks: int = 4,
                tile_px: float | None = None, noise_var: NoiseVar | None = None,
-               corr_var: CorrVar | None = None, density: FloatArray | None = None,
-               het_tau2: FloatArray | None = None) -> Table:
+               corr_var: CorrVar | None = None, density: FloatArray | None = None) -> Table:
     """Tiles of mean error real minus sim, each candidate's signature averaged over the real pixels.
 
     A tile mean's variance is the model's noise over the tile's pixels; the window-correlated part
@@ -193,12 +192,6 @@ def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, 
     Z = _plane_tiles(real, inv_r, len(ur))[ia]
     group = sp.copy()
     T = reference_prior(sim, ks, sim_sp)
-    if het_tau2 is not None and np.any(het_tau2 > 0):
-        # real reference poses may be worse than simulated ones: the cap is the larger of the
-        # simulation's measured error and the data's between-standpoint plane scatter (locate's
-        # heterogeneity, in px^2 of disparity: a z error of -z^2/(fB) per px)
-        fb = real.fx * real.baseline_m
-        T = np.maximum(T, np.diag(np.asarray(het_tau2, dtype=np.float64)) / fb ** 2)
     # clusters = standpoints: the real reference plane's error is shared by all tiles of a standpoint
     clusters = sp if len(np.unique(sp)) >= 3 else sp * 1000 + bl
     return Table("bias", y, w, X, clusters, _folds(sp, bl), sp, Z, group, T, bl)
@@ -734,8 +727,7 @@ class Attribution:
 def attribute(real: Samples, sim: Samples, candidates: Sequence[Candidate],
               present: dict[str, dict[str, float]] | None = None, *, blocks: int = 4,
               noise_var: NoiseVar | None = None, corr_var: CorrVar | None = None,
-              structures: tuple[Structure, Structure] | None = None,
-              het_tau2: FloatArray | None = None) -> Attribution:
+              structures: tuple[Structure, Structure] | None = None) -> Attribution:
     """Fit, select and rank the catalogue candidates for the bias and the variance residual.
 
     `candidates` may hold generic terms of the discovery library too: their columns go into the
@@ -748,7 +740,7 @@ def attribute(real: Samples, sim: Samples, candidates: Sequence[Candidate],
     window = max([x.corr.window_px for x in st if x.corr.fraction > 0.2], default=1.0)
     tile = max(_tile_px(real), 2.5 * window)
     bt = bias_table(real, sim, candidates, blocks=blocks, noise_var=noise_var, corr_var=corr_var,
-                    density=st[0].density, het_tau2=het_tau2, tile_px=tile)
+                    density=st[0].density, tile_px=tile)
     vt = variance_table(real, sim, candidates, structures=st)
     ft = frame_table(real, sim, candidates, structures=st)
     fits = forward_select(bt, candidates, present, real) + forward_select(vt, candidates, present, real)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
@@ -258,9 +257,6 @@ def module_candidates(present: dict[str, dict[str, float]] | None = None,
                              correlation=corr, fixed=fixed))
     return out
 
-
-def candidate_summary(c: Candidate) -> dict[str, Any]:
-    return {"name": c.name, "kind": c.kind, "params": list(c.params), "generic": c.generic}
 
 
 def _thermal_module_params(coef: FloatArray, s: Samples) -> dict[str, float]:
