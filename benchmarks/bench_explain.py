@@ -1,7 +1,8 @@
-"""Explain on a 20-standpoint simulated session of 30 frames each (target: < 5 minutes on 2 cores).
+"""Explain on a 20-standpoint simulated session of 30 frames each (target: < 5 minutes on 2 cores),
+with discovery on (the library of generic terms searched on every table).
 
 The session has no hidden effect (the same model on both sides), so it is also the full-size null
-case: nothing may be selected and no region may differ, before or after.
+case: nothing may be selected or discovered and no region may differ, before or after.
 """
 
 from __future__ import annotations
@@ -40,10 +41,14 @@ def main() -> None:
         if r.returncode == 0:
             data = json.loads((Path(tmp) / "out" / "explain.json").read_text())
             after = data.get("mismatch_after") or {"significant": False, "regions": []}
-            print(f"null case: selected {data['selected'] or 'nothing'}; regions before "
+            searched = data["discovery"]["library_size"]
+            print(f"null case: selected {data['selected'] or 'nothing'}; discovered "
+                  f"{[d['axes'] for d in data['discovered']] or 'nothing'} ({searched} generic terms "
+                  f"searched); regions before "
                   f"{[x['label'] for x in data['mismatch']['regions']]}, after "
                   f"{[x['label'] for x in after['regions']]}")
-            clean = not data["missing_physics"] and not data["mismatch"]["significant"]
+            clean = (not data["missing_physics"] and not data["discovered"]
+                     and not data["mismatch"]["significant"])
         sys.exit(0 if r.returncode == 0 and t2 - t1 < 300 and clean else 1)
 
 

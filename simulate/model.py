@@ -105,6 +105,17 @@ class SensorModel:
         effects.append(make_effect(name, merged))
         return SensorModel(self.name, self.camera, effects, dict(self.camera_overrides))
 
+    def white_noise(self) -> SensorModel:
+        """A copy whose window-shared noise is white: `window_noise` folded into `disparity_noise` at
+        the same total variance. For checks that treat pixels as independent samples (a mean's
+        standard error from the pixel count), which the window's sharing would break."""
+        window = self.effect("window_noise")
+        if window is None:
+            return self
+        white = self.effect("disparity_noise")
+        total = float(np.hypot(white.params["sigma_px"] if white else 0.0, window.params["sigma_px"]))
+        return self.without_effect("window_noise").with_effect("disparity_noise", sigma_px=total)
+
     def without_effect(self, name: str) -> SensorModel:
         return SensorModel(self.name, self.camera, [e for e in self.effects if e.name != name],
                            dict(self.camera_overrides))
