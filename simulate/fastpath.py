@@ -16,7 +16,14 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from depthstation.simulate.effects.base import DisparityJitter, DisparityShift, Effect, PixelContext
+from depthstation.simulate.effects.base import (
+    CorrelatedJitter,
+    DisparityJitter,
+    DisparityShift,
+    Effect,
+    FrameJitter,
+    PixelContext,
+)
 from depthstation.simulate.effects.depth_scale import DepthScale
 from depthstation.simulate.effects.dropout import Dropout
 from depthstation.simulate.effects.flying_pixels import FlyingPixels
@@ -69,8 +76,18 @@ class FusedSampler:
         self.step = 0.0
         self.unit = 0.0
         self.flying: FlyingPixels | None = None
+        # noises that are not independent per pixel: drawn per frame as a whole field (window) or
+        # one number (frame-common), added to the disparity before the per-pixel pass
+        self.correlated: list[tuple[CorrelatedJitter, NDArray[np.float32]]] = []
+        self.common: list[NDArray[np.float32]] = []
         for e in effects:
-            if isinstance(e, DisparityShift):
+            if isinstance(e, CorrelatedJitter):
+                self.correlated.append((e, np.ascontiguousarray(np.broadcast_to(
+                    e.sigma_px(ctx), shape), dtype=np.float32)))
+            elif isinstance(e, FrameJitter):
+                self.common.append(np.ascontiguousarray(np.broadcast_to(e.sigma_px(ctx), shape),
+                                                        dtype=np.float32).ravel())
+            elif isinstance(e, DisparityShift):
                 d = d + np.broadcast_to(e.shift_px(ctx), shape)
             elif isinstance(e, DisparityJitter):
                 var = var + np.broadcast_to(np.asarray(e.sigma_px(ctx), dtype=np.float64) ** 2, shape)
@@ -92,7 +109,15 @@ class FusedSampler:
         noise = rng.standard_normal(self.d0.size, dtype=np.float32)
         draw = rng.random(self.d0.size, dtype=np.float32)
         out = np.empty(self.d0.size, dtype=np.float32)
-        _fused(self.d0, self.sigma, noise, self.fb, self.step, self.scale, self.unit, self.keep, draw, out)
+        d0 = self.d0
+        if self.correlated or self.common:
+            d0 = d0.copy()
+            for e, sig in self.correlated:
+                d0 += (e.field(self.shape, rng, self.ctx) * sig).ravel()
+            for sig in self.common:
+                d0 += sig * np.float32(rng.standard_normal())
+            d0[self.d0 <= 0] = -1.0   # no depth stays no depth
+        _fused(d0, self.sigma, noise, self.fb, self.step, self.scale, self.unit, self.keep, draw, out)
         z = out.reshape(self.shape)
         if self.flying is not None:
             z = self.flying.apply(self.ctx, z, rng)

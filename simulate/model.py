@@ -15,6 +15,7 @@ from depthstation.core.text_files import read_text
 from depthstation.core.tomlcompat import tomllib
 from depthstation.simulate.effects import EFFECTS
 from depthstation.simulate.effects.base import Array, Effect, PixelContext
+from depthstation.simulate.effects.generic import term_class
 from depthstation.simulate.fastpath import FusedSampler, fusable
 from depthstation.simulate.presets import PRESETS, CameraPreset
 
@@ -106,6 +107,17 @@ class SensorModel:
         effects.append(make_effect(name, merged))
         return SensorModel(self.name, self.camera, effects, dict(self.camera_overrides))
 
+    def white_noise(self) -> SensorModel:
+        """A copy whose window-shared noise is white: `window_noise` folded into `disparity_noise` at
+        the same total variance. For checks that treat pixels as independent samples (a mean's
+        standard error from the pixel count), which the window's sharing would break."""
+        window = self.effect("window_noise")
+        if window is None:
+            return self
+        white = self.effect("disparity_noise")
+        total = float(np.hypot(white.params["sigma_px"] if white else 0.0, window.params["sigma_px"]))
+        return self.without_effect("window_noise").with_effect("disparity_noise", sigma_px=total)
+
     def without_effect(self, name: str) -> SensorModel:
         return SensorModel(self.name, self.camera, [e for e in self.effects if e.name != name],
                            dict(self.camera_overrides))
@@ -122,11 +134,13 @@ def _toml_value(v: Any) -> str:
 
 
 def make_effect(name: str, params: dict[str, Any] | None = None) -> Effect:
-    """Instantiate a catalogue effect by name."""
-    if name not in EFFECTS:
-        raise SimulationError(f"unknown effect '{name}' (catalogue: {', '.join(EFFECTS)})")
+    """Instantiate a catalogue effect or a generic term (`term_...`, simulate.effects.generic) by name."""
+    cls = EFFECTS.get(name) or term_class(name)
+    if cls is None:
+        raise SimulationError(f"unknown effect '{name}' (catalogue: {', '.join(EFFECTS)}; "
+                              "or a generic term_<bias|noise>_<axes>_<basis>)")
     try:
-        return EFFECTS[name](params or {})
+        return cls(params or {})
     except ValueError as exc:
         raise SimulationError(f"effect '{name}': {exc}") from exc
 

@@ -89,7 +89,7 @@ class ViewRenderer:
         """Effect context of the current pose (rebuilt when time-dependent inputs change)."""
         if self.geometry is None:
             raise RuntimeError("set_pose() first")
-        needs_time = any(e.name == "thermal_drift" for e in self.model.effects)
+        needs_time = any(e.time_dependent for e in self.model.effects)
         key = (round(time_s, 3) if needs_time else 0.0, round(temperature_c, 3) if needs_time else 0.0)
         if self._ctx is None or key != self._ctx_key:
             self._ctx = self.geometry.context(self.info.baseline_m or self.model.camera.baseline_m,

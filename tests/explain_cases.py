@@ -54,8 +54,11 @@ def wide_protocol(width: int = 640, height: int = 360) -> Any:
 
 def conceal(sim_dir: Path, out_dir: Path, hidden: Hidden | None, *, warmup_tau_s: float | None = None,
             warmup_rise_c: float = 0.0, frame_period_s: float | None = None,
-            standpoint_period_s: float | None = None) -> Path:
+            standpoint_period_s: float | None = None, noise_seed: int | None = None) -> Path:
     """Copy a simulated session into `out_dir` as plain MCAP files with the hidden effect added.
+
+    With `noise_seed`, `hidden` is random: it is called with a generator as a last argument
+    (seeded per standpoint and frame) and may draw per-pixel or per-frame noise.
 
     With `warmup_tau_s`, the device temperature rises as T = 40 - rise exp(-t / tau) over the
     session (an unfinished warm-up) and every frame carries it in its metadata, as the simulator
@@ -95,8 +98,11 @@ def conceal(sim_dir: Path, out_dir: Path, hidden: Hidden | None, *, warmup_tau_s
                 # (a D4xx setting), with uniform dither of that unit so its rounding is unbiased.
                 out_units = units / 10
                 rng = np.random.default_rng([DITHER_SEED, k, i])
+                args = (z, u, v, black, t_s, temp, cam)
+                if noise_seed is not None:
+                    args = (*args, np.random.default_rng([noise_seed, k, i]))
                 with np.errstate(divide="ignore", invalid="ignore"):   # z = 0 where there is no depth
-                    z = z + hidden(z, u, v, black, t_s, temp, cam) + out_units * (rng.random(z.shape) - 0.5)
+                    z = z + hidden(*args) + out_units * (rng.random(z.shape) - 0.5)
             counts = np.rint(z / out_units)
             depth = np.where(valid & (counts < 65535), np.clip(counts, 1, 65535), 0).astype(np.uint16)
             frames.append(FrameSet(fs.index, fs.timestamp_ns, depth, fs.color, fs.infrared,

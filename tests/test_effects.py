@@ -25,6 +25,7 @@ TEST_PARAMS: dict[str, dict[str, float]] = {
     "albedo_noise": {"sigma_px_black": 0.12},
     "flying_pixels": {"edge_probability": 0.4, "width_px": 1.5, "spread_ratio": 0.05},
     "reference_pose_noise": {"corner_sigma_px": 0.2},
+    "window_noise": {"sigma_px": 0.1, "window_px": 5.0},
 }
 FX, PPX, PPY, B = 674.42, 641.8, 358.1, 0.095
 N = 1500  # samples per cell
@@ -47,7 +48,7 @@ def _cells(rng: np.random.Generator) -> PixelContext:
 
 def _sample(effect: Effect, ctx: PixelContext, rng: np.random.Generator) -> np.ndarray:
     z = np.asarray(ctx.z_m, dtype=np.float32)
-    if effect.name == "reference_pose_noise":  # one draw per frame: frames are the samples
+    if effect.name in ("reference_pose_noise", "window_noise"):  # correlated within a frame: rows are frames
         rows = [effect.apply(PixelContext(**{**ctx.__dict__, "z_m": ctx.z_m[i]}), z[i].copy(), rng)
                 for i in range(N)]
         return np.asarray(rows, dtype=np.float64)

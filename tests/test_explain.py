@@ -61,7 +61,7 @@ def test_concealed_disparity_offset(wide_session: Path, tmp_path: Path) -> None:
     data = _explain(conceal(wide_session, tmp_path / "real", offset), tmp_path / "out")
     top = data["candidates"][0]
     assert top["effect"] == "disparity_offset" and top["selected"] and top["role"] == "missing_physics"
-    assert data["selected"] == ["disparity_offset"]
+    assert data["selected"] == ["disparity_offset"] and data["discovered"] == []
     assert top["params"]["offset_px"]["value"] == pytest.approx(-c * _fb(wide_session), rel=0.25)
     assert top["heldout_rmse_after_m"] < top["heldout_rmse_before_m"]
     scale = next(x for x in data["candidates"] if x["effect"] == "depth_scale")
@@ -91,7 +91,7 @@ def test_concealed_thermal_drift(wide_session: Path, tmp_path: Path) -> None:
     assert top["params"]["coeff_px_per_c"]["value"] == pytest.approx(fx * alpha, rel=0.25)
     assert top["params"]["reference_c"]["value"] == pytest.approx(40.0, abs=2.0)
     assert top["heldout_rmse_after_m"] < top["heldout_rmse_before_m"]
-    assert data["selected"] == ["thermal_drift"]
+    assert data["selected"] == ["thermal_drift"] and data["discovered"] == []
     assert not data["mismatch_after"]["significant"], data["mismatch_after"]["regions"]
 
 
@@ -107,7 +107,7 @@ def test_concealed_focal_mismatch(plain_session: Path, tmp_path: Path) -> None:
     data = _explain(real, tmp_path / "out", "--rrd", str(tmp_path / "explain.rrd"))
     top = data["candidates"][0]
     assert top["effect"] == "lr_focal_mismatch" and top["selected"]
-    assert data["selected"] == ["lr_focal_mismatch"]
+    assert data["selected"] == ["lr_focal_mismatch"] and data["discovered"] == []
     assert top["params"]["ratio"]["value"] == pytest.approx(k, rel=0.25)
     assert top["heldout_rmse_after_m"] < top["heldout_rmse_before_m"]
     for f in ("model.toml", "report.md", "result.json", "residual_grid.png", "residual_columns.png"):
@@ -140,14 +140,14 @@ def test_concealed_dark_squares(plain_session: Path, tmp_path: Path) -> None:
     assert top["effect"] == "albedo_bias" and top["selected"] and top["role"] == "missing_physics"
     assert top["params"]["offset_px_black"]["value"] == pytest.approx(-2e-3 * fb, rel=0.25)
     assert top["heldout_rmse_after_m"] < top["heldout_rmse_before_m"]
-    assert data["selected"] == ["albedo_bias"]
+    assert data["selected"] == ["albedo_bias"] and data["discovered"] == []
     assert not data["mismatch_after"]["significant"], data["mismatch_after"]["regions"]
 
 
 def test_null_session_selects_nothing(wide_session: Path, tmp_path: Path) -> None:
     real = conceal(wide_session, tmp_path / "real", None)
     data = _explain(real, tmp_path / "out")
-    assert data["selected"] == []
+    assert data["selected"] == [] and data["discovered"] == []
     assert not data["mismatch"]["significant"]
 
 

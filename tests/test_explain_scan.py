@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -21,37 +22,53 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return simulate_scan("room", "walk", "d455", out, frames=24, width=256, height=144, color=False, seed=5)
 
 
-def _conceal(sim: Path, out: Path, c_per_m: float) -> Path:
+def _conceal(sim: Path, out: Path, c_per_m: float, hidden: Any = None) -> Path:
     """The sequence with every depth measured c * z^2 too far (what a wrong disparity offset does),
-    written here as a z-domain error, not through simulate.effects."""
+    written here as a z-domain error, not through simulate.effects; or any `hidden(z, t_s, fb)` error.
+
+    Written at 0.1 mm units with uniform dither of that unit (as tests/explain_cases.py does): a
+    second rounding to 1 mm would add (1 mm)^2/12 of noise, which the noise discovery rightly sees.
+    """
+    from dataclasses import replace
+
     from depthstation.core.capture.mcap_writer import write_mcap
     from depthstation.core.capture.registry import open_recording
     from depthstation.core.frames import FrameSet
 
     rec = open_recording(sim / "sequence.mcap")
     units = rec.info.depth_units_m
+    fb = rec.info.depth_intrinsics.fx * float(rec.info.baseline_m or 0.095)
+    rng = np.random.default_rng(7)
     frames = []
+    t0 = None
     for fs in rec.frames():
         assert fs.depth is not None
+        t0 = fs.timestamp_ns if t0 is None else t0
         z = fs.depth.astype(np.float64) * units
-        z = z + c_per_m * z * z
-        depth = np.where(fs.depth > 0, np.clip(np.rint(z / units), 1, 65535), 0).astype(np.uint16)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            extra = hidden(z, (fs.timestamp_ns - t0) / 1e9, fb) if hidden is not None else c_per_m * z * z
+        z = z + extra + units / 10 * (rng.random(z.shape) - 0.5)
+        depth = np.where(fs.depth > 0, np.clip(np.rint(z / (units / 10)), 1, 65535), 0).astype(np.uint16)
         frames.append(FrameSet(fs.index, fs.timestamp_ns, depth, fs.color, fs.infrared, dict(fs.metadata)))
     out.mkdir(parents=True)
-    write_mcap(out / "sequence.mcap", rec.info, frames, dict(rec.metadata))
+    write_mcap(out / "sequence.mcap", replace(rec.info, depth_units_m=units / 10), frames, dict(rec.metadata))
     return out / "sequence.mcap"
+
+
+def _explain_scan(room: Path, real: Path, out: Path) -> dict[str, Any]:
+    r = subprocess.run([str(EXE), "explain", "--scan", str(real), "--poses", str(room / "trajectory.txt"),
+                        "--reference", str(room / "scene.ply"), "--model", "d455", "--no-icp",
+                        "--block-frames", "4", "--out", str(out), "--seed", "2"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return dict(json.loads((out / "explain.json").read_text()))
 
 
 def test_scan_concealed_disparity_offset(room: Path, tmp_path: Path) -> None:
     c = 4e-3       # 4 mm/m^2: 0.05 px at 256x144 (fB ~ 12 px m), half the per-pixel disparity noise
     real = _conceal(room, tmp_path / "real", c)
     out = tmp_path / "out"
-    r = subprocess.run([str(EXE), "explain", "--scan", str(real), "--poses", str(room / "trajectory.txt"),
-                        "--reference", str(room / "scene.ply"), "--model", "d455", "--no-icp",
-                        "--block-frames", "4", "--out", str(out), "--seed", "2"],
-                       capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr[-2000:]
-    data = json.loads((out / "explain.json").read_text())
+    data = _explain_scan(room, real, out)
     info = json.loads((room / "truth.json").read_text())["stream_info"]
     fb = info["baseline_m"] * info["depth_intrinsics"]["fx"]
     assert data["mismatch"]["significant"]
@@ -60,6 +77,7 @@ def test_scan_concealed_disparity_offset(room: Path, tmp_path: Path) -> None:
     assert top["params"]["offset_px"]["value"] == pytest.approx(-c * fb, rel=0.25)
     assert top["heldout_rmse_after_m"] < top["heldout_rmse_before_m"]
     assert data["selected"] == ["disparity_offset"]
+    assert data["discovered"] == []
     assert not data["mismatch_after"]["significant"]
     for f in ("model.toml", "report.md", "result.json", "residual_grid.png"):
         assert (out / f).is_file()
@@ -83,5 +101,29 @@ def test_scan_null_selects_nothing(room: Path, tmp_path: Path) -> None:
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     data = json.loads((out / "explain.json").read_text())
-    assert data["selected"] == []
+    assert data["selected"] == [] and data["discovered"] == []
     assert not data["mismatch"]["significant"]
+
+
+def test_scan_discovers_bias_along_distance(room: Path, tmp_path: Path) -> None:
+    """A disparity error growing with range, delta = 0.012 px * z/m (outside the catalogue: neither
+    an offset (z^2 in depth) nor a scale (z)), written here in its own form: discovery on the grid's
+    axes names a bias along distance, recovers it, and the re-simulation leaves no mismatch."""
+    c = 0.012
+
+    def grows(z: Any, t: float, fb: float) -> Any:
+        return fb / (fb / z + c * z) - z
+
+    real = _conceal(room, tmp_path / "real", 0.0, grows)
+    out = tmp_path / "out"
+    data = _explain_scan(room, real, out)
+    assert data["mismatch"]["significant"]
+    assert len(data["discovered"]) == 1
+    d = data["discovered"][0]
+    assert d["quantity"] == "bias" and d["axes"] == ["distance"]
+    c1 = d["coefficients"]["c1"]
+    assert abs(c1["value"] - c) <= 3 * c1["stderr"]
+    assert d["heldout_rmse_after_m"] < d["heldout_rmse_before_m"]
+    assert data["selected"] == []      # offset + scale only approximate it: not kept
+    assert not data["mismatch_after"]["significant"]
+    assert "term_bias_distance_poly1" in (out / "model.toml").read_text()

@@ -86,9 +86,10 @@ def test_default_flags_show_the_injected_bias(walk: dict[str, Any], tmp_path: Pa
     well = grid.count >= 5000
     assert well.sum() >= 10
     diff = np.abs(grid.mean_m - exp.mean_m)
-    se = grid.stderr  # the simulator's pixel noise is independent: n^-1/2 is honest here
-    # within 1 mm wherever 5000 samples pin the mean down that far (3 SE < 1 mm: to 4.5 m here);
-    # beyond, where 5000 samples of 9 cm noise leave SE ~ 1.3 mm, within 4 SE
+    # the default model shares its matching noise over a window: the pixels of a frame are not
+    # independent, and the frames-as-clusters standard error is the honest one (n^-1/2 is not)
+    se = grid.se_m
+    # within 1 mm wherever the cell mean is pinned down that far (3 SE < 1 mm); beyond, within 4 SE
     sharp = well & (3 * se < 1e-3)
     assert sharp.sum() >= 10
     assert np.all(diff[sharp] <= 1e-3), np.c_[grid.distance_centers_m[np.nonzero(sharp)[0]], diff[sharp]]

@@ -21,8 +21,8 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from depthstation.evaluate.explain.basis import Candidate
-from depthstation.evaluate.explain.locate import temporal_dev2
 from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples
+from depthstation.evaluate.explain.structure import Structure, decompose, frame_common
 
 BIC_THRESHOLD = -10.0      # "very strong" evidence (Kass & Raftery)
 NEAR_TIE = 6.0             # a runner-up within this BIC gap is only "positive" evidence apart: reported
@@ -30,13 +30,15 @@ WALD_P = 1e-3
 MIN_TILE = 8
 
 NoiseVar = Callable[[Samples], FloatArray]
+# per sample: the window-correlated part of the model's noise variance (m^2) and the window (px)
+CorrVar = Callable[[Samples], tuple[FloatArray, float]]
 
 
 @dataclass
 class Table:
     """Tile-level regression data: y ~ X beta with weights w."""
 
-    kind: str
+    kind: str                       # "bias" or "variance"
     y: FloatArray
     w: FloatArray
     X: dict[str, FloatArray]
@@ -47,6 +49,10 @@ class Table:
     group: IntArray | None = None   # rows sharing one reference-plane error (a standpoint)
     T: FloatArray | None = None     # KNOWN prior covariance of the plane coefficients (from the sim)
     block: IntArray | None = None   # frame block of each row (a nested plane error per block)
+    name: str = ""                  # "bias", "variance" (tiles and neighbour rows) or "frame"
+
+    def __post_init__(self) -> None:
+        self.name = self.name or self.kind
 
     def __len__(self) -> int:
         return int(self.y.size)
@@ -144,8 +150,14 @@ def _folds(standpoint: IntArray, block: IntArray) -> IntArray:
 
 
 def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, blocks: int = 4,
-               tile_px: float | None = None, noise_var: NoiseVar | None = None) -> Table:
-    """Tiles of mean error real minus sim, each candidate's signature averaged over the real pixels."""
+               tile_px: float | None = None, noise_var: NoiseVar | None = None,
+               corr_var: CorrVar | None = None, density: FloatArray | None = None) -> Table:
+    """Tiles of mean error real minus sim, each candidate's signature averaged over the real pixels.
+
+    A tile mean's variance is the model's noise over the tile's pixels; the window-correlated part
+    (`corr_var`) counts with its design factor D = 1 + density (w^2 - 1) (at most the pixels of a
+    frame): neighbours inside one window are one sample, not w^2 (effective sample size).
+    """
     tp = _tile_px(real) if tile_px is None else tile_px
     br, bs = frame_blocks(real, blocks), frame_blocks(sim, blocks)
     sim_sp = _align_standpoints(real, sim)
@@ -163,6 +175,14 @@ def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, 
         ok = inv_r >= 0
         sig2 = np.bincount(inv_r[ok], weights=pv[ok], minlength=len(ur)) / np.maximum(nr, 1)
         var_y = sig2[ia] / nr[ia] + sig2[ia] / ns[ib]
+        if corr_var is not None:
+            cv, window = corr_var(real)
+            c2 = np.bincount(inv_r[ok], weights=cv[ok], minlength=len(ur)) / np.maximum(nr, 1)
+            frames = _frames_per_block(real, br)
+            n_frame = nr / np.maximum(frames[ur[:, 0], ur[:, 1]], 1)
+            lam = density[ur[:, 0]] if density is not None else np.ones(len(ur))
+            d = np.minimum(1.0 + lam * (window ** 2 - 1.0), np.maximum(n_frame, 1.0))
+            var_y = var_y + (c2[ia] * (d[ia] - 1.0)) * (1.0 / nr[ia] + 1.0 / ns[ib])
     else:
         var_y = vr[ia] / nr[ia] + vs[ib] / ns[ib]
     floor = np.median(var_y) * 1e-3 + 1e-18
@@ -175,6 +195,15 @@ def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, 
     # clusters = standpoints: the real reference plane's error is shared by all tiles of a standpoint
     clusters = sp if len(np.unique(sp)) >= 3 else sp * 1000 + bl
     return Table("bias", y, w, X, clusters, _folds(sp, bl), sp, Z, group, T, bl)
+
+
+def _frames_per_block(s: Samples, block: IntArray) -> NDArray[np.int64]:
+    """Number of frames of every (standpoint, block)."""
+    nsp, nb = int(s.standpoint.max()) + 1, int(block.max()) + 1
+    key = (s.standpoint * nb + block) * 10_000_000 + s.frame
+    u = np.unique(key)
+    sb = u // 10_000_000
+    return np.bincount(sb, minlength=nsp * nb).reshape(nsp, nb)
 
 
 def _plane_basis(s: Samples) -> FloatArray:
@@ -190,7 +219,7 @@ def _tile_columns(candidates: Sequence[Candidate], kind: str, real: Samples, inv
     ok = inv_r >= 0
     X: dict[str, FloatArray] = {}
     for c in candidates:
-        if c.kind != kind:
+        if c.kind != kind or c.table != "tiles":
             continue
         cols = c.columns(real)
         tiles = np.stack([np.bincount(inv_r[ok], weights=cols[ok, j], minlength=len(nr)) / np.maximum(nr, 1)
@@ -239,29 +268,130 @@ def reference_prior(sim: Samples, keys: NDArray[np.int64], sim_sp: IntArray) -> 
     return np.asarray(2.0 * np.mean(outer, axis=0), dtype=np.float64)
 
 
+def _design_sq(st: Structure, density: float, n: FloatArray) -> FloatArray:
+    """Design factor of a mean of squared (or multiplied) within-frame deviations: the squares of
+    correlated Gaussians correlate by rho^2, sum over a triangle's lags (2w^2 + 1) / (3w) per axis."""
+    w, frac = st.corr.window_px, st.corr.fraction
+    per_axis = (2 * w * w + 1) / (3 * w)
+    return np.asarray(np.minimum(1.0 + frac ** 2 * density * (per_axis ** 2 - 1.0), np.maximum(n, 1.0)))
+
+
 def variance_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *,
-                   tile_px: float | None = None) -> Table:
-    """Tiles of temporal variance real minus sim (all frames of a standpoint together)."""
+                   tile_px: float | None = None,
+                   structures: tuple[Structure, Structure] | None = None) -> Table:
+    """Within-frame variance real minus sim: tiles (all frames of a standpoint), plus per standpoint
+    the covariance of neighbours at each lag (window noise: the lag rows; white noise adds nothing
+    there). The frame-common part is removed first: it has its own table (`frame_table`)."""
     tp = 2 * (_tile_px(real) if tile_px is None else tile_px)
+    st_r, st_s = structures if structures is not None else (decompose(real), decompose(sim))
     sim_sp = _align_standpoints(real, sim)
     zero_r, zero_s = np.zeros(len(real), dtype=np.int64), np.zeros(len(sim), dtype=np.int64)
     kr = _tile_keys(real, tp, zero_r)
     ks = _tile_keys(sim, tp, zero_s)
     ks[:, 0] = sim_sp
-    dr, ds = temporal_dev2(real), temporal_dev2(sim)
+    dr, ds = st_r.dev2, st_s.dev2
     ur, nr, mr, _, inv_r = _aggregate(kr, dr)
     us, ns, ms, _, _ = _aggregate(ks[sim_sp >= 0], ds[sim_sp >= 0])
     ia, ib = _match(ur, us)
     keep = (nr[ia] >= MIN_TILE) & (ns[ib] >= MIN_TILE)
     ia, ib = ia[keep], ib[keep]
     y = mr[ia] - ms[ib]
-    var_y = 2 * mr[ia] ** 2 / nr[ia] + 2 * ms[ib] ** 2 / ns[ib]
-    floor = np.median(var_y) * 1e-3 + 1e-30 if len(var_y) else 1e-30
-    w = 1.0 / np.maximum(var_y, floor)
+    frames_r = max(1.0, len(np.unique(real.frame_key)) / max(len(real.names), 1))
+    frames_s = max(1.0, len(np.unique(sim.frame_key)) / max(len(sim.names), 1))
+    dsr = _design_sq(st_r, float(np.mean(st_r.density)), nr[ia] / frames_r)
+    dss = _design_sq(st_s, float(np.mean(st_s.density)), ns[ib] / frames_s)
+    # the simulation's variance on both sides: the real one in the weights would down-weigh every
+    # tile where the real noise happens to be larger (self-weighting), biasing the fit low
+    var_y = 2 * ms[ib] ** 2 * (dsr / nr[ia] + dss / ns[ib])
     X = _tile_columns(candidates, "variance", real, inv_r, nr, ia)
     sp = ur[ia, 0]
+    # neighbour rows: per standpoint and (axis, lag) the mean product of within-frame deviations
+    rows_y: list[FloatArray] = []
+    rows_v: list[FloatArray] = []
+    rows_sp: list[IntArray] = []
+    rows_x: dict[str, list[FloatArray]] = {}
+    var_cands = [c for c in candidates if c.kind == "variance" and c.table == "tiles"]
+    cols_r = {c.name: c.columns(real) for c in var_cands if c.correlation is not None}
+    nsp = len(real.names)
+
+    def per_sp(sp_idx: IntArray, values: FloatArray) -> tuple[FloatArray, FloatArray]:
+        ok = (sp_idx >= 0) & np.isfinite(values)
+        n = np.bincount(sp_idx[ok], minlength=nsp).astype(np.float64)
+        return np.bincount(sp_idx[ok], weights=values[ok], minlength=nsp) / np.maximum(n, 1), n
+
+    for key in sorted(set(st_r.pairs) & set(st_s.pairs)):
+        axis, lag = key
+        (i_r, j_r), (i_s, j_s) = st_r.pairs[key], st_s.pairs[key]
+        sp_r, sp_s = real.standpoint[i_r], sim_sp[i_s]
+        mpr, npr = per_sp(sp_r, st_r.within[i_r] * st_r.within[j_r])
+        mps, nps = per_sp(sp_s, st_s.within[i_s] * st_s.within[j_s])
+        vs, _ = per_sp(sp_s, ds[i_s])
+        ok = (npr >= MIN_TILE * 4) & (nps >= MIN_TILE * 4)
+        if not ok.any():
+            continue
+        fpr = np.maximum(npr / max(frames_r, 1.0), 1.0)
+        fps = np.maximum(nps / max(frames_s, 1.0), 1.0)
+        g = np.flatnonzero(ok)
+        rows_y.append(mpr[g] - mps[g])
+        rows_v.append(vs[g] ** 2 * (_design_sq(st_r, float(np.mean(st_r.density)), fpr[g]) / npr[g]
+                                    + _design_sq(st_s, float(np.mean(st_s.density)), fps[g]) / nps[g]))
+        rows_sp.append(g)
+        du, dv = (lag, 0.0) if axis == "u" else (0.0, lag)
+        for c in var_cands:
+            if c.name not in X:
+                continue
+            k = X[c.name].shape[1]
+            if c.correlation is not None:
+                rho = c.correlation(du, dv)
+                col = np.stack([per_sp(sp_r, cols_r[c.name][i_r, j])[0][g] * rho for j in range(k)], axis=1)
+            else:
+                col = np.zeros((len(g), k))
+            rows_x.setdefault(c.name, []).append(col)
+    if rows_y:
+        # the lag rows of one standpoint are products of the same deviations at neighbouring lags:
+        # strongly dependent, so together they weigh as one row (each by 1 / their number)
+        lag_sp = np.concatenate(rows_sp)
+        per = np.bincount(lag_sp, minlength=nsp)[lag_sp]
+        y = np.r_[y, np.concatenate(rows_y)]
+        var_y = np.r_[var_y, np.concatenate(rows_v) * per]
+        sp = np.r_[sp, np.concatenate(rows_sp)].astype(np.int64)
+        n_lag = sum(len(r) for r in rows_y)
+        for name in X:
+            extra = np.concatenate(rows_x[name]) if name in rows_x else np.zeros((n_lag, X[name].shape[1]))
+            X[name] = np.concatenate([X[name], extra])
+    floor = np.median(var_y) * 1e-3 + 1e-30 if len(var_y) else 1e-30
+    w = 1.0 / np.maximum(var_y, floor)
     blocks = np.zeros_like(sp)
-    return Table("variance", y, w, X, sp, _folds(sp, sp if len(np.unique(sp)) >= 3 else blocks), sp)
+    return Table("variance", y, w, X, sp, _folds(sp, sp if len(np.unique(sp)) >= 3 else blocks), sp,
+                 name="variance")
+
+
+def frame_table(real: Samples, sim: Samples, candidates: Sequence[Candidate],
+                structures: tuple[Structure, Structure] | None = None) -> Table:
+    """Frame-common variance real minus sim, one row per standpoint (m^2 at the standpoint's K).
+
+    Candidates of this table (`table == "frame"`) are disparity noises common to a frame: their
+    column is the standpoint's mean K^2 per px^2 of variance.
+    """
+    st_r, st_s = structures if structures is not None else (decompose(real), decompose(sim))
+    fr, fs = frame_common(real, st_r), frame_common(sim, st_s)
+    sim_idx = {n: i for i, n in enumerate(sim.names)}
+    y, v, sp, k2 = [], [], [], []
+    for i, g in enumerate(fr.standpoint):
+        j = sim_idx.get(real.names[g])
+        hit = np.flatnonzero(fs.standpoint == j) if j is not None else np.zeros(0, dtype=np.int64)
+        if not hit.size:
+            continue
+        kk = fr.k_m[i] ** 2
+        y.append((fr.excess_px2[i] - fs.excess_px2[hit[0]]) * kk)
+        v.append((fr.se_px2()[i] ** 2 + fs.se_px2()[hit[0]] ** 2) * kk * kk)
+        sp.append(int(g))
+        k2.append(kk)
+    ya, va = np.asarray(y, dtype=float), np.asarray(v, dtype=float)
+    spa = np.asarray(sp, dtype=np.int64)
+    floor = float(np.median(va)) * 1e-2 + 1e-30 if len(va) else 1e-30
+    X = {c.name: np.asarray(k2, dtype=float).reshape(-1, 1) for c in candidates if c.table == "frame"}
+    return Table("variance", ya, 1.0 / np.maximum(va, floor), X, spa, spa.copy(), spa, name="frame")
 
 
 def _align_standpoints(real: Samples, sim: Samples) -> IntArray:
@@ -393,12 +523,52 @@ def heldout_rmse(t: Table, names: Sequence[str]) -> float:
     return float(np.sqrt((t.w * res ** 2).sum() / t.w.sum()))
 
 
+def _cluster_cov(t: Table, names: Sequence[str], beta: FloatArray) -> tuple[FloatArray, int]:
+    """Cluster-robust (sandwich) covariance of a WLS fit, clusters = standpoints, and their number.
+
+    Tables without a random-effect structure (within-frame variance, frame-common) use it: the rows
+    of one standpoint share its sampling scatter (a small far board with window-correlated noise
+    holds few effective samples), which model-based weights underrate.
+    """
+    X = _design(t, names)
+    sw = np.sqrt(t.w)
+    Xw = X * sw[:, None]
+    r = (t.y - X @ beta) * sw
+    bread = np.linalg.pinv(Xw.T @ Xw)
+    meat = np.zeros_like(bread)
+    groups = np.unique(t.cluster)
+    for g in groups:
+        m = t.cluster == g
+        v = Xw[m].T @ r[m]
+        meat += np.outer(v, v)
+    n_g = len(groups)
+    return np.asarray(bread @ meat @ bread * n_g / max(n_g - 1, 1)), n_g
+
+
 def wald_p(t: Table, names: Sequence[str], name: str) -> tuple[float, FloatArray, FloatArray]:
-    """Wald p-value (chi^2) of one candidate's columns within the mixed model; its beta and SEs."""
+    """Wald p-value of one candidate's columns; its beta and SEs. Mixed model (bias): chi^2 with the
+    model's covariance; plain WLS tables: cluster-robust covariance, F test with clusters - 1 dof."""
     fit = gls(t, names)
     start = sum(t.X[n].shape[1] for n in names[:list(names).index(name)])
     k = t.X[name].shape[1]
     b = fit.beta[start:start + k]
+    if t.Z is None:
+        cov, n_g = _cluster_cov(t, names, fit.beta)
+        c = cov[start:start + k, start:start + k]
+        try:
+            stat = float(b @ np.linalg.solve(c, b))
+        except np.linalg.LinAlgError:
+            return 1.0, b, np.full(k, np.nan)
+        if not np.isfinite(stat) or stat < 0 or n_g < 3:
+            return 1.0, b, np.sqrt(np.clip(np.diag(c), 0, None))
+        # clusters do not inform the coefficient equally (near boards carry more pixels): the
+        # effective number of clusters, (sum s)^2 / sum s^2 of their information shares, sets the dof
+        xc = t.X[name]
+        share = np.array([float((t.w[t.cluster == g][:, None] * xc[t.cluster == g] ** 2).sum())
+                          for g in np.unique(t.cluster)])
+        g_eff = float(share.sum() ** 2 / max((share ** 2).sum(), 1e-300))
+        return (float(stats.f.sf(stat / k, k, max(g_eff - 1.0, 1.0))), b,
+                np.sqrt(np.clip(np.diag(c), 0, None)))
     c = fit.cov[start:start + k, start:start + k]
     try:
         stat = float(b @ np.linalg.solve(c, b))
@@ -419,7 +589,8 @@ def _usable(t: Table, name: str) -> bool:
 def forward_select(t: Table, candidates: Sequence[Candidate], present: dict[str, dict[str, float]],
                    samples: Samples | None = None) -> list[CandidateFit]:
     """Forward selection by BIC, gated by held-out RMSE and the mixed-model Wald test; all scored."""
-    pool = [c for c in candidates if c.kind == t.kind and c.name in t.X and _usable(t, c.name)]
+    pool = [c for c in candidates
+            if c.kind == t.kind and not c.generic and c.name in t.X and _usable(t, c.name)]
     by_name = {c.name: c for c in pool}
     selected: list[str] = []
     fits: dict[str, CandidateFit] = {}
@@ -446,7 +617,8 @@ def forward_select(t: Table, candidates: Sequence[Candidate], present: dict[str,
         best_d, best = trials[0]
         rec = fits[best]
         improves = rec.heldout_rmse_after_m < rec.heldout_rmse_before_m
-        if best_d < BIC_THRESHOLD and improves and rec.wald_p < WALD_P:
+        if best_d < BIC_THRESHOLD and improves and rec.wald_p < WALD_P \
+                and not negative_variances(t, [*selected, best], by_name, present):
             step += 1
             rec.selected, rec.step = True, step
             # the data barely prefer the winner: say so rather than pick silently
@@ -470,6 +642,32 @@ def forward_select(t: Table, candidates: Sequence[Candidate], present: dict[str,
             rec.params, rec.stderr = _params(c, present, b, se, samples)
             start += k
     return list(fits.values())
+
+
+def negative_variances(t: Table, names: Sequence[str], by_name: dict[str, Candidate],
+                       present: dict[str, dict[str, float]]) -> list[str]:
+    """Variance effects whose total the joint fit takes below zero (nearly collinear columns trading
+    off): the simulator cannot render a negative variance, so such a fit is not a model."""
+    if t.kind != "variance" or not names:
+        return []
+    fit = gls(t, names)
+    out, start = [], 0
+    for n in names:
+        k = t.X[n].shape[1]
+        b = fit.beta[start:start + k]
+        start += k
+        c = by_name.get(n)
+        if c is None:
+            continue
+        if c.generic:
+            own = t.X[n] @ b
+            if own.min() < -0.05 * max(float(own.max()), 0.0):
+                out.append(n)
+        elif c.squared:
+            p0 = float(present.get(n, {}).get(c.params[0], 0.0))
+            if p0 ** 2 + float(b[0]) < 0:
+                out.append(n)
+    return out
 
 
 def _params(c: Candidate, present: dict[str, dict[str, float]], b: FloatArray, se: FloatArray,
@@ -519,6 +717,7 @@ class Attribution:
     candidates: list[CandidateFit]
     bias_rows: int
     variance_rows: int
+    tables: dict[str, Table] = field(default_factory=dict)   # "bias", "variance", "frame"
 
     @property
     def selected(self) -> list[CandidateFit]:
@@ -527,10 +726,22 @@ class Attribution:
 
 def attribute(real: Samples, sim: Samples, candidates: Sequence[Candidate],
               present: dict[str, dict[str, float]] | None = None, *, blocks: int = 4,
-              noise_var: NoiseVar | None = None) -> Attribution:
-    """Fit, select and rank candidates for the bias and the variance residual."""
+              noise_var: NoiseVar | None = None, corr_var: CorrVar | None = None,
+              structures: tuple[Structure, Structure] | None = None) -> Attribution:
+    """Fit, select and rank the catalogue candidates for the bias and the variance residual.
+
+    `candidates` may hold generic terms of the discovery library too: their columns go into the
+    tables (for `discover.discover`), but only catalogue effects are selected here.
+    """
     present = present or {}
-    bt = bias_table(real, sim, candidates, blocks=blocks, noise_var=noise_var)
-    vt = variance_table(real, sim, candidates)
+    st = structures if structures is not None else (decompose(real), decompose(sim))
+    # tiles at least 2.5 windows wide: neighbouring tiles of window-correlated noise would otherwise
+    # share their errors, and the fit would count them as independent
+    window = max([x.corr.window_px for x in st if x.corr.fraction > 0.2], default=1.0)
+    tile = max(_tile_px(real), 2.5 * window)
+    bt = bias_table(real, sim, candidates, blocks=blocks, noise_var=noise_var, corr_var=corr_var,
+                    density=st[0].density, tile_px=tile)
+    vt = variance_table(real, sim, candidates, structures=st)
+    ft = frame_table(real, sim, candidates, structures=st)
     fits = forward_select(bt, candidates, present, real) + forward_select(vt, candidates, present, real)
-    return Attribution(rank(fits), len(bt), len(vt))
+    return Attribution(rank(fits), len(bt), len(vt), {"bias": bt, "variance": vt, "frame": ft})

@@ -14,12 +14,14 @@ the model TOML; the forms here are the fallback and the documentation of what is
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from depthstation.evaluate.explain.samples import FloatArray, Samples
 from depthstation.simulate.effects import EFFECTS, PixelContext
+from depthstation.simulate.effects.base import box_correlation
+from depthstation.simulate.effects.generic import TermSpec
 
 Columns = Callable[[Samples], FloatArray]
 
@@ -37,6 +39,21 @@ class Candidate:
     squared: bool = False         # variance candidates: the fitted coefficient is params[0]**2
     excludes: tuple[str, ...] = ()  # candidates whose signature this one contains (never both)
     convert: Callable[[FloatArray, Samples], dict[str, float]] | None = None
+    # variance candidates: correlation of two pixels (du, dv) stereo px apart (None = white noise)
+    correlation: Callable[[float, float], float] | None = None
+    table: str = "tiles"          # "tiles" (bias or within-frame variance) or "frame" (frame-common)
+    spec: TermSpec | None = None  # a generic term of the discovery library (None: catalogue effect)
+    fixed: dict[str, float] = field(default_factory=dict)   # parameters written but not fitted
+    interpretation: tuple[str, ...] = ()
+
+    @property
+    def generic(self) -> bool:
+        return self.spec is not None
+
+    @property
+    def complexity(self) -> tuple[int, int]:
+        """Fitted coefficients, then axes: the simpler of two near-tied terms is preferred."""
+        return len(self.params), len(self.spec.axes) if self.spec is not None else 1
 
     def to_params(self, coef: FloatArray, samples: Samples | None = None) -> dict[str, float]:
         """Fitted coefficients to named parameter values (sqrt for variance amplitudes)."""
@@ -169,11 +186,16 @@ def own_candidates() -> dict[str, Candidate]:
 _BIAS_MAIN = {"disparity_offset": "offset_px", "depth_scale": "scale_error", "lr_focal_mismatch": "ratio",
               "distortion_residual": "coeff_px", "pixel_locking": "amplitude_px",
               "slant_bias": "offset_px_at_45", "albedo_bias": "offset_px_black"}
+# reference_pose_noise is left out: explain simulates the reference error itself (the rendered
+# colour image and the same pose estimate), and what is common to a frame is fitted on the
+# frame-common table, where a disparity shift and a reference jitter are told apart by nothing but
+# their tiny 1/cos(theta) difference (docs/explain.md)
 _VAR_MAIN = {"disparity_noise": "sigma_px", "albedo_noise": "sigma_px_black", "slant_noise": "window_px",
-             "reference_pose_noise": "corner_sigma_px"}
+             "window_noise": "sigma_px"}
 
 
 _VAR_REF = {"sigma_px": 0.08, "sigma_px_black": 0.05, "window_px": 2.0, "corner_sigma_px": 0.1}
+WINDOW_DEFAULT_PX = 9.0
 
 
 def _module_column(name: str, param: str, kind: str, present: dict[str, dict[str, float]]) -> Columns:
@@ -199,17 +221,15 @@ def _module_column(name: str, param: str, kind: str, present: dict[str, dict[str
     return cols
 
 
-def module_candidates(present: dict[str, dict[str, float]] | None = None) -> list[Candidate]:
+def module_candidates(present: dict[str, dict[str, float]] | None = None,
+                      window_px: float | None = None) -> list[Candidate]:
     """The catalogue as fit bases from `simulate.effects`, in the units of the model TOML.
 
-    Falls back to the own forms above when the simulator is not importable. Thermal drift keeps
-    the two-column form (slope and temperature of zero drift), written as the module's parameters.
+    Thermal drift keeps the two-column form (slope and temperature of zero drift), written as the
+    module's parameters. Window noise is fitted at a fixed width: `window_px` (what the real
+    data's neighbour correlation says), else the model's, else the census window of 9 px.
     """
     present = present or {}
-    try:
-        pass
-    except ImportError:
-        return list(OWN_CANDIDATES)
     own = own_candidates()
     out: list[Candidate] = []
     for name, param in _BIAS_MAIN.items():
@@ -220,11 +240,23 @@ def module_candidates(present: dict[str, dict[str, float]] | None = None) -> lis
     out.append(Candidate("thermal_drift", "bias", ("coeff_px_per_c", "offset_at_median_px"),
                          ("px/degC", "px"), EFFECTS["thermal_drift"].meaning, th.columns,
                          excludes=("disparity_offset",), convert=_thermal_module_params))
+    width = float(window_px or present.get("window_noise", {}).get("window_px", WINDOW_DEFAULT_PX))
     for name, param in _VAR_MAIN.items():
         cls = EFFECTS[name]
+        corr: Callable[[float, float], float] | None = None
+        fixed: dict[str, float] = {}
+        here = present
+        if name == "window_noise":
+            fixed = {"window_px": width}
+            here = {**present, name: {**present.get(name, {}), "window_px": width}}
+
+            def corr(du: float, dv: float, w: float = width) -> float:
+                return float(box_correlation(w, du, dv))
         out.append(Candidate(name, "variance", (param,), (cls.PARAMS[param][1],), cls.meaning,
-                             _module_column(name, param, "variance", present), squared=True))
+                             _module_column(name, param, "variance", here), squared=True,
+                             correlation=corr, fixed=fixed))
     return out
+
 
 
 def _thermal_module_params(coef: FloatArray, s: Samples) -> dict[str, float]:

@@ -46,6 +46,9 @@ def explain(
     spawn: bool = typer.Option(False, "--spawn", help="Open a rerun viewer."),
     serve: bool = typer.Option(False, "--serve", help="Serve a local rerun web viewer."),
     no_resimulate: bool = typer.Option(False, "--no-resimulate", help="Skip the check with the new model."),
+    discover: bool = typer.Option(True, "--discover/--no-discover",
+                                  help="Search the library of generic terms for physics outside the "
+                                       "catalogue."),
     workers: int = typer.Option(1, "--workers", help="Local worker processes for the real-side evaluation."),
     cluster: str | None = typer.Option(None, "--cluster", help="Dask scheduler address (tcp://host:8786)."),
     depth_topic: DepthTopic = None,
@@ -65,7 +68,7 @@ def explain(
     if scan:
         mode = ScanOptions(register=register, icp=icp).register_mode
         _explain_scan(real, poses, reference, model, out, frames, seed, similarity, mode, block_frames,
-                      not no_resimulate, force, topics)
+                      not no_resimulate, force, topics, discover)
         return
     if board is None:
         raise InputError(None, "--board is needed for checkerboard sessions")
@@ -79,18 +82,26 @@ def explain(
         stderr_console.print(f"[bold]explain[/]: {msg}")
 
     data = run_explain(real, board, mdl, out, frames=frames, seed=seed, resimulate=not no_resimulate,
-                       workers=workers, cluster=cluster, topics=topics,
+                       workers=workers, cluster=cluster, topics=topics, discovery=discover,
                        parameters={"board": str(board), "model": model, "frames": frames, "seed": seed,
-                                   "workers": workers, "cluster": cluster},
+                                   "workers": workers, "cluster": cluster, "discover": discover},
                        target=RerunTarget(rrd, spawn, serve, force), tick=tick, force=force)
     verdict = ("significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch")
     typer.echo(f"{verdict}; selected: {', '.join(data['selected']) or 'nothing'}; "
-               f"missing physics: {', '.join(data['missing_physics']) or 'none'}; results in {out}")
+               f"missing physics: {', '.join(data['missing_physics']) or 'none'}; "
+               f"discovered: {_discovered_text(data)}; results in {out}")
+
+
+def _discovered_text(data: dict[str, object]) -> str:
+    found = data.get("discovered") or []
+    assert isinstance(found, list)
+    return ", ".join(f"{d['quantity']} along {'/'.join(d['axes'])}" for d in found) or "none"
 
 
 def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, model: str, out: Path,
                   frames: int, seed: int, similarity: Path | None, register: str, block_frames: int,
-                  resimulate: bool, force: bool, topics: TopicChoice | None = None) -> None:
+                  resimulate: bool, force: bool, topics: TopicChoice | None = None,
+                  discover: bool = True) -> None:
     """`explain --scan`: a reference-scan sequence against its simulation along the same trajectory."""
 
     if len(real) != 1:
@@ -110,11 +121,12 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
     with result_folder(out, force=force) as tmp:
         ex = explain_scan(real[0], poses, reference, mdl, tmp, frames=frames, block_frames=block_frames,
                           seed=seed, register=register, similarity=similarity, resimulate=resimulate,
-                          tick=tick, topics=topics)
+                          discovery=discover, tick=tick, topics=topics)
         data = write_scan_outputs(ex, tmp, [str(real[0]), str(poses), str(reference)],
                                   {"model": model, "frames": frames, "seed": seed, "register": register,
-                                   "block_frames": block_frames,
+                                   "block_frames": block_frames, "discover": discover,
                                    "similarity": str(similarity) if similarity else None})
     verdict = "significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch"
     typer.echo(f"{verdict}; selected: {', '.join(data['selected']) or 'nothing'}; "
-               f"missing physics: {', '.join(data['missing_physics']) or 'none'}; results in {out}")
+               f"missing physics: {', '.join(data['missing_physics']) or 'none'}; "
+               f"discovered: {_discovered_text(data)}; results in {out}")

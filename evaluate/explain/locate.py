@@ -1,9 +1,21 @@
 """Locate: where do real and simulated errors differ, beyond what chance explains?
 
+Along every axis the data carry (image column u, row v, radius, a coarse tile field, distance,
+disparity, inclination, albedo, frame, time, temperature, distance to the board edge, and the grid
+of distance x inclination), for the bias (mean error) and the noise (within-frame temporal
+variance); and the structure of the noise: its frame-common part and the correlation of
+neighbouring pixels.
+
 Pixels of one frame share the frame's pose, temperature and correlated noise, so they are not
 independent: every standard error here comes from the scatter of per-frame means within a
-standpoint (Welch, Satterthwaite degrees of freedom), and standpoints are combined by pixel-count
-weights. One test per group and quantity; all p-values of a run are corrected together (Holm).
+standpoint (Welch, Satterthwaite degrees of freedom; the frame mean's scatter carries the
+window-correlated noise, whatever the number of pixels), and standpoints are combined by
+pixel-count weights. What no frame statistic can see is shared by all frames of a standpoint: the
+reference pose error and anything else static per standpoint. It enters as a random plane per
+standpoint in the disparity domain, whose size is the larger of what the simulation measures for
+its own reference and the between-standpoint scatter of the real-minus-sim planes that distance
+and temperature do not explain (heterogeneity, DerSimonian-Laird moments). One test per group and
+quantity; all p-values of a run are corrected together (Holm).
 """
 
 from __future__ import annotations
@@ -16,6 +28,7 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples
+from depthstation.evaluate.explain.structure import Structure, decompose, frame_common
 
 ALPHA = 0.05
 MIN_SAMPLES = 30
@@ -40,6 +53,7 @@ class GroupTest:
     n_sim: int
     p_adj: float = float("nan")
     significant: bool = False
+    axes: list[str] = field(default_factory=list)   # the family's axes in explain's vocabulary
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -54,11 +68,14 @@ class Groups:
     sim: IntArray
     labels: list[str]
     coords: list[dict[str, Any]]
+    axes: tuple[str, ...] = ()
 
 
 @dataclass
 class LocateResult:
     tests: list[GroupTest] = field(default_factory=list)
+    heterogeneity: Any = None                 # Heterogeneity of the bias tests
+    correlation: tuple[Any, Any] | None = None  # (real, sim) Correlation of the within-frame noise
 
     @property
     def significant(self) -> list[GroupTest]:
@@ -68,11 +85,17 @@ class LocateResult:
         """`mismatch` block of explain.json: flag, differing standpoints, differing regions."""
         sig = self.significant
         standpoints = sorted({t.label for t in sig if t.family == "standpoint"})
-        regions = [{"family": t.family, "kind": t.kind, "label": t.label, **t.coords,
+        regions = [{"family": t.family, "kind": t.kind, "label": t.label, "axes": list(t.axes), **t.coords,
                     "diff": t.diff, "se": t.se, "p_adj": t.p_adj}
                    for t in sorted(sig, key=lambda t: t.p) if t.family != "standpoint"]
-        return {"significant": bool(sig), "standpoints": standpoints, "regions": regions,
-                "tests": len(self.tests), "alpha": ALPHA, "correction": "holm"}
+        out: dict[str, Any] = {"significant": bool(sig), "standpoints": standpoints, "regions": regions,
+                               "tests": len(self.tests), "alpha": ALPHA, "correction": "holm"}
+        if self.heterogeneity is not None:
+            out["standpoint_heterogeneity"] = self.heterogeneity.to_dict()
+        if self.correlation is not None:
+            out["noise_correlation"] = {"real": self.correlation[0].to_dict(),
+                                        "sim": self.correlation[1].to_dict()}
+        return out
 
     def family(self, name: str, kind: str = "bias") -> list[GroupTest]:
         return [t for t in self.tests if t.family == name and t.kind == kind]
@@ -95,15 +118,16 @@ def temporal_dev2(s: Samples) -> FloatArray:
 
 
 def _frame_table(values: FloatArray, group: IntArray, s: Samples) -> tuple[NDArray[Any], ...]:
-    """Per (group, standpoint, frame): sum, count. Returns keys split into group, standpoint."""
+    """Per (group, frame) with samples: group, standpoint, mean of the values, count."""
+    fidx, fsp = s.frame_index()
+    nf = len(fsp)
     ok = (group >= 0) & np.isfinite(values)
-    g, sp, fr, val = group[ok], s.standpoint[ok], s.frame[ok], values[ok]
-    key = (g * 100_000 + sp) * 10_000_000 + fr
-    uniq, inv = np.unique(key, return_inverse=True)
-    inv = inv.ravel()
-    sums = np.bincount(inv, weights=val, minlength=len(uniq))
-    cnt = np.bincount(inv, minlength=len(uniq)).astype(np.float64)
-    return uniq // 10_000_000 // 100_000, uniq // 10_000_000 % 100_000, sums / np.maximum(cnt, 1), cnt
+    key = group[ok] * nf + fidx[ok]
+    size = (int(group.max()) + 1) * nf if ok.any() else 0
+    cnt = np.bincount(key, minlength=size).astype(np.float64)
+    sums = np.bincount(key, weights=values[ok], minlength=size)
+    nz = np.flatnonzero(cnt)
+    return nz // nf, fsp[nz % nf], sums[nz] / cnt[nz], cnt[nz]
 
 
 def _stand_stats(gk: IntArray, spk: IntArray, means: FloatArray, cnt: FloatArray
@@ -124,10 +148,95 @@ def _stand_stats(gk: IntArray, spk: IntArray, means: FloatArray, cnt: FloatArray
     return out
 
 
+@dataclass
+class Heterogeneity:
+    """Random real-minus-sim plane per standpoint, in the disparity domain: delta = a + b x + c y (px).
+
+    `tau2` (3,) are the variances of (a, b, c) across standpoints beyond their sampling scatter and
+    beyond what the standpoint's distance (and temperature) explain: static per-standpoint errors a
+    frame statistic cannot see (real reference poses worse than the simulated ones, frozen patterns).
+    """
+
+    tau2: FloatArray = field(default_factory=lambda: np.zeros(3))
+    dof: float = float("inf")
+    standpoints: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"plane_sd_px": [float(np.sqrt(t)) for t in self.tau2], "dof": self.dof,
+                "standpoints": self.standpoints}
+
+
+def _plane_design(s: Samples) -> FloatArray:
+    return np.stack([np.ones(len(s)), (s.u - s.ppx) / s.fx, (s.v - s.ppy) / s.fx], axis=1)
+
+
+def _frame_planes(s: Samples) -> dict[int, tuple[FloatArray, FloatArray, int]]:
+    """Per standpoint: mean and variance over frames of the frame's disparity-domain plane (a, b, c)."""
+    g = s.err_m / s.k_m_per_px
+    X = _plane_design(s)
+    out: dict[int, tuple[FloatArray, FloatArray, int]] = {}
+    fk = s.frame_key
+    uniq, inv = np.unique(fk, return_inverse=True)
+    inv = inv.ravel()
+    # normal equations per frame by bincount (3 x 3 and 3 x 1 sums)
+    xtx = np.stack([np.bincount(inv, weights=X[:, i] * X[:, j], minlength=len(uniq))
+                    for i in range(3) for j in range(3)], axis=1).reshape(-1, 3, 3)
+    xty = np.stack([np.bincount(inv, weights=X[:, i] * g, minlength=len(uniq)) for i in range(3)], axis=1)
+    ok = np.abs(np.linalg.det(xtx)) > 1e-12
+    coef = np.full((len(uniq), 3), np.nan)
+    coef[ok] = np.linalg.solve(xtx[ok], xty[ok][..., None])[..., 0]
+    sp = uniq // 1_000_000
+    for k in np.unique(sp):
+        c = coef[(sp == k) & ok]
+        if len(c) >= 2:
+            out[int(k)] = (c.mean(axis=0), c.var(axis=0, ddof=1), len(c))
+    return out
+
+
+def heterogeneity(real: Samples, sim: Samples) -> Heterogeneity:
+    """Between-standpoint variance of the real-minus-sim disparity planes (moments, after covariates)."""
+    pr, ps = _frame_planes(real), _frame_planes(sim)
+    sim_idx = {n: i for i, n in enumerate(sim.names)}
+    rows = []
+    for i, name in enumerate(real.names):
+        j = sim_idx.get(name)
+        if i in pr and j is not None and j in ps:
+            m = real.standpoint == i
+            temp = real.temperature_c[m]
+            rows.append((pr[i][0] - ps[j][0], pr[i][1] / pr[i][2] + ps[j][1] / ps[j][2],
+                         float(np.mean(real.disparity_px[m])),
+                         float(np.nanmean(temp)) if np.isfinite(temp).any() else 0.0))
+    n = len(rows)
+    if n < 4:
+        return Heterogeneity(np.zeros(3), float("inf"), n)
+    d = np.array([r[0] for r in rows])
+    v = np.array([r[1] for r in rows])
+    disp = np.array([r[2] for r in rows])
+    temp = np.array([r[3] for r in rows])
+    # the offset may follow distance (scale, offset) and temperature (drift): only what they do not
+    # explain is heterogeneity; the slopes are the same for every standpoint under any pixel effect
+    cov_a = [np.ones(n), disp] + ([temp] if np.ptp(temp) > 0.5 else [])
+    tau2, dofs = np.zeros(3), []
+    for k, cols in enumerate((cov_a, [np.ones(n)], [np.ones(n)])):
+        X = np.stack(cols, axis=1)
+        p = X.shape[1]
+        if n - p < 2:
+            continue
+        H = X @ np.linalg.pinv(X)
+        r = d[:, k] - H @ d[:, k]
+        tau2[k] = max(0.0, float((r ** 2).sum() - ((1 - np.diag(H)) * v[:, k]).sum()) / (n - p))
+        dofs.append(n - p)
+    return Heterogeneity(tau2, float(min(dofs)) if dofs else float("inf"), n)
+
+
 def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
-                   real_values: FloatArray | None = None, sim_values: FloatArray | None = None
-                   ) -> list[GroupTest]:
-    """One Welch test per group, standpoint-stratified, frame means as the independent units."""
+                   real_values: FloatArray | None = None, sim_values: FloatArray | None = None,
+                   het: Heterogeneity | None = None) -> list[GroupTest]:
+    """One Welch test per group, standpoint-stratified, frame means as the independent units.
+
+    Bias tests add, per standpoint, the variance of what is static within it: the reference error
+    the simulation measures, or (if larger) the heterogeneity of the real-minus-sim planes.
+    """
     rv = real.err_m if real_values is None else real_values
     sv = sim.err_m if sim_values is None else sim_values
     rs = _stand_stats(*_frame_table(rv, groups.real, real))
@@ -141,6 +250,12 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
                      minlength=len(groups.labels))
     n4 = np.bincount(np.maximum(groups.sim, 0), weights=(groups.sim >= 0).astype(float),
                      minlength=len(groups.labels))
+    het_v: dict[tuple[int, int], float] = {}
+    if kind == "bias" and het is not None and np.any(het.tau2 > 0):
+        X = _plane_design(real) * real.k_m_per_px[:, None]
+        mom = [_stand_stats(*_frame_table(X[:, j], groups.real, real)) for j in range(3)]
+        for key in mom[0]:
+            het_v[key] = float(sum(het.tau2[j] * mom[j][key][0] ** 2 for j in range(3)))
     out: list[GroupTest] = []
     for g, label in enumerate(groups.labels):
         pairs = [(k, rs[k], ss[k]) for k in rs if k[0] == g and k in ss]
@@ -159,13 +274,16 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
         # one draw per standpoint is a poor variance estimate: floor it by the pixel-level mean
         ref_floor = c_ref * float(z4[g] / max(n4[g], 1.0))
         v_ref = max(float(np.mean(ref_var)) if ref_var else 0.0, ref_floor)
-        a_ref = w ** 2 * v_ref
+        v_het = np.array([het_v.get(k, 0.0) for k, _, _ in pairs])
+        a_ref = w ** 2 * np.maximum(v_ref, v_het)
+        use_het = bool(np.any(v_het > v_ref))
+        ref_dof = (het.dof if use_het and het is not None else max(len(ref_var), 1))
         var = float(a_r.sum() + a_s.sum() + a_ref.sum())
         diff = float((w * d).sum())
         real_m = float(sum(wi * r[0] for wi, (_, r, _) in zip(w, pairs, strict=True)))
         sim_m = float(sum(wi * s[0] for wi, (_, _, s) in zip(w, pairs, strict=True)))
         denom = float((a_r ** 2 / df_r).sum() + (a_s ** 2 / df_s).sum()
-                      + (a_ref.sum() ** 2 / max(len(ref_var), 1) if v_ref > 0 else 0.0))
+                      + (a_ref.sum() ** 2 / ref_dof if a_ref.sum() > 0 else 0.0))
         dof = var ** 2 / denom if denom > 0 else float("inf")
         se = float(np.sqrt(var))
         if se > 0:
@@ -175,7 +293,7 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
             t, p = (0.0, 1.0) if diff == 0 else (float("inf"), 0.0)
         out.append(GroupTest(groups.family, kind, label, groups.coords[g], real_m, sim_m, diff, se,
                              float(t), float(dof), p, int(sum(r[3] for _, r, _ in pairs)),
-                             int(sum(s[3] for _, _, s in pairs))))
+                             int(sum(s[3] for _, _, s in pairs)), axes=list(groups.axes)))
     return out
 
 
@@ -194,8 +312,8 @@ def holm(p: FloatArray, alpha: float = ALPHA) -> tuple[FloatArray, NDArray[np.bo
     return adj, adj <= alpha
 
 
-def _binned(family: str, xr: FloatArray, xs: FloatArray, edges: FloatArray, unit: str, key: str
-            ) -> Groups:
+def _binned(family: str, xr: FloatArray, xs: FloatArray, edges: FloatArray, unit: str, key: str,
+            axes: tuple[str, ...] = ()) -> Groups:
     gr = np.digitize(xr, edges) - 1
     gs = np.digitize(xs, edges) - 1
     nb = len(edges) - 1
@@ -203,12 +321,41 @@ def _binned(family: str, xr: FloatArray, xs: FloatArray, edges: FloatArray, unit
     gs[(gs < 0) | (gs >= nb) | ~np.isfinite(xs)] = -1
     labels = [f"{edges[i]:.4g}-{edges[i + 1]:.4g} {unit}" for i in range(nb)]
     coords = [{f"{key}_min": float(edges[i]), f"{key}_max": float(edges[i + 1])} for i in range(nb)]
-    return Groups(family, gr.astype(np.int64), gs.astype(np.int64), labels, coords)
+    return Groups(family, gr.astype(np.int64), gs.astype(np.int64), labels, coords, axes)
+
+
+def _quantile_edges(x: FloatArray, bins: int) -> FloatArray | None:
+    fin = x[np.isfinite(x)]
+    if not fin.size or float(fin.max() - fin.min()) <= 0:
+        return None
+    edges = np.unique(np.quantile(fin, np.linspace(0, 1, bins + 1)))
+    edges[-1] += 1e-9 * max(1.0, abs(float(edges[-1])))
+    return edges if len(edges) > 2 else None
+
+
+def _frame_rank(s: Samples) -> FloatArray:
+    """Position of each sample's frame within its standpoint, 0 (first) .. 1 (last)."""
+    out = np.zeros(len(s))
+    for sp in np.unique(s.standpoint):
+        m = s.standpoint == sp
+        frames, inv = np.unique(s.frame[m], return_inverse=True)
+        out[m] = inv.ravel() / max(len(frames) - 1, 1)
+    return out
+
+
+# the families of locate and the axes of explain's vocabulary each one looks along
+FAMILY_AXES: dict[str, tuple[str, ...]] = {
+    "standpoint": (), "grid": ("distance", "inclination"), "column": ("u",), "row": ("v",),
+    "radius": ("radius",), "tile": ("tile",), "distance": ("distance",), "disparity": ("disparity",),
+    "inclination": ("inclination",), "albedo": ("albedo",), "frame": ("frame",), "time": ("time",),
+    "temperature": ("temperature",), "edge": ("edge",), "frame_common": ("frame",),
+    "correlation_u": ("u",), "correlation_v": ("v",),
+}
 
 
 def default_groups(real: Samples, sim: Samples, distance_step_m: float = 0.25,
                    inclination_step_deg: float = 10.0, column_bins: int = 8) -> list[Groups]:
-    """The partitions explain tests: standpoints, the grid, and the axes the grid hides."""
+    """The partitions explain tests: standpoints, the grid, and every axis the grid hides."""
     out: list[Groups] = []
     sp_r = real.standpoint.copy()
     sim_idx = {n: i for i, n in enumerate(sim.names)}
@@ -234,44 +381,142 @@ def default_groups(real: Samples, sim: Samples, distance_step_m: float = 0.25,
                "inclination_min_deg": float(ie[b]), "inclination_max_deg": float(ie[b + 1])}
               for a in range(len(de) - 1) for b in range(ni)]
     out.append(Groups("grid", (dr * ni + ir).astype(np.int64), (ds * ni + is_).astype(np.int64),
-                      labels, coords))
-    width = 2 * real.ppx + 1
-    out.append(_binned("column", real.u, sim.u, np.linspace(0, width, column_bins + 1), "px", "u_px"))
+                      labels, coords, FAMILY_AXES["grid"]))
+    width, height = 2 * real.ppx + 1, 2 * real.ppy + 1
+    out.append(_binned("column", real.u, sim.u, np.linspace(0, width, column_bins + 1), "px", "u_px",
+                       ("u",)))
+    out.append(_binned("row", real.v, sim.v, np.linspace(0, height, 7), "px", "v_px", ("v",)))
     rr = np.hypot(real.u - real.ppx, real.v - real.ppy)
     rs = np.hypot(sim.u - sim.ppx, sim.v - sim.ppy)
     rmax = float(np.hypot(real.ppx, real.ppy)) + 1
-    out.append(_binned("radius", rr, rs, np.linspace(0, rmax, 6), "px", "radius_px"))
+    out.append(_binned("radius", rr, rs, np.linspace(0, rmax, 6), "px", "radius_px", ("radius",)))
+    # a coarse 4 x 3 field of image tiles
+    tu, tv = 4, 3
+    tile_r = (np.clip((real.u / width * tu).astype(np.int64), 0, tu - 1)
+              + tu * np.clip((real.v / height * tv).astype(np.int64), 0, tv - 1))
+    tile_s = (np.clip((sim.u / width * tu).astype(np.int64), 0, tu - 1)
+              + tu * np.clip((sim.v / height * tv).astype(np.int64), 0, tv - 1))
+    out.append(Groups("tile", tile_r, tile_s, [f"tile u{k % tu} v{k // tu}" for k in range(tu * tv)],
+                      [{"tile_u": k % tu, "tile_v": k // tu} for k in range(tu * tv)], ("tile",)))
+    de1 = np.arange(0.0, dmax + 0.5, 0.5)
+    out.append(_binned("distance", real.z_ref_m, sim.z_ref_m, de1, "m", "distance_m", ("distance",)))
+    edges = _quantile_edges(np.r_[real.disparity_px, sim.disparity_px], 6)
+    if edges is not None:
+        out.append(_binned("disparity", real.disparity_px, sim.disparity_px, edges, "px", "disparity_px",
+                           ("disparity",)))
+    out.append(_binned("inclination", real.inclination_deg, sim.inclination_deg, ie, "deg",
+                       "inclination_deg", ("inclination",)))
     out.append(Groups("albedo", (real.albedo >= 0.5).astype(np.int64), (sim.albedo >= 0.5).astype(np.int64),
-                      ["black", "white"], [{"albedo": "black"}, {"albedo": "white"}]))
+                      ["black", "white"], [{"albedo": "black"}, {"albedo": "white"}], ("albedo",)))
+    fr_r, fr_s = _frame_rank(real), _frame_rank(sim)
+    if np.ptp(fr_r) > 0:
+        out.append(_binned("frame", fr_r, fr_s, np.array([0.0, 0.2, 0.4, 0.6, 0.8, 1.0 + 1e-9]), "of frames",
+                           "frame_rank", ("frame",)))
     for fam, xr, xs, unit, key in (("time", real.time_s, sim.time_s, "s", "time_s"),
                                    ("temperature", real.temperature_c, sim.temperature_c, "degC",
                                     "temperature_c")):
-        fin = xr[np.isfinite(xr)]
-        if fin.size and float(fin.max() - fin.min()) > 0:
-            edges = np.unique(np.quantile(fin, np.linspace(0, 1, 6)))
-            edges[-1] += 1e-9
-            if len(edges) > 2:
-                out.append(_binned(fam, xr, xs, edges, unit, key))
+        edges = _quantile_edges(xr, 5)
+        if edges is not None:
+            out.append(_binned(fam, xr, xs, edges, unit, key, (fam,)))
     if np.isfinite(real.edge_px).any():
-        out.append(_binned("edge", real.edge_px, sim.edge_px, np.array([0.0, 2.0, 5.0, 10.0, 30.0]),
-                           "px", "edge_px"))
+        out.append(_binned("edge", real.edge_px, sim.edge_px, np.array([0.0, 3.0, 6.0, 12.0, 24.0, np.inf]),
+                           "px", "edge_px", ("edge",)))
     return out
 
 
-def locate(real: Samples, sim: Samples, alpha: float = ALPHA, groups: list[Groups] | None = None
-           ) -> LocateResult:
+def _frame_common_tests(real: Samples, sim: Samples, st_r: Structure, st_s: Structure) -> list[GroupTest]:
+    """Variance of the frames' common part (split-half covariance), real vs sim, per standpoint and
+    pooled. Tested in px^2 of disparity (homogeneous over distance for a disparity noise; the pooled
+    test weighs standpoints equally) against its spread when nothing is common (from the halves'
+    difference, so real noise of any size or correlation sets it), reported in m^2 at the
+    standpoint's mean K."""
+    fr, fs = frame_common(real, st_r), frame_common(sim, st_s)
+    sim_idx = {n: i for i, n in enumerate(sim.names)}
+    rows = []
+    for i, sp in enumerate(fr.standpoint):
+        j = sim_idx.get(real.names[sp])
+        hit = np.flatnonzero(fs.standpoint == j) if j is not None else np.zeros(0, dtype=np.int64)
+        if not hit.size:
+            continue
+        k = hit[0]
+        # under the null both sides share one common variance: their mean (0 if nothing is common)
+        pooled = np.array([(fr.excess_px2[i] + fs.excess_px2[k]) / 2])
+        se = float(np.hypot(fr.se_null(pooled)[i], fs.se_null(pooled)[k]))
+        rows.append((real.names[sp], fr.excess_px2[i], fs.excess_px2[k],
+                     se, float(min(fr.frames[i], fs.frames[k]) - 1),
+                     fr.k_m[i] ** 2, int(fr.frames[i]), int(fs.frames[k])))
+    out = []
+    for name, r, s_, se, dof, k2, nr, ns in rows:
+        out.append(_test("frame_common", name, {"standpoint": name}, r * k2, s_ * k2, (r - s_) * k2, se * k2,
+                         dof, nr, ns))
+    if len(rows) >= 2:
+        n = len(rows)
+        d = float(np.mean([r[1] - r[2] for r in rows]))
+        se = float(np.sqrt(sum(r[3] ** 2 for r in rows)) / n)
+        k2 = float(np.mean([r[5] for r in rows]))
+        out.append(_test("frame_common", "all standpoints", {"standpoint": "all"},
+                         float(np.mean([r[1] for r in rows])) * k2, float(np.mean([r[2] for r in rows])) * k2,
+                         d * k2, se * k2, float(sum(r[4] for r in rows)),
+                         sum(r[6] for r in rows), sum(r[7] for r in rows)))
+    return out
+
+
+def _test(family: str, label: str, coords: dict[str, Any], real: float, sim: float, diff: float, se: float,
+          dof: float, n_real: int, n_sim: int) -> GroupTest:
+    t = diff / se if se > 0 else (0.0 if diff == 0 else float("inf"))
+    p = float(2 * stats.t.sf(abs(t), max(dof, 1.0))) if np.isfinite(t) else 0.0
+    return GroupTest(family, "noise", label, coords, real, sim, diff, se, float(t), dof, p, n_real, n_sim,
+                     axes=list(FAMILY_AXES.get(family, ())))
+
+
+def _correlation_tests(real: Samples, sim: Samples, st_r: Structure, st_s: Structure) -> list[GroupTest]:
+    """Correlation of neighbouring pixels' within-frame noise along u and v, real vs sim.
+
+    Per pair a normalised product w_i w_j / sigma^2 (sigma^2 of its standpoint); their frame means
+    are the units, as for every other test. Two lags per axis: the nearest and one further out.
+    """
+    out: list[GroupTest] = []
+    for axis in ("u", "v"):
+        common = sorted({k for k in st_r.pairs if k[0] == axis} & {k for k in st_s.pairs if k[0] == axis},
+                        key=lambda k: k[1])
+        if not common:
+            continue
+        chosen = [common[0], *[k for k in common if k[1] >= 3 * common[0][1]][:1]]
+        for key in chosen:
+            vals = []
+            for s, st in ((real, st_r), (sim, st_s)):
+                i, j = st.pairs[key]
+                tot = np.bincount(s.standpoint, weights=np.nan_to_num(st.dev2), minlength=len(s.names))
+                cnt = np.bincount(s.standpoint, weights=np.isfinite(st.dev2).astype(float),
+                                  minlength=len(s.names))
+                sig2 = tot / np.maximum(cnt, 1)
+                x = np.full(len(s), np.nan)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    x[i] = st.within[i] * st.within[j] / sig2[s.standpoint[i]]
+                vals.append(x)
+            g = Groups(f"correlation_{axis}", np.where(np.isfinite(vals[0]), 0, -1),
+                       np.where(np.isfinite(vals[1]), 0, -1), [f"{axis} lag {key[1]:.3g} px"],
+                       [{"axis": axis, "lag_px": key[1]}], FAMILY_AXES[f"correlation_{axis}"])
+            out += compare_groups(real, sim, g, "noise", vals[0], vals[1])
+    return out
+
+
+def locate(real: Samples, sim: Samples, alpha: float = ALPHA, groups: list[Groups] | None = None,
+           structures: tuple[Structure, Structure] | None = None) -> LocateResult:
     """All bias and noise tests of real against sim, Holm-corrected together."""
     groups = default_groups(real, sim) if groups is None else groups
-    r2, s2 = temporal_dev2(real), temporal_dev2(sim)
+    st_r, st_s = structures if structures is not None else (decompose(real), decompose(sim))
+    het = heterogeneity(real, sim)
     tests: list[GroupTest] = []
     for g in groups:
-        tests += compare_groups(real, sim, g, "bias")
-        if g.family in ("standpoint", "grid", "albedo"):
-            tests += compare_groups(real, sim, g, "noise", r2, s2)
+        tests += compare_groups(real, sim, g, "bias", het=het)
+        tests += compare_groups(real, sim, g, "noise", st_r.dev2, st_s.dev2)
+    tests += _frame_common_tests(real, sim, st_r, st_s)
+    tests += _correlation_tests(real, sim, st_r, st_s)
     adj, rej = holm(np.array([t.p for t in tests]), alpha)
     for t, a, r in zip(tests, adj, rej, strict=True):
         t.p_adj, t.significant = float(a), bool(r)
-    return LocateResult(tests)
+    return LocateResult(tests, het, (st_r.corr, st_s.corr))
 
 
 def residual_grid(loc: LocateResult, kind: str = "bias") -> tuple[Any, Any, Any] | None:

@@ -9,10 +9,20 @@ import numpy as np
 
 from depthstation.core.results import write_json, write_result_info
 from depthstation.evaluate.explain.attribute import NEAR_TIE
-from depthstation.evaluate.explain.figures import residual_grid_figure
+from depthstation.evaluate.explain.figures import (
+    _frame_binned,
+    residual_grid_figure,
+    term_field_figure,
+    term_residual_figure,
+)
 from depthstation.evaluate.explain.locate import residual_grid
+from depthstation.evaluate.explain.samples import FloatArray, Samples
+from depthstation.evaluate.explain.structure import decompose, frame_common
+from depthstation.simulate.effects import PixelContext
+from depthstation.simulate.effects.generic import AXIS_INFO, axis_value
 
 if TYPE_CHECKING:
+    from depthstation.evaluate.explain.discover import DiscoveredTerm
     from depthstation.evaluate.explain.run import Explanation
 
 
@@ -37,7 +47,11 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
         "near_ties": [{"selected": c.effect, **t} for c in ex.attribution.selected for t in c.near_ties],
         "standpoints": list(ex.real.samples.names),
         "samples": {"real": len(ex.real.samples), "sim": len(ex.sim.samples)},
-        "fit_rows": {"bias": ex.attribution.bias_rows, "variance": ex.attribution.variance_rows},
+        "fit_rows": {"bias": ex.attribution.bias_rows, "variance": ex.attribution.variance_rows,
+                     "frame": len(ex.attribution.tables["frame"]) if "frame" in ex.attribution.tables else 0},
+        "discovered": [t.to_dict() for t in ex.discovery.terms] if ex.discovery is not None else [],
+        "discovery": ex.discovery.summary() if ex.discovery is not None else None,
+        "remaining_after": ex.remaining,
         "tests": [t.to_dict() for t in ex.before.tests],
     }
 
@@ -79,6 +93,122 @@ def figures(ex: Explanation, out: Path) -> list[str]:
         fig.savefig(out / fname, dpi=100)
         plt.close(fig)
         names.append(fname)
+    return names
+
+
+def _disparity_residual(s: Samples, quantity: str) -> FloatArray:
+    """Per sample, the residual in the term's own domain: disparity error -e/K (px, + = disparity too
+    large) for a bias, squared within-frame deviation / K^2 (px^2) for a noise."""
+    if quantity == "bias":
+        return np.asarray(-s.err_m / s.k_m_per_px)
+    return np.asarray(decompose(s).dev2 / s.k_m_per_px ** 2)
+
+
+def _term_figure(term: DiscoveredTerm, sides: list[tuple[str, Samples, Samples]], path: Path) -> Path:
+    """One figure of a discovered term: the residual along its axes, before and after, with the fit."""
+    spec = term.candidate.spec
+    assert spec is not None
+    fixed = term.candidate.fixed
+    coef = np.array([term.coef[c] for c in spec.coefficients])
+    cov = (np.asarray(term.cov) if term.cov
+           else np.diag([term.stderr.get(c, 0.0) ** 2 for c in spec.coefficients]))
+    unit = spec.unit
+    what = "disparity error" if spec.quantity == "bias" else "within-frame disparity variance"
+    title = f"{spec.name}: {spec.expression(term.coef)}"
+    if spec.basis == "common":
+        xs, rows = [], []
+        for label, real, sim in sides:
+            fr, fs = frame_common(real, decompose(real)), frame_common(sim, decompose(sim))
+            idx = {sim.names[int(g)]: i for i, g in enumerate(fs.standpoint)}
+            pts = [(a, fr.excess_px2[a] - fs.excess_px2[idx[real.names[int(g)]]],
+                    float(np.hypot(fr.se_px2()[a], fs.se_px2()[idx[real.names[int(g)]]])))
+                   for a, g in enumerate(fr.standpoint) if real.names[int(g)] in idx]
+            xs = [p[0] for p in pts]
+            rows.append((label, np.array(xs, dtype=float), np.array([p[1] for p in pts]),
+                         np.array([p[2] for p in pts]) / 2))
+        xg = np.linspace(-0.5, max(len(xs) - 0.5, 0.5), 50)
+        band = 2 * np.sqrt(max(float(cov[0, 0]), 0.0))
+        return term_residual_figure(path, title, "standpoint", f"frame-common variance real - sim ({unit})",
+                                    rows, (xg, np.full_like(xg, coef[0]), np.full_like(xg, band)))
+    if spec.basis.startswith("field"):
+        xe = np.linspace(-0.6, 0.6, 13)
+        ye = np.linspace(-0.35, 0.35, 8)
+        panels = []
+        for label, real, sim in sides:
+            maps = []
+            for s in (real, sim):
+                ctx = PixelContext(**s.context())
+                x, y = axis_value(ctx, "u", fixed), axis_value(ctx, "v", fixed)
+                val = _disparity_residual(s, spec.quantity)
+                key = (np.digitize(x, xe) - 1) * 100 + (np.digitize(y, ye) - 1)
+                m = np.full((len(xe) - 1, len(ye) - 1), np.nan)
+                ok = (np.digitize(x, xe) >= 1) & (np.digitize(x, xe) < len(xe)) & (np.digitize(y, ye) >= 1) \
+                    & (np.digitize(y, ye) < len(ye)) & np.isfinite(val)
+                if ok.any():
+                    uk, inv, cnt = np.unique(key[ok], return_inverse=True, return_counts=True)
+                    mean = np.bincount(inv.ravel(), weights=val[ok]) / cnt
+                    for kk, mm, c in zip(uk, mean, cnt, strict=True):
+                        if c >= 30:
+                            m[kk // 100, kk % 100] = mm
+                maps.append(m)
+            panels.append((f"residual {label} ({unit})", maps[0] - maps[1]))
+        xc, yc = (xe[:-1] + xe[1:]) / 2, (ye[:-1] + ye[1:]) / 2
+        gx, gy = np.meshgrid(xc, yc, indexing="ij")
+        cols = [np.prod([gx if ch == "x" else gy for ch in c[2:]], axis=0) for c in spec.coefficients]
+        phi = np.stack(cols, axis=-1)
+        seen = np.isfinite(panels[0][1])    # the field only where the boards were
+        fitted = np.where(seen, phi @ coef, np.nan)
+        band = np.where(seen, 2 * np.sqrt(np.clip(np.einsum("...i,ij,...j->...", phi, cov, phi), 0, None)),
+                        np.nan)
+        panels.insert(1, (f"fitted term ({unit})", fitted))
+        panels.append((f"2 SE of the fitted term ({unit})", band))
+        return term_field_figure(path, title, unit, xe, ye, panels)
+    # one variable: a polynomial's axis, a product of two, the edge distance
+    def variable(s: Samples) -> FloatArray:
+        ctx = PixelContext(**s.context())
+        if spec.basis == "product":
+            return np.asarray(axis_value(ctx, spec.axes[0], fixed) * axis_value(ctx, spec.axes[1], fixed))
+        return np.asarray(axis_value(ctx, spec.axes[0], fixed))
+
+    first = variable(sides[0][1])
+    fin = first[np.isfinite(first)]
+    if spec.basis == "exp":
+        fin = fin[fin < 40]
+    lo, hi = (float(np.min(fin)), float(np.max(fin))) if fin.size else (0.0, 1.0)
+    edges = np.linspace(lo, hi + 1e-9 * max(1.0, abs(hi)), 11)
+    rows = []
+    for label, real, sim in sides:
+        mr, sr = _frame_binned(variable(real), _disparity_residual(real, spec.quantity), real.frame_key,
+                               edges)
+        ms, ss = _frame_binned(variable(sim), _disparity_residual(sim, spec.quantity), sim.frame_key, edges)
+        rows.append((label, (edges[:-1] + edges[1:]) / 2, mr - ms, np.hypot(sr, ss)))
+    xg = np.linspace(lo, hi, 100)
+    if spec.basis.startswith("poly"):
+        phi = np.stack([xg ** k for k in spec.powers], axis=1)
+    elif spec.basis == "exp":
+        phi = np.exp(-np.maximum(xg, 0) / fixed.get("length_px", 5.0))[:, None]
+    else:
+        phi = xg[:, None]
+    band = 2 * np.sqrt(np.clip(np.einsum("ni,ij,nj->n", phi, cov, phi), 0, None))
+    sym = ("*".join(AXIS_INFO[a][0] for a in spec.axes) if spec.basis == "product"
+           else AXIS_INFO[spec.axes[0]][0])
+    units = "*".join(AXIS_INFO[a][1] for a in spec.axes if AXIS_INFO[a][1] != "1") or "1"
+    return term_residual_figure(path, title, f"{sym} ({units})", f"{what} real - sim ({unit})", rows,
+                                (xg, phi @ coef, band))
+
+
+def discovered_figures(ex: Explanation, out: Path) -> list[str]:
+    """One figure per discovered term (residual along its axes before / after with the fit)."""
+    if ex.discovery is None or not ex.discovery.terms:
+        return []
+    sides = [("before (real - sim)", ex.real.samples, ex.sim.samples)]
+    if ex.resim is not None:
+        sides.append(("after (real - re-simulation)", ex.real.samples, ex.resim.samples))
+    names = []
+    for k, term in enumerate(ex.discovery.terms):
+        name = f"discovered_{k + 1}_{term.effect}.png"
+        _term_figure(term, sides, out / name)
+        names.append(name)
     return names
 
 
@@ -124,12 +254,53 @@ def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
         state = (f"still significant in {len(after['regions'])} regions" if after["significant"]
                  else "no significant mismatch remains")
         lines.append(f"- After re-simulating with the new model (`model.toml`): {state}.")
-    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs]
+    lines += _discovered_md(data, [f for f in figs if f.startswith("discovered_")])
+    lines += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figs if not f.startswith("discovered_")]
     lines += ["", "Notes: errors are z-depth (measured - reference, + = too far); standard errors come from "
               "per-frame means within standpoints plus the reference-pose error the simulation measures; "
               "selection needs delta BIC < -10, a lower held-out RMSE (leave one standpoint out) and a "
               "cluster-robust Wald p < 0.001."]
     return "\n".join(lines) + "\n"
+
+
+def _discovered_md(data: dict[str, Any], figs: list[str]) -> list[str]:
+    """The section "Missing physics outside the catalogue" and what remains after the refit."""
+    lines = ["", "## Missing physics outside the catalogue", ""]
+    found = data.get("discovered") or []
+    disc = data.get("discovery") or {}
+    if not found:
+        lines.append(f"Nothing found: no generic term of the library ({disc.get('library_size', 0)} terms) "
+                     "passes the guards on what the catalogue leaves.")
+    for k, d in enumerate(found):
+        det = disc["terms"][k] if k < len(disc.get("terms", [])) else {}
+        coefs = ", ".join(f"{n} = {c['value']:.4g} +- {c['stderr']:.2g} {c['unit']}"
+                          for n, c in d["coefficients"].items())
+        lines += [f"### {k + 1}. {d['quantity']} along {', '.join(d['axes'])}", "",
+                  f"- Term (written into model.toml as `[effects.{det.get('term', '?')}]`): "
+                  f"`{d['expression']}`",
+                  f"- Coefficients: {coefs}.",
+                  f"- Held-out RMSE {d['heldout_rmse_before_m'] * 1e3:.3g} -> "
+                  f"{d['heldout_rmse_after_m'] * 1e3:.3g} mm; "
+                  f"delta BIC {det.get('delta_bic', float('nan')):.1f}; "
+                  f"Wald p {det.get('wald_p', float('nan')):.2g}.",
+                  "- What makes this signature: " + " / ".join(d["interpretation"]) + "."]
+        for t in det.get("near_ties", []):
+            lines.append(f"- Near tie: {t['term']} (BIC gap {t['bic_gap']:.1f}); the data hardly tell "
+                         "them apart.")
+        if k < len(figs):
+            lines += ["", f"![{figs[k]}]({figs[k]})", ""]
+    for dr in disc.get("dropped_catalogue", []):
+        lines.append(f"- {dr['effect']} was taken out again: {dr['why']}.")
+    rest = data.get("remaining_after")
+    if rest:
+        lines += ["", "## What remains after the refit", "",
+                  "| family | quantity | group | term that would explain it | why it is not in the model |",
+                  "|---|---|---|---|---|"]
+        for r in rest:
+            term = (f"`{r['term']}` (delta BIC {r['delta_bic']:.1f}, Wald p {r['wald_p']:.2g})"
+                    if r.get("term") else "none")
+            lines.append(f"| {r['family']} | {r['kind']} | {r['label']} | {term} | {r['why_not_selected']} |")
+    return lines
 
 
 def write_outputs(ex: Explanation, out: Path, inputs: list[str], parameters: dict[str, Any]
@@ -139,7 +310,7 @@ def write_outputs(ex: Explanation, out: Path, inputs: list[str], parameters: dic
     data = explain_dict(ex)
     write_json(out / "explain.json", data)
     (out / "model.toml").write_text(ex.new_model.to_toml())
-    figs = figures(ex, out)
+    figs = figures(ex, out) + discovered_figures(ex, out)
     (out / "report.md").write_text(report_md(ex, data, figs))
     write_result_info(out, "explain", inputs, parameters,
                       extra={"selected": data["selected"], "significant": data["mismatch"]["significant"]})

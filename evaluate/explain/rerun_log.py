@@ -16,7 +16,10 @@ def log_explanation(ex: Explanation, target: RerunTarget) -> None:
     import rerun as rr
 
     sel = ", ".join(c.effect for c in ex.attribution.selected) or "nothing"
-    desc = (f"# depthstation explain\nSelected: {sel}.\n`residual/bias/<before|after>`: mean z error "
+    found = ", ".join(f"{t.quantity} along {'/'.join(t.axes)} ({t.effect})"
+                      for t in (ex.discovery.terms if ex.discovery is not None else [])) or "nothing"
+    desc = (f"# depthstation explain\nSelected: {sel}.\nDiscovered outside the catalogue: {found}.\n"
+            "`residual/bias/<before|after>`: mean z error "
             "real - sim (mm) per distance x inclination cell; `residual/noise/...`: temporal variance "
             "real - sim (mm^2); series: the same along columns, standpoints, albedo and time.")
     with recording("depthstation_explain", target, description=desc) as rec:

@@ -27,11 +27,15 @@ from depthstation.evaluate.checkerboard.run import prepare_checkerboard
 from depthstation.evaluate.checkerboard.study import evaluate_frames
 from depthstation.evaluate.explain.attribute import Attribution, attribute
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
-from depthstation.evaluate.explain.locate import LocateResult, locate
+from depthstation.evaluate.explain.discover import Discovery, discover, remaining
+from depthstation.evaluate.explain.library import library
+from depthstation.evaluate.explain.locate import FAMILY_AXES, LocateResult, locate
 from depthstation.evaluate.explain.report import write_outputs
 from depthstation.evaluate.explain.rerun_log import log_explanation
-from depthstation.evaluate.explain.samples import Samples, concat, thin
+from depthstation.evaluate.explain.samples import Samples, board_edge_px, concat, thin
+from depthstation.evaluate.explain.structure import decompose
 from depthstation.simulate.effects import PixelContext
+from depthstation.simulate.effects.base import CorrelatedJitter
 from depthstation.simulate.model import SensorModel
 from depthstation.simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO, board_scene
 from depthstation.simulate.view_renderer import ViewRenderer
@@ -96,6 +100,10 @@ def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: f
             # is kept as the size of the reference error
             ref_err = z_ref - _plane_z(true_poses[r.name], info, ps.u[keep], ps.v[keep])
         us, vs = info.to_stereo_pixels(ps.u[keep], ps.v[keep])  # disparity lives in the imager's pixels
+        scale = stereo.fx / info.depth_intrinsics.fx
+        # distance to the board's outline (the depth edge of the plate, in the imager's pixels)
+        edge = board_edge_px(ps.u.astype(np.int64), ps.v.astype(np.int64),
+                             (info.depth_intrinsics.height, info.depth_intrinsics.width))[keep] * scale
         parts.append(Samples.build(
             names=names, fx=stereo.fx, ppx=stereo.ppx, ppy=stereo.ppy, baseline_m=baseline_m,
             standpoint=names.index(r.name), frame=ps.frame[keep], u=us, v=vs,
@@ -103,7 +111,7 @@ def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: f
             inclination_deg=ps.inclination_deg[keep],
             albedo=np.where(ps.is_white[keep], WHITE_ALBEDO, BLACK_ALBEDO),
             time_s=(ps.timestamp_ns[keep] - t0_ns) / 1e9, temperature_c=ps.temperature_c[keep],
-            ref_err_m=ref_err))
+            edge_px=edge, ref_err_m=ref_err, u_px=ps.u[keep], v_px=ps.v[keep], px_scale=scale))
     return thin(concat(parts), MAX_SAMPLES_PER_FRAME)
 
 
@@ -161,12 +169,14 @@ def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0
     info = replace(real.info, baseline_m=real.info.baseline_m or model.camera.baseline_m)
     renderer = ViewRenderer(board_scene(board), model, info, seed=seed, color=True)
     results = []
+    # time since the session's first frame, as the samples carry it (a generic time term is fitted
+    # and rendered on the same clock)
+    t0 = min((c.timestamp_ns[0] for c in real.clocks.values() if c.timestamp_ns), default=0)
     for k, (name, pose) in enumerate(real.poses.items()):
         if tick:
             tick(f"simulate {name}")
         renderer.set_pose(np.linalg.inv(pose))
         clock = real.clocks[name]
-        t0 = clock.timestamp_ns[0] if clock.timestamp_ns else 0
 
         def frames(clock: FrameClock = clock, t0: int = t0, k: int = k) -> Any:
             for i, (idx, ts, temp) in enumerate(zip(clock.index, clock.timestamp_ns, clock.temperature_c,
@@ -181,8 +191,7 @@ def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0
         results.append(evaluate_frames(name, frames(), info, board, frames_requested=len(clock.index),
                                        collect_samples=True, sample_stride=_stride(info),
                                        reference=REFERENCE))
-    t0_ns = min((c.timestamp_ns[0] for c in real.clocks.values() if c.timestamp_ns), default=0)
-    return _side(results, info, info.baseline_m or model.camera.baseline_m, t0_ns, true_poses=real.poses)
+    return _side(results, info, info.baseline_m or model.camera.baseline_m, t0, true_poses=real.poses)
 
 
 def present_effects(model: SensorModel) -> dict[str, dict[str, float]]:
@@ -200,14 +209,32 @@ def noise_variance(model: SensorModel) -> Callable[[Samples], Any]:
     return var
 
 
-def improved_model(model: SensorModel, attribution: Attribution) -> SensorModel:
-    """The base model with every selected effect added or its parameters replaced by the fit."""
+def correlated_variance(model: SensorModel) -> Callable[[Samples], tuple[Any, float]] | None:
+    """The window-correlated part of the model's z variance and its window (None if it has none)."""
+    corr = [e for e in model.effects if isinstance(e, CorrelatedJitter)]
+    if not corr:
+        return None
+
+    def var(s: Samples) -> tuple[Any, float]:
+        ctx = PixelContext(**s.context())
+        v = sum(np.broadcast_to(np.asarray(e.variance_m2(ctx), dtype=np.float64), (len(s),)) for e in corr)
+        return np.where(np.isfinite(v), v, 0.0), max(e.window() for e in corr)
+    return var
+
+
+def improved_model(model: SensorModel, attribution: Attribution, discovery: Discovery | None = None,
+                   candidates: Sequence[Candidate] = ()) -> SensorModel:
+    """The base model with every selected effect added or its parameters replaced by the fit, and
+    every discovered term as a generic term the simulator renders."""
+    fixed = {c.name: c.fixed for c in candidates}
     new = model
     for c in attribution.selected:
         params = {k: v for k, v in c.params.items() if np.isfinite(v)}
-        if c.kind == "variance":
-            params = {k: abs(v) for k, v in params.items()}
-        new = new.with_effect(c.effect, **params)
+        if c.kind == "variance":   # a fitted total variance below zero: no such noise at all
+            params = {k: max(v, 0.0) for k, v in params.items()}
+        new = new.with_effect(c.effect, **{**fixed.get(c.effect, {}), **params})
+    for t in (discovery.terms if discovery is not None else []):
+        new = new.with_effect(t.effect, **t.params())
     return new
 
 
@@ -222,51 +249,68 @@ class Explanation:
     resim: Side | None
     after: LocateResult | None
     candidates: list[Candidate]
+    discovery: Discovery | None = None
+    library: list[Candidate] | None = None
+    remaining: list[dict[str, Any]] | None = None   # regions significant after, and what would explain them
 
 
 def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, seed: int = 0,
-                  resimulate: bool = True, tick: Progress | None = None) -> Explanation:
-    """Locate, attribute, build the improved model and (optionally) check it by simulating again."""
+                  resimulate: bool = True, discovery: bool = True, tick: Progress | None = None
+                  ) -> Explanation:
+    """Locate, attribute, discover, build the improved model and (optionally) check it by simulating
+    again."""
     present = present_effects(model)
-    cands = module_candidates(present)
     if tick:
         tick("locate")
-    before = locate(real.samples, sim.samples)
+    structures = (decompose(real.samples), decompose(sim.samples))
+    before = locate(real.samples, sim.samples, structures=structures)
+    corr = structures[0].corr
+    # window noise is fitted at the width the real data's neighbour correlation shows
+    cands = module_candidates(present, window_px=corr.window_px if corr.fraction > 0.2 else None)
+    lib = library(real.samples, corr.window_px if corr.fraction > 0.2 else None) if discovery else []
     if tick:
-        tick("attribute")
-    attr = attribute(real.samples, sim.samples, cands, present, noise_var=noise_variance(model))
-    new_model = improved_model(model, attr)
+        tick("attribute" + (f" and discover ({len(lib)} generic terms)" if lib else ""))
+    attr = attribute(real.samples, sim.samples, [*cands, *lib], present, noise_var=noise_variance(model),
+                     corr_var=correlated_variance(model), structures=structures)
+    disc = discover(attr, cands, lib, present, real.samples) if lib else None
+    new_model = improved_model(model, attr, disc, cands)
     resim = after = None
     if resimulate:
         resim = simulate_like(real, board, new_model, seed=seed + 1, tick=tick)
         if tick:
             tick("locate after")
         after = locate(real.samples, resim.samples)
-    return Explanation(real, sim, before, attr, model, new_model, resim, after, cands)
+    summary = after.summary() if after is not None else None
+    rest = (remaining(summary["regions"], attr, lib, disc, FAMILY_AXES, cands, present,
+                      summary.get("noise_correlation")) if summary is not None and lib else None)
+    return Explanation(real, sim, before, attr, model, new_model, resim, after, cands, disc, lib, rest)
 
 
 def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, *, frames: int,
                 seed: int = 0, resimulate: bool = True, workers: int = 1, cluster: str | None = None,
-                parameters: dict[str, Any] | None = None, target: RerunTarget | None = None,
-                tick: Progress | None = None, force: bool = False,
+                discovery: bool = True, parameters: dict[str, Any] | None = None,
+                target: RerunTarget | None = None, tick: Progress | None = None, force: bool = False,
                 topics: TopicChoice | None = None) -> dict[str, Any]:
     """`depthstation explain` of checkerboard captures: evaluate the real standpoints, simulate them
     with `model`, locate, attribute, refit, check, and write the result folder (whole or not at
     all; a non-empty `out` only with `force`); its explain.json."""
     with result_folder(out, force=force) as tmp:
         return _run_explain(real, board, model, tmp, frames, seed, resimulate, workers, cluster,
-                            parameters, None if target is None else target.within(out, tmp), tick, topics)
+                            parameters, None if target is None else target.within(out, tmp), tick, topics,
+                            discovery)
 
 
 def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, frames: int,
                  seed: int, resimulate: bool, workers: int, cluster: str | None,
                  parameters: dict[str, Any] | None, target: RerunTarget | None,
-                 tick: Progress | None, topics: TopicChoice | None = None) -> dict[str, Any]:
+                 tick: Progress | None, topics: TopicChoice | None = None,
+                 discovery: bool = True) -> dict[str, Any]:
     brd = board if isinstance(board, Board) else load_board(board)
     real_side = evaluate_real(real, brd, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
                               workers=workers, cluster=cluster, topics=topics)
     sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
-    ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, tick=tick)
+    ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, discovery=discovery,
+                       tick=tick)
     data = write_outputs(ex, out, [str(p) for p in real], dict(parameters or {}))
     if target is not None and target.enabled:
         log_explanation(ex, target)

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -39,14 +40,24 @@ class Samples:
     temperature_c: FloatArray
     edge_px: FloatArray
     ref_err_m: FloatArray            # simulated side only: estimated minus true reference z (else 0)
+    u_px: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # depth-image pixel
+    v_px: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     names: list[str] = field(default_factory=list)
     fx: float = 640.0
     ppx: float = 320.0
     ppy: float = 180.0
     baseline_m: float = 0.095
+    px_scale: float = 1.0            # stereo-imager pixels per depth-image pixel (aligned depth: < 1)
 
     ARRAYS = ("standpoint", "frame", "u", "v", "z_ref_m", "err_m", "inclination_deg", "albedo",
-              "time_s", "temperature_c", "edge_px", "ref_err_m")
+              "time_s", "temperature_c", "edge_px", "ref_err_m", "u_px", "v_px")
+
+    def __post_init__(self) -> None:
+        # the depth image's own pixel lattice (neighbours for the spatial correlation of the noise)
+        if self.u_px.size != self.err_m.size:
+            self.u_px = np.round(self.u).astype(np.int64)
+        if self.v_px.size != self.err_m.size:
+            self.v_px = np.round(self.v).astype(np.int64)
 
     def __len__(self) -> int:
         return int(self.err_m.size)
@@ -55,8 +66,10 @@ class Samples:
     def build(cls, *, names: Sequence[str], fx: float, ppx: float, ppy: float, baseline_m: float,
               standpoint: Any, frame: Any, u: Any, v: Any, z_ref_m: Any, err_m: Any,
               inclination_deg: Any, albedo: Any, time_s: Any = None, temperature_c: Any = None,
-              edge_px: Any = None, ref_err_m: Any = None) -> Samples:
-        """Arrays of any dtype in, float64/int64 out; optional axes default to 0, NaN and inf."""
+              edge_px: Any = None, ref_err_m: Any = None, u_px: Any = None, v_px: Any = None,
+              px_scale: float = 1.0) -> Samples:
+        """Arrays of any dtype in, float64/int64 out; optional axes default to 0, NaN and inf;
+        depth-image pixels default to the rounded u, v (no alignment: the same lattice)."""
         n = int(np.asarray(err_m).size)
 
         def f(a: Any, default: float) -> FloatArray:
@@ -71,7 +84,10 @@ class Samples:
             inclination_deg=f(inclination_deg, 0.0), albedo=f(albedo, 1.0), time_s=f(time_s, 0.0),
             temperature_c=f(temperature_c, np.nan), edge_px=f(edge_px, np.inf),
             ref_err_m=f(ref_err_m, 0.0),
+            u_px=np.rint(f(u_px if u_px is not None else u, 0.0)).astype(np.int64),
+            v_px=np.rint(f(v_px if v_px is not None else v, 0.0)).astype(np.int64),
             names=list(names), fx=float(fx), ppx=float(ppx), ppy=float(ppy), baseline_m=float(baseline_m),
+            px_scale=float(px_scale),
         )
 
     def subset(self, mask: NDArray[Any]) -> Samples:
@@ -92,6 +108,18 @@ class Samples:
     def frame_key(self) -> IntArray:
         """A unique id per (standpoint, frame): the unit of independence for standard errors."""
         return self.standpoint * 1_000_000 + self.frame
+
+    def frame_index(self) -> tuple[IntArray, IntArray]:
+        """Per sample its frame's index 0..F-1 (frames of all standpoints), and each frame's standpoint.
+
+        Kept once per table (the locate tests group by frame hundreds of times).
+        """
+        cached = self.__dict__.get("_frame_index")
+        if cached is None or cached[0].size != self.err_m.size:
+            _, first, inv = np.unique(self.frame_key, return_index=True, return_inverse=True)
+            cached = (inv.ravel().astype(np.int64), self.standpoint[first])
+            self.__dict__["_frame_index"] = cached
+        return cached
 
     def context(self) -> dict[str, Any]:
         """Keyword arguments of a `simulate.effects.base.PixelContext` for these samples."""
@@ -121,7 +149,7 @@ def concat(parts: Sequence[Samples]) -> Samples:
     first = parts[0]
     kw = {k: np.concatenate(v) for k, v in arrays.items()}
     return Samples(**kw, names=names, fx=first.fx, ppx=first.ppx, ppy=first.ppy,
-                   baseline_m=first.baseline_m)
+                   baseline_m=first.baseline_m, px_scale=first.px_scale)
 
 
 def thin(s: Samples, max_per_frame: int) -> Samples:
@@ -137,8 +165,25 @@ def thin(s: Samples, max_per_frame: int) -> Samples:
     if worst <= max_per_frame:
         return s
     step = int(np.ceil(np.sqrt(worst / max_per_frame)))
-    keep = (np.round(s.u).astype(np.int64) % step == 0) & (np.round(s.v).astype(np.int64) % step == 0)
+    keep = (s.u_px % step == 0) & (s.v_px % step == 0)
     return s.subset(keep)
+
+
+def board_edge_px(u_px: IntArray, v_px: IntArray, shape: tuple[int, int]) -> FloatArray:
+    """Distance (depth-image px) of each pixel to the outline of the board region they span.
+
+    The region is the convex hull of the pixels (the board is a convex quadrilateral; square edges
+    and ChArUco markers left out of the samples would otherwise count as edges).
+    """
+    if u_px.size < 3:
+        return np.full(u_px.size, np.inf)
+    h, w = shape
+    pts = np.stack([np.clip(u_px, 0, w - 1), np.clip(v_px, 0, h - 1)], axis=1).astype(np.int32)
+    hull = cv2.convexHull(pts)
+    mask = np.zeros((h + 2, w + 2), dtype=np.uint8)
+    cv2.fillConvexPoly(mask, hull + 1, 1)
+    dist = cv2.distanceTransform(mask, cv2.DIST_L2, 3)
+    return np.asarray(dist[pts[:, 1] + 1, pts[:, 0] + 1], dtype=np.float64)
 
 
 def samples_field_names() -> list[str]:

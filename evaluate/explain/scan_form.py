@@ -28,8 +28,11 @@ from depthstation.core.errors import EvaluationError
 from depthstation.core.frames import FrameSet, FrameSource
 from depthstation.core.grid import Grid
 from depthstation.core.results import write_json, write_result_info
-from depthstation.evaluate.explain.basis import module_candidates
+from depthstation.evaluate.explain.attribute import CandidateFit, Table, gls
+from depthstation.evaluate.explain.basis import Candidate, module_candidates
+from depthstation.evaluate.explain.discover import Discovery, select_table
 from depthstation.evaluate.explain.figures import residual_grid_figure
+from depthstation.evaluate.explain.library import library
 from depthstation.evaluate.explain.run import present_effects
 from depthstation.evaluate.explain.samples import FloatArray, Samples
 from depthstation.evaluate.scan.chunks import chunk_ranges
@@ -136,9 +139,13 @@ class BlockCells:
     bias_m: FloatArray                   # real mean - sim mean
     std_m: FloatArray                    # real std - sim std (noise difference)
     count: FloatArray                    # min of the two pixel counts
+    var_m2: FloatArray | None = None     # real variance - sim variance (noise discovery)
+    sim_var_m2: FloatArray | None = None
+    time_s: FloatArray | None = None     # the block's mean time since the first frame
 
 
-def block_cells(real: list[Grid], sim: list[Grid], min_count: int = MIN_CELL_COUNT) -> BlockCells:
+def block_cells(real: list[Grid], sim: list[Grid], min_count: int = MIN_CELL_COUNT,
+                block_time_s: FloatArray | None = None) -> BlockCells:
     """Pair the block grids of both sides cell by cell."""
     if len(real) != len(sim):
         raise EvaluationError("real and simulated sides have different numbers of frame blocks")
@@ -149,13 +156,18 @@ def block_cells(real: list[Grid], sim: list[Grid], min_count: int = MIN_CELL_COU
         rs, ss = np.sqrt(r.var), np.sqrt(s.var)
         for a, c in zip(i, j, strict=True):
             rows.append((b, a * r.shape[1] + c, r.distance_centers_m[a], r.inclination_centers_deg[c],
-                         r.mean[a, c] - s.mean[a, c], rs[a, c] - ss[a, c], min(r.count[a, c], s.count[a, c])))
+                         r.mean[a, c] - s.mean[a, c], rs[a, c] - ss[a, c], min(r.count[a, c], s.count[a, c]),
+                         r.var[a, c] - s.var[a, c], s.var[a, c]))
     if not rows:
         raise EvaluationError("no grid cell has enough pixels on both sides to compare")
     cols = list(zip(*rows, strict=True))
-    return BlockCells(np.asarray(cols[0], np.int64), np.asarray(cols[1], np.int64),
+    block = np.asarray(cols[0], np.int64)
+    times = (np.asarray(block_time_s, dtype=float)[block] if block_time_s is not None
+             else block.astype(float))
+    return BlockCells(block, np.asarray(cols[1], np.int64),
                       np.asarray(cols[2], float), np.asarray(cols[3], float), np.asarray(cols[4], float),
-                      np.asarray(cols[5], float), np.asarray(cols[6], float))
+                      np.asarray(cols[5], float), np.asarray(cols[6], float), np.asarray(cols[7], float),
+                      np.asarray(cols[8], float), times)
 
 
 def _holm(p: FloatArray) -> FloatArray:
@@ -219,20 +231,23 @@ def _pseudo_samples(bc: BlockCells, info: StreamInfo, albedo: float) -> Samples:
     return Samples.build(names=["sequence"], fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy,
                          baseline_m=float(info.baseline_m or 0.095), standpoint=0, frame=bc.block,
                          u=intr.ppx, v=intr.ppy, z_ref_m=bc.z_m, err_m=bc.bias_m,
-                         inclination_deg=bc.inclination_deg, albedo=albedo, temperature_c=40.0)
+                         inclination_deg=bc.inclination_deg, albedo=albedo, temperature_c=40.0,
+                         time_s=bc.time_s)
 
 
-def _cell_weights(bc: BlockCells) -> FloatArray:
-    """1/variance of a block-cell difference: each cell's block scatter, floored at a quarter of the
-    median (a cell seen in few blocks would otherwise get an arbitrarily small variance)."""
-    var = np.full(len(bc.bias_m), np.nan)
+def _cell_weights(bc: BlockCells, values: FloatArray | None = None, tiny: float = 1e-12) -> FloatArray:
+    """1/variance of a block-cell difference (the bias, or `values`: the variance differences): each
+    cell's block scatter, floored at a quarter of the median (a cell seen in few blocks would
+    otherwise get an arbitrarily small variance)."""
+    y = bc.bias_m if values is None else values
+    var = np.full(len(y), np.nan)
     for cell in np.unique(bc.cell):
         m = bc.cell == cell
         if m.sum() >= 2:
-            var[m] = np.var(bc.bias_m[m], ddof=1)
-    med = float(np.nanmedian(var)) if np.isfinite(var).any() else float(np.var(bc.bias_m))
+            var[m] = np.var(y[m], ddof=1)
+    med = float(np.nanmedian(var)) if np.isfinite(var).any() else float(np.var(y))
     var = np.where(np.isfinite(var), np.maximum(var, 0.25 * med), med)
-    return 1.0 / np.maximum(var, 1e-12)
+    return 1.0 / np.maximum(var, tiny)
 
 
 def _wls(X: FloatArray, y: FloatArray, w: FloatArray) -> tuple[FloatArray, float]:
@@ -333,6 +348,79 @@ def attribute_cells(bc: BlockCells, info: StreamInfo, present: dict[str, dict[st
     return ranked, selected
 
 
+# -- discovery on the axes the grid keeps -------------------------------------------------------------
+
+# what a block-cell still knows: its distance (and disparity), its inclination and its block's time
+GRID_AXES = {"distance", "disparity", "inclination", "time"}
+GRID_NOISE_EFFECTS = ("disparity_noise", "slant_noise")
+
+
+def _fit_of(rec: dict[str, Any]) -> CandidateFit:
+    """A scan candidate record as the fit record discovery works on."""
+    return CandidateFit(rec["effect"], rec["kind"], rec["role"],
+                        {k: v["value"] for k, v in rec["params"].items()},
+                        {k: v["unit"] for k, v in rec["params"].items()}, rec["meaning"], rec["delta_bic"],
+                        rec["heldout_rmse_before_m"], rec["heldout_rmse_after_m"], rec["wald_p"],
+                        {k: v["stderr"] for k, v in rec["params"].items()}, rec["selected"], rec["step"])
+
+
+def discover_cells(bc: BlockCells, info: StreamInfo, present: dict[str, dict[str, float]],
+                   records: list[dict[str, Any]], albedo: float = 0.6) -> tuple[Discovery, list[str]]:
+    """Discovery on the block-cells: generic bias terms along distance, disparity, inclination and
+    time (with their products) after the catalogue's choice, and noise terms along the same axes
+    on the cells' variance differences; the guards of the checkerboard form (catalogue priority,
+    simplest first, extended BIC, leave-one-block-out RMSE, block-cluster-robust Wald).
+    Returns the discovery and the catalogue effects it took out again."""
+    s = _pseudo_samples(bc, info, albedo)
+    lib = [c for c in library(s)
+           if c.spec is not None and set(c.spec.axes) <= GRID_AXES and c.table == "tiles"]
+    cands = {c.name: c for c in module_candidates(present)}
+    out = Discovery(library_size=len(lib))
+    dropped: list[str] = []
+    tables: list[tuple[Table, list[Candidate], list[Candidate], dict[str, CandidateFit]]] = []
+    cat_b = [cands[n] for n in GRID_EFFECTS if n in cands]
+    lib_b = [c for c in lib if c.kind == "bias"]
+    xb = {c.name: c.columns(s) for c in [*cat_b, *lib_b]}
+    tb = Table("bias", bc.bias_m, _cell_weights(bc), xb, bc.block, bc.block, bc.block, name="bias")
+    fits = {r["effect"]: _fit_of(r) for r in records}
+    tables.append((tb, cat_b, lib_b, fits))
+    cat_v = [cands[n] for n in GRID_NOISE_EFFECTS if n in cands]
+    lib_v = [c for c in lib if c.kind == "variance"]
+    for t, cat, gen, f in tables:
+        if len(np.unique(bc.block)) < MIN_BLOCKS:
+            continue
+        before = {k: v.selected for k, v in f.items()}
+        terms, drop, rejected = select_table(t, cat, gen, f, present, s)
+        out.terms += terms
+        out.dropped += drop
+        out.rejected += rejected
+        dropped += [k for k, v in f.items() if before.get(k) and not v.selected]
+        for k, v in f.items():       # a catalogue effect discovery added on this table
+            if v.selected and not before.get(k):
+                records.append({"effect": k, "kind": v.kind, "role": v.role, "meaning": v.meaning,
+                                "params": {p: {"value": val, "unit": v.units.get(p, ""),
+                                               "stderr": v.stderr.get(p)} for p, val in v.params.items()},
+                                "delta_bic": v.delta_bic, "heldout_rmse_before_m": v.heldout_rmse_before_m,
+                                "heldout_rmse_after_m": v.heldout_rmse_after_m, "wald_p": v.wald_p,
+                                "selected": True, "step": v.step})
+        if t.name == "bias" and bc.var_m2 is not None and bc.sim_var_m2 is not None:
+            # the noise table, once the bias is known: a bias b at depth z scales the depth noise by
+            # ((z + b) / z)^2 (sigma_z = z^2 sigma_d / fB), so the simulation's variance is compared
+            # at the depth the real camera reports (else a disparity offset reads as more noise)
+            chosen = [k for k, v in f.items() if v.selected] + [x.candidate.name for x in terms]
+            bias = (np.concatenate([t.X[n] for n in chosen], axis=1) @ gls(t, chosen).beta
+                    if chosen else np.zeros(len(t)))
+            scale = ((bc.z_m + bias) / bc.z_m) ** 4
+            yv = bc.var_m2 + bc.sim_var_m2 * (1.0 - scale)
+            xv = {c.name: c.columns(s) for c in [*cat_v, *lib_v]}
+            tables.append((Table("variance", yv, _cell_weights(bc, bc.var_m2, 1e-30), xv, bc.block, bc.block,
+                                 bc.block, name="variance"), cat_v, lib_v, {}))
+    for r in records:
+        if r["effect"] in dropped:
+            r["selected"] = False
+    return out, dropped
+
+
 # -- the whole thing ---------------------------------------------------------------------------------
 
 @dataclass
@@ -347,7 +435,8 @@ class ScanExplanation:
 def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorModel, out: Path, *,
                  frames: int | None = None, block_frames: int = 8, seed: int = 0, register: str = "none",
                  similarity: Path | None = None, resimulate: bool = True, tolerance_s: float = 0.01,
-                 tick: Progress | None = None, topics: TopicChoice | None = None) -> ScanExplanation:
+                 discovery: bool = True, tick: Progress | None = None,
+                 topics: TopicChoice | None = None) -> ScanExplanation:
     """Evaluate the real sequence and its simulation in frame blocks, locate, attribute, re-simulate."""
 
     if tick:
@@ -391,23 +480,34 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
         tick("simulate and evaluate")
     sim = side(model, seed)
     shape = real[0].shape
-    bc = block_cells(real, sim)
+    t0 = clock.timestamp_ns[0] if clock.timestamp_ns else 0
+    block_time = np.array([np.mean([(ts - t0) / 1e9 for ts in clock.timestamp_ns[a:a + n]])
+                           for a, n in chunk_ranges(n_frames, block)])
+    bc = block_cells(real, sim, block_time_s=block_time)
     before = locate_cells(bc, shape)
     present = present_effects(model)
     if tick:
-        tick("attribute")
+        tick("attribute and discover")
     candidates, selected = attribute_cells(bc, info, present)
+    disc: Discovery | None = None
+    if discovery:
+        disc, _ = discover_cells(bc, info, present, candidates)
+        selected = [r["effect"] for r in candidates if r["selected"]]
     new_model = model
     for rec in candidates:
         if rec["selected"]:
             params = {k: v["value"] for k, v in rec["params"].items()}
+            if rec["kind"] == "variance":
+                params = {k: max(v, 0.0) for k, v in params.items()}
             new_model = new_model.with_effect(rec["effect"], **params)
+    for term in (disc.terms if disc is not None else []):
+        new_model = new_model.with_effect(term.effect, **term.params())
     after = None
     after_bc = None
     if resimulate:
         if tick:
             tick("simulate again with the new model")
-        after_bc = block_cells(real, side(new_model, seed + 1))
+        after_bc = block_cells(real, side(new_model, seed + 1), block_time_s=block_time)
         after = locate_cells(after_bc, shape)
     calibrated = [{"effect": r["effect"],
                    "params": {k: {"old": present[r["effect"]].get(k), "new": v["value"]}
@@ -423,10 +523,14 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
         "missing_physics": [r["effect"] for r in candidates
                             if r["selected"] and r["role"] == "missing_physics"],
         "calibrated": calibrated,
+        "discovered": [t.to_dict() for t in disc.terms] if disc is not None else [],
+        "discovery": ({**disc.summary(), "axes": sorted(GRID_AXES)} if disc is not None else None),
         "not_testable": "effects that depend on pixel position, albedo, time or depth edges are averaged "
                         "away by the distance x inclination grid: " + ", ".join(
                             sorted({"lr_focal_mismatch", "distortion_residual", "albedo_bias",
-                                    "thermal_drift", "flying_pixels"})),
+                                    "thermal_drift", "flying_pixels"}))
+                        + "; discovery looks along distance, disparity, inclination and the blocks' time "
+                          "(the scan study keeps no pixel positions: u, v, radius, tile need per-pixel data)",
     }
     return ScanExplanation(data, new_model, bc, after_bc, shape)
 
@@ -463,6 +567,15 @@ def write_scan_outputs(ex: ScanExplanation, out: Path, inputs: list[str],
         lines.append(f"| {r['effect']} | {r['role']} | {r['delta_bic']:.1f} | "
                      f"{r['heldout_rmse_before_m'] * 1e3:.3f}"
                      f" | {r['heldout_rmse_after_m'] * 1e3:.3f} | {'yes' if r['selected'] else ''} |")
+    lines += ["", "## Missing physics outside the catalogue", ""]
+    if not data.get("discovered"):
+        lines.append("Nothing found along " + ", ".join(sorted(GRID_AXES)) + ".")
+    for d in data.get("discovered", []):
+        coefs = ", ".join(f"{n} = {c['value']:.4g} +- {c['stderr']:.2g} {c['unit']}"
+                          for n, c in d["coefficients"].items())
+        lines += [f"- {d['quantity']} along {', '.join(d['axes'])}: `{d['expression']}`; {coefs}; held-out "
+                  f"RMSE {d['heldout_rmse_before_m'] * 1e3:.3g} -> {d['heldout_rmse_after_m'] * 1e3:.3g} mm. "
+                  "What makes it: " + " / ".join(d["interpretation"]) + "."]
     if data["mismatch_after"] is not None:
         lines += ["", f"Mismatch after re-simulating with model.toml: "
                   f"{'significant' if data['mismatch_after']['significant'] else 'none'}."]

@@ -18,11 +18,12 @@ from depthstation.simulate.effects.reference_pose_noise import ReferencePoseNois
 from depthstation.simulate.effects.slant_bias import SlantBias
 from depthstation.simulate.effects.slant_noise import SlantNoise
 from depthstation.simulate.effects.thermal_drift import ThermalDrift
+from depthstation.simulate.effects.window_noise import WindowNoise
 
 EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (
     DisparityNoise, Quantization, Dropout, DisparityOffset, DepthScale, LrFocalMismatch,
     DistortionResidual, PixelLocking, ThermalDrift, SlantNoise, SlantBias, AlbedoBias, AlbedoNoise,
-    FlyingPixels, ReferencePoseNoise,
+    FlyingPixels, ReferencePoseNoise, WindowNoise,
 )}
 
 __all__ = ["EFFECTS", "Effect", "PixelContext"]

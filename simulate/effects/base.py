@@ -12,6 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -110,6 +111,7 @@ class Effect:
     meaning: ClassVar[str] = ""
     stage: ClassVar[int] = 50
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {}
+    time_dependent: ClassVar[bool] = False   # depends on time or temperature (context per frame)
 
     def __init__(self, params: dict[str, Any] | None = None, **kwargs: float) -> None:
         given = dict(params or {})
@@ -200,3 +202,88 @@ class DisparityJitter(Effect):
         noise = rng.standard_normal(z_m.shape, dtype=np.float32)
         noise *= sigma
         return shift_depth(ctx, z_m, noise)
+
+
+def box_correlated_field(shape: tuple[int, ...], window: float, rng: np.random.Generator) -> Array:
+    """Unit-variance Gaussian field whose neighbours share the error of a `window` x `window` box.
+
+    Each value is the mean of window^2 white draws of a field `window - 1` larger than the image
+    (so the border has the same statistics as the interior), times `window`. The correlation of
+    two values k_u, k_v apart is (1 - |k_u|/w)+ (1 - |k_v|/w)+ (a box matcher's footprint).
+    A 1-D array is filtered along its axis; more dimensions as one image (leading axes, last axis).
+    """
+    w = max(1, round(float(window)))
+    if len(shape) == 0:
+        return np.asarray(rng.standard_normal(dtype=np.float32))
+    if w == 1:
+        return rng.standard_normal(shape, dtype=np.float32)
+    if len(shape) == 1:
+        white = rng.standard_normal(shape[0] + w - 1, dtype=np.float32)
+        c = np.concatenate([[0.0], np.cumsum(white, dtype=np.float64)])
+        return ((c[w:] - c[:-w]) / np.sqrt(w)).astype(np.float32)
+    rows, cols = int(np.prod(shape[:-1])), int(shape[-1])
+    white = rng.standard_normal((rows + w - 1, cols + w - 1), dtype=np.float32)
+    out = cv2.boxFilter(white, -1, (w, w), normalize=True, borderType=cv2.BORDER_CONSTANT)
+    h = w // 2
+    out = out[h:h + rows, h:h + cols] * np.float32(w)
+    return np.ascontiguousarray(out).reshape(shape)
+
+
+def box_correlation(window: float, du: Any, dv: Any = 0.0) -> Array:
+    """Correlation of `box_correlated_field` values du, dv pixels apart (separable triangles)."""
+    w = max(1.0, float(round(window)))
+    a = np.clip(1.0 - np.abs(np.asarray(du, dtype=np.float64)) / w, 0.0, None)
+    b = np.clip(1.0 - np.abs(np.asarray(dv, dtype=np.float64)) / w, 0.0, None)
+    return np.asarray(a * b)
+
+
+class CorrelatedJitter(DisparityJitter):
+    """Zero-mean Gaussian disparity noise of RMS `sigma_px(ctx)` shared by neighbours within `window_px`.
+
+    Per pixel it is the same distribution as `DisparityJitter` (same signature); only the joint
+    distribution of neighbours differs, which `correlation` states.
+    """
+
+    stage: ClassVar[int] = 20
+
+    def window(self) -> float:
+        return float(self.params.get("window_px", 1.0))
+
+    def correlation(self, du: Any, dv: Any = 0.0) -> Array:
+        """Correlation of the noise of two pixels du, dv apart (px)."""
+        return box_correlation(self.window(), du, dv)
+
+    def image_window(self, ctx: PixelContext | None, shape: tuple[int, ...]) -> int:
+        """The window in the rendered image's pixels: `window_px` is in the stereo imager's pixels,
+        which differ from the image's when depth is aligned to the colour camera (ctx.u steps)."""
+        w = self.window()
+        u = np.asarray(ctx.u) if ctx is not None else np.zeros(0)
+        if len(shape) >= 2 and u.shape == tuple(shape) and shape[-1] > 1:
+            step = float(abs(u.reshape(-1, shape[-1])[0, 1] - u.reshape(-1, shape[-1])[0, 0]))
+            if step > 0:
+                w = w / step
+        return max(1, round(float(w)))
+
+    def field(self, shape: tuple[int, ...], rng: np.random.Generator,
+              ctx: PixelContext | None = None) -> Array:
+        """One unit-variance draw of the correlated field."""
+        return box_correlated_field(shape, self.image_window(ctx, shape), rng)
+
+    def apply(self, ctx: PixelContext, z_m: Array, rng: np.random.Generator) -> Array:
+        sigma = self.cached(ctx, "sigma", lambda: np.asarray(self.sigma_px(ctx), dtype=np.float32))
+        noise = np.asarray(self.field(z_m.shape, rng, ctx), dtype=np.float32) * sigma
+        return shift_depth(ctx, z_m, noise)
+
+
+class FrameJitter(DisparityJitter):
+    """Zero-mean disparity noise common to every pixel of a frame: one draw per frame times `sigma_px(ctx)`.
+
+    Per pixel the same distribution as `DisparityJitter` (same signature); all pixels of a frame move
+    together, so it does not average out over the board.
+    """
+
+    stage: ClassVar[int] = 20
+
+    def apply(self, ctx: PixelContext, z_m: Array, rng: np.random.Generator) -> Array:
+        sigma = self.cached(ctx, "sigma", lambda: np.asarray(self.sigma_px(ctx), dtype=np.float32))
+        return shift_depth(ctx, z_m, sigma * np.float32(rng.standard_normal()))

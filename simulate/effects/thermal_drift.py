@@ -16,6 +16,7 @@ class ThermalDrift(DisparityShift):
     """
 
     name: ClassVar[str] = "thermal_drift"
+    time_dependent: ClassVar[bool] = True
     meaning: ClassVar[str] = "disparity offset proportional to the temperature change since calibration"
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
         "coeff_px_per_c": (0.0, "px/degC", "disparity offset per degree of temperature change"),
