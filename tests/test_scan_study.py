@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -90,6 +92,63 @@ def test_merged_chunks_in_two_processes_equal_one_pass(mesh: object, seq, tmp_pa
     np.testing.assert_allclose(two.grid.m2, one.grid.m2, rtol=1e-9, atol=1e-15)
     np.testing.assert_array_equal(two.stats, one.stats)
     assert sorted(two.used) == one.used
+    # the frame moments merge across chunks and processes like the sums they are
+    assert one.grid.moments is not None and two.grid.moments is not None
+    np.testing.assert_array_equal(two.grid.moments.frames, one.grid.moments.frames)
+    np.testing.assert_allclose(two.grid.moments.n2, one.grid.moments.n2, rtol=1e-12)
+    np.testing.assert_allclose(two.grid.se_m, one.grid.se_m, rtol=1e-7, atol=1e-12)
+
+
+def test_frame_moments_of_the_pass_equal_those_of_per_frame_grids(mesh: object, seq, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """The fused pass takes each frame's cell means from its sorted pixels; core.grid builds the
+    same moments from the frame's own grid (Grid.add_frame): two codes, one answer."""
+    config = StudyConfig(distance_bin_m=0.05, inclination_bin_deg=2.0, nthreads=1,
+                         per_frame_dir=tmp_path / "frames")
+    res = evaluate_chunk(MeshCaster(mesh, seq.info.depth_intrinsics, nthreads=1), seq, _traj(seq), config)
+    built = config.empty_grid().with_frame_moments()
+    for path in sorted((tmp_path / "frames").glob("frame_*.npz")):
+        built.add_frame(Grid.load(path))
+    fm, ref = res.grid.moments, built.moments
+    assert fm is not None and ref is not None
+    np.testing.assert_array_equal(fm.frames, ref.frames)
+    assert fm.frames.max() == len(res.used)
+    np.testing.assert_allclose(fm.n2, ref.n2, rtol=1e-12)
+    np.testing.assert_allclose(fm.n2_mean, ref.n2_mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fm.n2_mean2, ref.n2_mean2, rtol=1e-9, atol=1e-15)
+
+
+def test_cell_uncertainty_carries_an_error_common_to_each_frame(room: Room, mesh: object, seq) -> None:  # type: ignore[no-untyped-def]
+    """A depth offset shared by every pixel of a frame (a pose or exposure error) does not average
+    out over a frame's pixels: se_m must carry sigma_f / sqrt(frames), which sqrt(var / n) misses."""
+    sigma_f = 0.0015
+    rng = np.random.default_rng(11)
+    shifted = []
+    for d in seq.depth:
+        dz = rng.normal(0.0, sigma_f)
+        z = np.where(d > 0, d * UNITS + dz, 0.0)
+        shifted.append(np.round(z / UNITS).astype(np.uint16))
+    moved = dataclasses.replace(seq, depth=shifted)
+    config = StudyConfig(distance_bin_m=0.05, inclination_bin_deg=2.0, nthreads=1)
+    grid = evaluate_chunk(MeshCaster(mesh, seq.info.depth_intrinsics, nthreads=1), moved, _traj(seq),
+                          config).grid
+    assert grid.moments is not None
+    well = (grid.count >= 500) & (grid.moments.frames >= 12)
+    assert well.sum() >= 20
+    feff = grid.effective_frames
+    assert feff is not None
+    # expected: the frame-common part over the effective frames, the pixel part over the samples
+    predicted = np.sqrt(sigma_f**2 / feff[well] + grid.var[well] / grid.count[well])
+    ratio = grid.se_m[well] / predicted
+    # a CR1 standard error from F >= 12 clusters scatters by ~1/sqrt(2 (F - 1)) ~ 21 %
+    assert 0.75 < float(np.median(ratio)) < 1.3
+    # sqrt(var / n) misses the common part: the design effect the model predicts is found
+    naive = grid.var[well] / grid.count[well]
+    predicted_deff = predicted**2 / naive
+    assert float(np.median(predicted_deff)) > 2  # the setup makes the point
+    assert 0.55 < float(np.median(grid.design_effect[well] / predicted_deff)) < 1.7
+    assert np.median(grid.u95_m[well] / (1.96 * grid.stderr[well])) > 1.4
+    s = grid.summary()["cell_uncertainty"]
+    assert s["cells"] >= well.sum() and s["median_design_effect"] > 1.5
 
 
 def test_registration_recovers_a_known_similarity(room: Room, mesh: object) -> None:

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.core.camera_model import Intrinsics, pixel_rays
-from depthstation.core.grid import _FAST, Grid, bin_index
+from depthstation.core.grid import _FAST, FrameMoments, Grid, bin_index
 from depthstation.core.lazy_open3d import open3d
 from depthstation.core.raster import fill_rays
 
@@ -160,6 +160,33 @@ def _fused_bin(t_hit: Any, normals: Any, rays: Any, inv_norm: Any, depth: Any, d
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _add_frame_moments(kk: Any, jj: Any, ee: Any, binned: int, frames: Any, n2: Any, n2_mean: Any,
+                       n2_mean2: Any) -> None:
+    """One frame's cell means into the frame-clustered moments (core.grid.FrameMoments).
+
+    kk, jj, ee hold the frame's `binned` pixels sorted by cell (what `_fused_bin` leaves), so a
+    cell's pixels are one run: its n_f and mean m_f come without another pass over the grid.
+    """
+    q = 0
+    while q < binned:
+        k = kk[q]
+        j = jj[q]
+        s = 0.0
+        r = q
+        while r < binned and kk[r] == k and jj[r] == j:
+            s += ee[r]
+            r += 1
+        n = float(r - q)
+        m = s / n
+        w = n * n
+        frames[k, j] += 1
+        n2[k, j] += w
+        n2_mean[k, j] += w * m
+        n2_mean2[k, j] += w * m * m
+        q = r
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _frame_images(t_hit: Any, normals: Any, rays: Any, depth: Any, depth_scale: float,
                   z_ref: Any, inc: Any, z_meas: Any) -> None:
     for i in range(depth.shape[0]):
@@ -253,8 +280,10 @@ class FrameRenderer:
         return {"renderer": self.name}
 
     def bin_frame(self, pose: F64, depth: NDArray[Any], depth_scale: float, cells: CellAccumulator,
-                  stats: NDArray[np.int64], frame_cells: CellAccumulator | None = None) -> None:
-        """Render one frame and Welford its errors into `cells` (and `frame_cells`)."""
+                  stats: NDArray[np.int64], frame_cells: CellAccumulator | None = None,
+                  moments: FrameMoments | None = None) -> None:
+        """Render one frame and Welford its errors into `cells` (and `frame_cells`); the frame's
+        cell means into `moments` (frames as clusters, for the standard error of a cell mean)."""
         t_hit, normals = self.cast(pose)
         fc = frame_cells if frame_cells is not None else cells
         d_lo, d_step, nd, i_lo, i_step, ni = cells.grid.bins
@@ -265,9 +294,13 @@ class FrameRenderer:
                   np.empty(n, np.int32), np.empty(n), np.empty(nd + 1, np.int64), np.empty(ni + 1, np.int64))
             self._scratch = sc
         kk, jj, ee, tk, tj, te, start, jstart = sc
+        before = int(stats[4])
         _fused_bin(t_hit, normals, self.rays, self.inv_norm, np.ascontiguousarray(depth).ravel(),
                    float(depth_scale), cells.cells, fc.cells, frame_cells is not None, d_lo, d_step, nd,
                    cos_edges(cells.grid), i_lo, i_step, ni, stats, kk, jj, ee, tk, tj, te, start, jstart)
+        if moments is not None:
+            _add_frame_moments(kk, jj, ee, int(stats[4]) - before, moments.frames, moments.n2,
+                               moments.n2_mean, moments.n2_mean2)
 
     def images(self, pose: F64, depth: NDArray[Any], depth_scale: float) -> FrameImages:
         """The per-pixel maps of one frame (for figures and tests, not the hot loop)."""

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from depthstation.core.errors import EvaluationError
 from depthstation.core.frames import FrameSource
-from depthstation.core.grid import Grid
+from depthstation.core.grid import FrameMoments, Grid
 from depthstation.evaluate.scan.raycast import STAT_NAMES, CellAccumulator, FrameImages, FrameRenderer
 from depthstation.evaluate.scan.trajectory import Trajectory
 
@@ -85,6 +85,7 @@ def evaluate_chunk(caster: FrameRenderer, source: FrameSource, trajectory: Traje
     intr = caster.intr
     cells = CellAccumulator.for_grid(res.grid)
     frame_cells = CellAccumulator.for_grid(res.grid) if config.per_frame_dir is not None else None
+    moments = FrameMoments.zeros(res.grid.shape)  # frames as clusters: the honest SE of a cell mean
     for fs in source.frames(limit=limit, start=start):
         if fs.index % config.every:
             continue
@@ -101,7 +102,7 @@ def evaluate_chunk(caster: FrameRenderer, source: FrameSource, trajectory: Traje
             res.no_pose.append(fs.index)
             continue
         before = res.stats.copy()
-        caster.bin_frame(pose, fs.depth, units, cells, res.stats, frame_cells)
+        caster.bin_frame(pose, fs.depth, units, cells, res.stats, frame_cells, moments)
         res.used.append(fs.index)
         if frame_cells is not None and config.per_frame_dir is not None:
             path = Path(config.per_frame_dir) / f"frame_{fs.index:06d}.npz"
@@ -110,6 +111,7 @@ def evaluate_chunk(caster: FrameRenderer, source: FrameSource, trajectory: Traje
         if on_frame is not None:
             on_frame(fs.index, res.stats - before)
     res.grid = cells.to_grid()
+    res.grid.moments = moments
     return res
 
 
