@@ -26,8 +26,8 @@ def _rays(intr: object, x0: int, y0: int, x1: int, y1: int) -> tuple[np.ndarray,
 @pytest.mark.parametrize("distance_m", [1.0, 2.5, 4.0])
 def test_frontal_wall_reads_the_model_disparity_noise(distance_m: float) -> None:
     """Subpixel RMS = the model's matching noise (white 0.04 px and window-shared 0.07 px: 0.081 px)
-    within 10 %, and the plane-fit RMS = Intel's Z^2 subpixel / (f B) within 10 %; both read ~4 % low from the DQT's 0.5 % trimming
-    of each tail (a Gaussian cut at 2.58 sigma keeps 96 % of its RMS)."""
+    within 10 %, and the plane-fit RMS = Intel's Z^2 subpixel / (f B) within 10 %; both read ~4 %
+    low from the DQT's 0.5 % trimming of each tail (a Gaussian cut at 2.58 sigma keeps 96 % of its RMS)."""
     from depthstation.simulate.model import load_model
     from depthstation.simulate.scene import Scene, Surface, quad
     from depthstation.simulate.view_renderer import ViewRenderer
