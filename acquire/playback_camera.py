@@ -47,6 +47,7 @@ class PlaybackCamera:
         self._info: StreamInfo | None = None
         self._last_depth: int | None = None
         self._index = 0
+        self._held: Any = None  # the paused playback device until the first frame is asked for
 
     def start(self, streams: Streams | None = None) -> StreamInfo:
         """Start playback; streams the recording lacks are an InputError (a live camera would fail too)."""
@@ -63,6 +64,11 @@ class PlaybackCamera:
             raise InputError(self.path, f"librealsense cannot play it: {exc}") from exc
         playback = profile.get_device().as_playback()
         playback.set_real_time(self.real_time)
+        if not self.real_time:
+            # held until the first wait_for_frames: the pipeline's queue holds one frame set, and a
+            # playback running on while the caller still sets up (a busy machine) dropped frames
+            playback.pause()
+            self._held = playback
         self._pipe, self._profile = pipe, profile
         kinds = {s.stream_type(): s for s in profile.get_streams()}
         if rs.stream.depth not in kinds:
@@ -99,6 +105,9 @@ class PlaybackCamera:
 
         if self._pipe is None:
             raise CameraError("playback camera not started")
+        if self._held is not None:
+            self._held.resume()
+            self._held = None
         while True:
             try:  # try_wait_for_frames misses frames of a fresh playback in 2.59; this does not
                 fs = self._pipe.wait_for_frames(int(timeout_s * 1000))
