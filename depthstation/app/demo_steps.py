@@ -31,8 +31,8 @@ from depthstation.simulate.scene import load_scene
 
 
 def evaluate_checkerboard_session(inputs: list[Path], out: Path, ctx: DemoContext, name: str,
-                                  frames: int = 150) -> Path:
-    """The checkerboard study of a session, as `evaluate checkerboard` runs it."""
+                                  frames: int | None = None) -> Path:
+    """The checkerboard study of a session, as `evaluate checkerboard` runs it (every frame, up to 150)."""
     rows = run_checkerboard(inputs, PROTOCOL_DIR / f"{DEMO_PROTOCOL}.toml", out, frames=frames,
                      target=ctx.target(out, name))
     ctx.facts[f"{name}_standpoints"] = rows
