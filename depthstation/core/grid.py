@@ -14,6 +14,7 @@ from typing import Any
 import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.special import stdtrit
 
 from depthstation.core.errors import InputError
 
@@ -344,13 +345,11 @@ class Grid:
         """Expanded uncertainty (95%) of the cell mean: t(0.975, dof) se_m with dof = effective frames
         - 1 (at least 1), which covers the true mean in ~95% of cells even for frames of very unequal
         size (tests/test_grid.py); without frame moments, 1.96 stderr (an underestimate)."""
-        from scipy import stats
-
         feff = self.effective_frames
         if feff is None:
             return 1.96 * self.stderr
         dof = np.maximum(np.nan_to_num(feff, nan=2.0) - 1.0, 1.0)
-        return np.asarray(stats.t.ppf(0.975, dof) * self.se_m, dtype=np.float64)
+        return np.asarray(stdtrit(dof, 0.975) * self.se_m, dtype=np.float64)
 
     @property
     def design_effect(self) -> NDArray[np.float64]:

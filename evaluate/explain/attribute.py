@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+from scipy.special import chdtrc, fdtrc
 
 from depthstation.evaluate.explain.basis import Candidate
 from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples
@@ -567,7 +567,7 @@ def wald_p(t: Table, names: Sequence[str], name: str) -> tuple[float, FloatArray
         share = np.array([float((t.w[t.cluster == g][:, None] * xc[t.cluster == g] ** 2).sum())
                           for g in np.unique(t.cluster)])
         g_eff = float(share.sum() ** 2 / max((share ** 2).sum(), 1e-300))
-        return (float(stats.f.sf(stat / k, k, max(g_eff - 1.0, 1.0))), b,
+        return (float(fdtrc(k, max(g_eff - 1.0, 1.0), stat / k)), b,
                 np.sqrt(np.clip(np.diag(c), 0, None)))
     c = fit.cov[start:start + k, start:start + k]
     try:
@@ -576,7 +576,7 @@ def wald_p(t: Table, names: Sequence[str], name: str) -> tuple[float, FloatArray
         return 1.0, b, np.full(k, np.nan)
     if not np.isfinite(stat) or stat < 0:
         return 1.0, b, np.full(k, np.nan)
-    return float(stats.chi2.sf(stat, k)), b, np.sqrt(np.clip(np.diag(c), 0, None))
+    return float(chdtrc(k, stat)), b, np.sqrt(np.clip(np.diag(c), 0, None))
 
 
 def _usable(t: Table, name: str) -> bool:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
+from scipy.special import stdtr
 
 from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples
 from depthstation.evaluate.explain.structure import Structure, decompose, frame_common
@@ -288,7 +288,7 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
         se = float(np.sqrt(var))
         if se > 0:
             t = diff / se
-            p = float(2 * stats.t.sf(abs(t), dof))
+            p = float(2 * stdtr(dof, -abs(t)))
         else:
             t, p = (0.0, 1.0) if diff == 0 else (float("inf"), 0.0)
         out.append(GroupTest(groups.family, kind, label, groups.coords[g], real_m, sim_m, diff, se,
@@ -464,7 +464,7 @@ def _frame_common_tests(real: Samples, sim: Samples, st_r: Structure, st_s: Stru
 def _test(family: str, label: str, coords: dict[str, Any], real: float, sim: float, diff: float, se: float,
           dof: float, n_real: int, n_sim: int) -> GroupTest:
     t = diff / se if se > 0 else (0.0 if diff == 0 else float("inf"))
-    p = float(2 * stats.t.sf(abs(t), max(dof, 1.0))) if np.isfinite(t) else 0.0
+    p = float(2 * stdtr(max(dof, 1.0), -abs(t))) if np.isfinite(t) else 0.0
     return GroupTest(family, "noise", label, coords, real, sim, diff, se, float(t), dof, p, n_real, n_sim,
                      axes=list(FAMILY_AXES.get(family, ())))
 

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy.special import stdtr
 
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture.topics import TopicChoice
@@ -194,7 +194,7 @@ def locate_cells(bc: BlockCells, shape: tuple[int, int]) -> dict[str, Any]:
             sd = float(np.std(vals, ddof=1))
             se = sd / np.sqrt(m.sum())
             t = float(np.mean(vals) / se) if se > 0 else 0.0
-            p = float(2 * stats.t.sf(abs(t), m.sum() - 1))
+            p = float(2 * stdtr(m.sum() - 1, -abs(t)))
             a, c = divmod(int(cell), shape[1])
             tests.append({"family": "grid", "kind": kind, "distance_m": round(float(bc.z_m[m][0]), 3),
                           "inclination_deg": round(float(bc.inclination_deg[m][0]), 1),
@@ -212,7 +212,7 @@ def locate_cells(bc: BlockCells, shape: tuple[int, int]) -> dict[str, Any]:
             t = float(d_b[i] / sd) if sd > 0 else 0.0
             tests.append({"family": "block", "kind": "bias", "block": int(b), "t": t,
                           "difference_m": float(d_b[i]), "stderr_m": sd,
-                          "p": float(2 * stats.t.sf(abs(t), len(ub) - 2))})
+                          "p": float(2 * stdtr(len(ub) - 2, -abs(t)))})
     if tests:
         adj = _holm(np.array([t["p"] for t in tests]))
         for test, pa in zip(tests, adj, strict=True):
@@ -286,7 +286,7 @@ def _cluster_p(X: FloatArray, y: FloatArray, w: FloatArray, block: np.ndarray[An
     G = len(np.unique(block))
     cov = bread @ meat @ bread * G / max(G - 1, 1)
     se = float(np.sqrt(max(cov[j, j], 0.0)))
-    p = float(2 * stats.t.sf(abs(b[j]) / se, max(G - 1, 1))) if se > 0 else 1.0
+    p = float(2 * stdtr(max(G - 1, 1), -abs(b[j]) / se)) if se > 0 else 1.0
     return se, p
 
 

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import stdtrit
 
 from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSource
@@ -383,10 +384,8 @@ def _subset_band(parts: list[F64], mesh: Any, m: F64,
         scales.append(decompose_similarity(mj)[0])
     if len(scales) < 2:
         return None
-    from scipy import stats
-
     s = float(decompose_similarity(m)[0])
-    half = float(stats.t.ppf(0.975, len(scales) - 1)) * float(np.std(scales, ddof=1)) / np.sqrt(len(scales))
+    half = float(stdtrit(len(scales) - 1, 0.975)) * float(np.std(scales, ddof=1)) / np.sqrt(len(scales))
     return s - half, s + half
 
 
@@ -395,11 +394,9 @@ def _jackknife_band(src: F64, dst: F64) -> tuple[float, float] | None:
     n = len(src)
     if n < 4:
         return None
-    from scipy import stats
-
     s = decompose_similarity(umeyama(src, dst))[0]
     loo = np.array([decompose_similarity(umeyama(np.delete(src, i, 0), np.delete(dst, i, 0)))[0]
                     for i in range(n)])
     se = float(np.sqrt((n - 1) / n * np.sum((loo - loo.mean()) ** 2)))
-    half = float(stats.t.ppf(0.975, n - 1)) * se
+    half = float(stdtrit(n - 1, 0.975)) * se
     return s - half, s + half
