@@ -47,17 +47,10 @@ def flip_board(det: Detection, board: Board) -> Detection:
     return Detection(det.image_points[::-1].copy(), det.object_points, det.ids, det.markers)
 
 
-def normal_std_deg(pose: NDArray[np.float64], object_points: NDArray[np.float64], intr: Intrinsics,
-                   sigma_px: float, frames: int = 1) -> float:
-    """Standard deviation (deg) of the board normal's direction from corner noise (Cramer-Rao).
-
-    Gauss-Newton covariance of the 6-dof pose, sigma^2 (J^T J)^-1 / frames, with J the Jacobian of
-    the corners' projections; the normal's 2x2 tangent covariance follows from the rotation part.
-    Returned: the larger axis (the worse of the two tilts). For a still camera `frames` frames of
-    independent corner noise average like one pose from all corners; a static corner bias (the same
-    every frame) does not average and is not in this figure. At 0 deg the reported inclination is
-    the folded |tilt| and reads ~1.25 x this on average (Rayleigh).
-    """
+def pose_jacobian(pose: NDArray[np.float64], object_points: NDArray[np.float64],
+                  intr: Intrinsics) -> NDArray[np.float64]:
+    """d(projected corners, 2N) / d(p), p = (rotation vector applied in the camera frame,
+    translation): what a pose's Cramer-Rao covariance sigma^2 (J^T J)^-1 is built from."""
     obj = np.asarray(object_points, dtype=np.float64)
     k = intr.K
     dist = intr.opencv_distortion()
@@ -76,6 +69,21 @@ def normal_std_deg(pose: NDArray[np.float64], object_points: NDArray[np.float64]
         d = np.zeros(6)
         d[i] = eps
         jac[:, i] = (project(d) - base) / eps
+    return jac
+
+
+def normal_std_deg(pose: NDArray[np.float64], object_points: NDArray[np.float64], intr: Intrinsics,
+                   sigma_px: float, frames: int = 1) -> float:
+    """Standard deviation (deg) of the board normal's direction from corner noise (Cramer-Rao).
+
+    Gauss-Newton covariance of the 6-dof pose, sigma^2 (J^T J)^-1 / frames, with J the Jacobian of
+    the corners' projections; the normal's 2x2 tangent covariance follows from the rotation part.
+    Returned: the larger axis (the worse of the two tilts). For a still camera `frames` frames of
+    independent corner noise average like one pose from all corners; a static corner bias (the same
+    every frame) does not average and is not in this figure. At 0 deg the reported inclination is
+    the folded |tilt| and reads ~1.25 x this on average (Rayleigh).
+    """
+    jac = pose_jacobian(pose, object_points, intr)
     try:
         cov = sigma_px**2 / max(frames, 1) * np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:

@@ -27,6 +27,7 @@ from scipy.special import stdtrit
 from depthstation.core.board import Board
 from depthstation.core.camera_model import Intrinsics
 from depthstation.core.geometry import rodrigues
+from depthstation.evaluate.checkerboard.pose import pose_jacobian
 
 F64 = NDArray[np.float64]
 # The static corner error of the X-junction refinement on the simulator's exact-coverage colour:
@@ -92,23 +93,7 @@ def corner_errors(corner_ids: list[NDArray[np.int64]], corners_px: list[NDArray[
 def pose_covariance(board_to_color: F64, board: Board, intr: Intrinsics, sigma_px: float) -> F64:
     """6x6 covariance of a board pose from corner errors of sigma_px per coordinate (Cramer-Rao),
     in the parameters p = (rotation vector applied in the camera frame, translation)."""
-    obj = board.corner_points()
-    k, dist = intr.K, intr.opencv_distortion()
-    cam = obj @ board_to_color[:3, :3].T
-    t0 = board_to_color[:3, 3]
-
-    def project(p: F64) -> F64:
-        pts = cam @ rodrigues(p[:3]).T + t0 + p[3:]
-        uv, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), k, dist)
-        return np.asarray(uv, dtype=np.float64).reshape(-1)
-
-    eps = 1e-6
-    base = project(np.zeros(6))
-    jac = np.empty((base.size, 6))
-    for i in range(6):
-        d = np.zeros(6)
-        d[i] = eps
-        jac[:, i] = (project(d) - base) / eps
+    jac = pose_jacobian(board_to_color, board.corner_points(), intr)
     try:
         return np.asarray(sigma_px ** 2 * np.linalg.inv(jac.T @ jac), dtype=np.float64)
     except np.linalg.LinAlgError:
