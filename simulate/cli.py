@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from depthstation.core.results import result_folder, write_result_info
+from depthstation.core.results import ForceOption, result_folder, write_result_info
 from depthstation.simulate.checkerboard_session import load_truth, simulate_checkerboard
 from depthstation.simulate.model import load_model
 from depthstation.simulate.scan_sequence import simulate_scan
@@ -26,8 +26,7 @@ def checkerboard_cmd(
                                       help="frames per standpoint (default: the protocol's)"),
     standpoint: list[str] | None = typer.Option(None, "--standpoint",
                                                 help="only these standpoints (repeatable)"),
-    force: bool = typer.Option(False, "--force", help="Replace a non-empty --out (only once the new "
-                                                      "simulation is complete)."),
+    force: ForceOption = False,
 ) -> None:
     """Simulate every standpoint of a checkerboard protocol, with truth.json beside the captures."""
 
@@ -56,8 +55,7 @@ def scan_cmd(
     width: int = typer.Option(640, "--width"),
     height: int = typer.Option(480, "--height"),
     fps: float = typer.Option(30.0, "--fps"),
-    force: bool = typer.Option(False, "--force", help="Replace a non-empty --out (only once the new "
-                                                      "simulation is complete)."),
+    force: ForceOption = False,
 ) -> None:
     """Simulate a scan sequence: sequence.mcap, trajectory.txt (TUM), scene.ply, truth.json."""
 

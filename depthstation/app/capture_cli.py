@@ -19,7 +19,7 @@ from depthstation.core.capture.registry import open_inputs, open_recording
 from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, TopicChoice, topic_choice
 from depthstation.core.errors import InputError
 from depthstation.core.progress import progress
-from depthstation.core.results import _jsonable, result_folder
+from depthstation.core.results import ForceOption, _jsonable, result_folder
 
 app = typer.Typer(no_args_is_help=True)
 
@@ -36,8 +36,7 @@ def import_cmd(
     depth_topic: DepthTopic = None,
     color_topic: ColorTopic = None,
     infrared_topic: InfraredTopic = None,
-    force: Annotated[bool, typer.Option("--force", help="Replace a non-empty --out once the import "
-                                                         "is complete.")] = False,
+    force: ForceOption = False,
 ) -> None:
     """Import recordings into a capture session (one MCAP per standpoint): our MCAP, RealSense
     .bag/.db3, ROS bags (rosbag2 folders or files, ROS 1 .bag), PNG folders."""
@@ -69,8 +68,7 @@ def export_cmd(
     depth_topic: DepthTopic = None,
     color_topic: ColorTopic = None,
     infrared_topic: InfraredTopic = None,
-    force: Annotated[bool, typer.Option("--force", help="Replace a non-empty --out once the export "
-                                                         "is complete.")] = False,
+    force: ForceOption = False,
 ) -> None:
     """Export captures for other tools: a realsense-ros rosbag2 (ros2 bag play, Foxglove), a TUM
     RGB-D folder (ORB-SLAM3, RTAB-Map: make the scan study's poses) or a RealSense .db3 (Viewer).

@@ -12,11 +12,11 @@ from depthstation.app.demo_steps import DEMO_STEPS
 from depthstation.app.view import view_path
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
+from depthstation.core.results import ForceOption
 
 RRD_HELP = "Write a rerun recording to this .rrd file."
 SPAWN_HELP = "Open a rerun viewer and stream to it."
 SERVE_HELP = "Serve a rerun web viewer on localhost and stream to it."
-FORCE_HELP = "Replace what exists (--out, --rrd) once the new result is complete."
 
 
 def demo(
@@ -61,7 +61,7 @@ def compare(
     rrd: Path | None = typer.Option(None, "--rrd", help=RRD_HELP),
     spawn: bool = typer.Option(False, "--spawn", help=SPAWN_HELP),
     serve: bool = typer.Option(False, "--serve", help=SERVE_HELP),
-    force: bool = typer.Option(False, "--force", help=FORCE_HELP),
+    force: ForceOption = False,
 ) -> None:
     """Put evaluations side by side: tables (CSV, printed) and difference heatmaps (PNG)."""
 

@@ -23,13 +23,18 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+import typer
 
 from depthstation.core.errors import DepthstationError, InputError
 from depthstation.core.grid import GRID_FILE
 from depthstation.core.run_warnings import current as current_warnings
+
+# every writer's --force (result_folder(force=...)): one declaration, one meaning
+ForceOption = Annotated[bool, typer.Option("--force", help="Replace a non-empty --out and an existing "
+                                                          "--rrd, only once the new result is complete.")]
 
 RESULT_FILE = "result.json"
 # the files a result folder is recognised by (docs/results.md)

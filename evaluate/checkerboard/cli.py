@@ -8,6 +8,7 @@ import typer
 
 from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, topic_choice
 from depthstation.core.rerun_bridge import RerunTarget
+from depthstation.core.results import ForceOption
 from depthstation.evaluate.checkerboard.run import run_checkerboard
 
 
@@ -34,8 +35,7 @@ def checkerboard(
     depth_topic: DepthTopic = None,
     color_topic: ColorTopic = None,
     infrared_topic: InfraredTopic = None,
-    force: bool = typer.Option(False, "--force", help="Replace a non-empty --out and an existing --rrd "
-                                                      "(only once the new result is complete)."),
+    force: ForceOption = False,
 ) -> None:
     """The checkerboard study (paper Section 3.1): noise and accuracy per standpoint, with Intel's
     Depth Quality Tool metrics (dqt_* columns) beside them."""

@@ -10,7 +10,7 @@ from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTop
 from depthstation.core.errors import InputError
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
-from depthstation.core.results import result_folder
+from depthstation.core.results import ForceOption, result_folder
 from depthstation.evaluate.explain.run import run_explain
 from depthstation.evaluate.explain.scan_form import explain_scan, write_scan_outputs
 from depthstation.evaluate.scan.run import ScanOptions
@@ -54,8 +54,7 @@ def explain(
     depth_topic: DepthTopic = None,
     color_topic: ColorTopic = None,
     infrared_topic: InfraredTopic = None,
-    force: bool = typer.Option(False, "--force", help="Replace a non-empty --out and an existing --rrd "
-                                                      "(only once the new result is complete)."),
+    force: ForceOption = False,
 ) -> None:
     """Locate where simulation and real data differ, name the missing physics, refit, show the gain."""
 

@@ -11,6 +11,7 @@ import typer
 
 from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic
 from depthstation.core.rerun_bridge import RerunTarget
+from depthstation.core.results import ForceOption
 from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER
 from depthstation.evaluate.scan.run import ScanOptions, run_scan
 
@@ -50,8 +51,7 @@ def scan(
                                            help="Intrinsics file for a TUM folder (camera.json or "
                                                 "'fx fy cx cy [w h] [factor]')."),
     rrd: Path | None = typer.Option(None, "--rrd", help="Write a rerun recording."),
-    force: bool = typer.Option(False, "--force", help="Replace a non-empty --out and an existing --rrd "
-                                                      "(only once the new result is complete)."),
+    force: ForceOption = False,
     spawn: bool = typer.Option(False, "--spawn", help="Stream to a rerun viewer."),
     serve: bool = typer.Option(False, "--serve", help="Serve a local rerun web viewer."),
     distance_bin_m: float = typer.Option(0.005, "--distance-bin-m", help="Grid distance bin (m)."),
