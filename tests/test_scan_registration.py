@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from scan_expect import model_grids
 
 from depthstation.core.grid import Grid
 from depthstation.core.run_warnings import collecting
@@ -51,27 +52,7 @@ def walk(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 
 def expected_grid(d: Path, model: Any, grid: Grid) -> Grid:
     """The model's own bias per cell (injected scale error included), evaluated at the pixels used."""
-    from depthstation.core.capture.registry import open_recording
-    from depthstation.evaluate.scan.raycast import MeshCaster
-    from depthstation.simulate.effects.base import PixelContext
-
-    rec = open_recording(d / "sequence.mcap")
-    traj = read_tum(d / "trajectory.txt")
-    intr = rec.info.depth_intrinsics
-    caster = MeshCaster(d / "scene.ply", intr, nthreads=1)
-    exp = grid.like()
-    v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
-    for fs in rec.frames():
-        pose = traj.match(fs.timestamp_ns * 1e-9, 0.01)
-        assert pose is not None and fs.depth is not None
-        im = caster.images(pose, fs.depth, rec.info.depth_units_m)
-        ok = (fs.depth > 0) & np.isfinite(im.reference_m)
-        ctx = PixelContext(z_m=im.reference_m[ok].astype(np.float64),
-                           inclination_deg=im.inclination_deg[ok].astype(np.float64), u=u[ok], v=v[ok],
-                           fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy, baseline_m=rec.info.baseline_m or 0.095)
-        z, inc = im.reference_m[ok], im.inclination_deg[ok]
-        exp.add(z, inc, np.broadcast_to(model.bias_m(ctx), z.shape))
-    return exp
+    return model_grids(d, model, grid)[0]
 
 
 def test_default_flags_show_the_injected_bias(walk: dict[str, Any], tmp_path: Path) -> None:

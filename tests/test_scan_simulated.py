@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from scan_expect import model_grids
 
 pytest.importorskip("depthstation.simulate.scan_sequence")
 
@@ -39,7 +40,6 @@ def test_grid_matches_the_simulator_signature(simulated: dict[str, Any]) -> None
     from depthstation.evaluate.scan.raycast import MeshCaster
     from depthstation.evaluate.scan.study import StudyConfig, evaluate_chunk
     from depthstation.evaluate.scan.trajectory import read_tum
-    from depthstation.simulate.effects.base import PixelContext
 
     d: Path = simulated["dir"]
     rec = open_recording(d / "sequence.mcap")
@@ -50,21 +50,7 @@ def test_grid_matches_the_simulator_signature(simulated: dict[str, Any]) -> None
     res = evaluate_chunk(caster, rec, traj, config)
     assert len(res.used) == 8 and res.stats[3] > 0.8 * res.stats[0]
 
-    exp_bias, exp_var = config.empty_grid(), config.empty_grid()
-    v, u = np.mgrid[0:intr.height, 0:intr.width].astype(np.float64)
-    for fs in rec.frames():
-        pose = traj.match(fs.timestamp_ns * 1e-9, 0.01)
-        assert pose is not None and fs.depth is not None
-        im = caster.images(pose, fs.depth, rec.info.depth_units_m)
-        ok = (fs.depth > 0) & np.isfinite(im.reference_m)
-        ctx = PixelContext(z_m=im.reference_m[ok].astype(np.float64),
-                           inclination_deg=im.inclination_deg[ok].astype(np.float64),
-                           u=u[ok], v=v[ok], fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy,
-                           baseline_m=rec.info.baseline_m or 0.095)
-        model = simulated["model"]
-        z, inc = im.reference_m[ok], im.inclination_deg[ok]
-        exp_bias.add(z, inc, np.broadcast_to(model.bias_m(ctx), z.shape))
-        exp_var.add(z, inc, np.broadcast_to(model.variance_m2(ctx), z.shape))
+    exp_bias, exp_var = model_grids(d, simulated["model"], config.empty_grid())
     grid: Grid = res.grid
     well = (grid.count >= 300) & (exp_bias.count >= 300)
     assert well.sum() >= 15
