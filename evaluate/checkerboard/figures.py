@@ -21,6 +21,14 @@ def _plt() -> Any:
     return plt
 
 
+def _save(fig: Any, path: Path) -> Path:
+    """Lay out, write (120 dpi) and release a figure; its path."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    _plt().close(fig)
+    return path
+
+
 def preload_plotting() -> None:
     """Import matplotlib (with the Agg backend) ahead of the figures, e.g. from a thread."""
     _plt()
@@ -54,10 +62,7 @@ def fig1_poses(path: Path, results: list[StandpointResult], board: Board, captio
     ax.invert_zaxis()
     ax.set_title("Fig. 1: averaged camera poses in the board frame (axis length 20 cm)"
                  + (f"\n{caption}" if caption else ""), fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def _usable(results: list[StandpointResult]) -> list[StandpointResult]:
@@ -106,10 +111,7 @@ def fig4_reference_std(path: Path, results: list[StandpointResult], caption: str
     ax2.grid(alpha=0.3, which="both")
     fig.suptitle("Fig. 4: uncertainty of the reference pose per standpoint"
                  + (f" ({caption})" if caption else ""))
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def fig5_pixels(path: Path, r: StandpointResult, caption: str = "") -> Path | None:
@@ -133,10 +135,7 @@ def fig5_pixels(path: Path, r: StandpointResult, caption: str = "") -> Path | No
     f = r.figures
     fig.suptitle(f"Fig. 5: {r.name}, frame {ex.index} ({f['distance_m']:.2f} m, "
                  f"{f['inclination_deg']:.1f} deg)" + (f"; {caption}" if caption else ""))
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def fig_over_grid(path: Path, results: list[StandpointResult], key: str, label: str,
@@ -156,9 +155,12 @@ def fig_over_grid(path: Path, results: list[StandpointResult], key: str, label: 
             lo = min(lo, 0.0)
         sc = ax.scatter(d, inc, c=vals, cmap=colormap(SIGNED if signed else POSITIVE), s=120,
                         edgecolors="k", vmin=lo, vmax=hi)
+        mid = 0.5 * (np.nanmin(d) + np.nanmax(d)) if len(d) else 0.0
         for x, y, v, u in zip(d, inc, vals, u95, strict=True):
             text = f"{v:.2f}" + (f" ± {u:.2f}" if what == "mean" and np.isfinite(u) else "")
-            ax.annotate(text, (x, y), fontsize=7, xytext=(6, 6), textcoords="offset points")
+            right = x > mid  # labels point inwards, so the outermost ones stay inside the axes
+            ax.annotate(text, (x, y), fontsize=7, xytext=(-6 if right else 6, 6), textcoords="offset points",
+                        ha="right" if right else "left")
         fig.colorbar(sc, ax=ax, label=f"{label} {what} (mm)" + (" ± U95" if what == "mean" else ""),
                      extend="both" if signed else "max")
         ax.set_xlabel("distance (m)")
@@ -168,10 +170,7 @@ def fig_over_grid(path: Path, results: list[StandpointResult], key: str, label: 
         ax.set_title(f"{label}: {what}")
     fig.suptitle(f"Fig. {number}: {label} per standpoint over distance x inclination"
                  + (f" ({caption})" if caption else ""))
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def fig_colours(path: Path, results: list[StandpointResult], caption: str = "") -> Path:
@@ -192,10 +191,7 @@ def fig_colours(path: Path, results: list[StandpointResult], caption: str = "") 
         ax.grid(alpha=0.3)
     fig.suptitle("Black vs white squares (p-values in standpoints.csv)"
                  + (f"; {caption}" if caption else ""))
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def fig_dqt(path: Path, results: list[StandpointResult], caption: str = "") -> Path | None:
@@ -257,10 +253,7 @@ def fig_dqt(path: Path, results: list[StandpointResult], caption: str = "") -> P
         a.grid(alpha=0.3)
     fig.suptitle("Intel Depth Quality Tool metrics per standpoint (dqt_* columns of standpoints.csv)"
                  + (f"\n{caption}" if caption else ""))
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def write_figures(out: Path, results: list[StandpointResult], board: Board,
