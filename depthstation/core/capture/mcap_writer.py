@@ -18,12 +18,9 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import IO, Any
 
-import mcap.writer as _mcap_writer
-import zstandard
-from mcap.writer import CompressionType, Writer
-
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture import rosmsgs
+from depthstation.core.capture.mcap_chunks import ChunkedMcapWriter
 from depthstation.core.errors import CaptureError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.results import _jsonable
@@ -61,25 +58,10 @@ STREAM_STAMPS_KEY = "stream_timestamps_ns"  # FrameSet.metadata: {"color": ns, "
 # offline, where zstd makes them ~1.6x smaller than lz4 (~2x smaller than raw).
 CAPTURE_COMPRESSION = "lz4"
 SIMULATION_COMPRESSION = "zstd"
-ZSTD_LEVEL = 1  # zstd's fastest level: 3x less CPU than its default (3) for 5-10 % larger chunks
-
-
-class _Zstd:
-    """What mcap's writer calls for zstd chunks (`zstandard.compress(data)`, level 3), at ZSTD_LEVEL.
-
-    Why: the simulator writes while it renders on the same two cores, and level 3 made the writer
-    the bottleneck of `simulate scan` (21 ms of CPU per 640x480 depth + colour frame set against
-    6.5 ms at level 1, for chunks 11 % smaller). The mcap package has no level option.
-    """
-
-    def __init__(self, level: int) -> None:
-        self.level = level
-
-    def compress(self, data: bytes) -> bytes:
-        return bytes(zstandard.ZstdCompressor(level=self.level).compress(data))
-
-
-_mcap_writer.zstandard = _Zstd(ZSTD_LEVEL)  # type: ignore[attr-defined,assignment]
+# zstd's fastest level: 3x less CPU than its default (3) for 5-10 % larger chunks. Why it matters:
+# the simulator writes while it renders on the same two cores, and level 3 made the writer the
+# bottleneck of `simulate scan` (21 ms of CPU per 640x480 depth + colour frame set against 6.5 ms)
+ZSTD_LEVEL = 1
 
 
 def _json(value: Any) -> str:
@@ -112,10 +94,11 @@ class McapFileWriter:
             raise InputError(self.path, "exists already; captures are never overwritten") from exc
         except OSError as exc:
             raise CaptureError(f"{self.path}: cannot create: {exc.strerror}") from exc
-        self._writer = Writer(
-            self._file, chunk_size=chunk_size, compression=CompressionType[compression.upper()]
+        self._writer = ChunkedMcapWriter(
+            self._file, profile="ros2", library=f"depthstation {FORMAT_NAME} v{FORMAT_VERSION}",
+            compression="" if compression == "none" else compression, chunk_size=chunk_size,
+            zstd_level=ZSTD_LEVEL,
         )
-        self._writer.start(profile="ros2", library=f"depthstation {FORMAT_NAME} v{FORMAT_VERSION}")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self.frames_written = 0
@@ -173,17 +156,17 @@ class McapFileWriter:
         d2c = info.depth_to_color if info.color_intrinsics is not None else None
         tree = rosmsgs.realsense_tf_tree(d2c, info.baseline_m)
         self._writer.add_message(self._channels[TF_STATIC_TOPIC], t_ns,
-                                 rosmsgs.tf_message(tree, t_ns), t_ns, 0)
+                                 (rosmsgs.tf_message(tree, t_ns),), t_ns, 0)
 
     def _image(self, topic: str, array: Any, encoding: str, t_ns: int, frame_id: str, seq: int) -> None:
         """An image and its CameraInfo, both stamped `t_ns` (as realsense-ros publishes them)."""
         w = self._writer
-        image = rosmsgs.image_msg(array, encoding, t_ns, frame_id)
+        image = rosmsgs.image_msg_parts(array, encoding, t_ns, frame_id)
         w.add_message(self._channel(topic, rosmsgs.IMAGE), t_ns, image, t_ns, seq)
         if topic in self._info_msgs:
             info_topic, intr = self._info_msgs[topic]
             cam = rosmsgs.camera_info_msg(intr, t_ns, frame_id)
-            w.add_message(self._channels[info_topic], t_ns, cam, t_ns, seq)
+            w.add_message(self._channels[info_topic], t_ns, (cam,), t_ns, seq)
 
     # -- writing -------------------------------------------------------------------------------
     def add_metadata(self, name: str, value: Any) -> None:
@@ -203,7 +186,7 @@ class McapFileWriter:
             k for k, a in (("color", fs.color), ("infrared", fs.infrared)) if a is not None
         ]
         record = {"index": int(fs.index), "timestamp_ns": t, "streams": streams, "metadata": fs.metadata}
-        self._writer.add_message(self._channels[FRAME_TOPIC], t, rosmsgs.string_msg(_json(record)), t, seq)
+        self._writer.add_message(self._channels[FRAME_TOPIC], t, (rosmsgs.string_msg(_json(record)),), t, seq)
         stamps = (fs.metadata or {}).get(STREAM_STAMPS_KEY) or {}
         self._image(DEPTH_TOPIC, fs.depth, "16UC1", t, self._depth_frame, seq)
         for topic, kind, array, encoding, frame_id in (
@@ -223,7 +206,7 @@ class McapFileWriter:
         ch = self._channel(TEMPERATURE_TOPIC, rosmsgs.TEMPERATURE)
         for name, value in temperatures.items():
             self._writer.add_message(
-                ch, int(t_ns), rosmsgs.temperature_msg(int(t_ns), name, float(value)), int(t_ns), 0
+                ch, int(t_ns), (rosmsgs.temperature_msg(int(t_ns), name, float(value)),), int(t_ns), 0
             )
 
     def flush(self) -> None:

@@ -76,6 +76,29 @@ def stamp_ns(header: Any) -> int:
     return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
 
 
+def image_msg_parts(array: NDArray[Any], encoding: str, t_ns: int,
+                    frame_id: str) -> tuple[bytes, memoryview]:
+    """sensor_msgs/Image as (CDR prefix, the pixels' own buffer): their concatenation is
+    `image_msg(...)`, without copying the pixels (the writer hands both to the file).
+
+    The prefix is the message serialized with empty data, its final sequence length (a uint32,
+    the last field) replaced by the pixels' byte count: uint8 sequences need no alignment.
+    """
+    a = np.ascontiguousarray(array)
+    h, w = a.shape[:2]
+    msg = typestore().types[IMAGE](
+        header=_header(t_ns, frame_id),
+        height=h,
+        width=w,
+        encoding=encoding,
+        is_bigendian=0,
+        step=a.strides[0],
+        data=np.empty(0, np.uint8),
+    )
+    empty = serialize(msg, IMAGE)
+    return empty[:-4] + struct.pack("<I", a.nbytes), a.reshape(-1).view(np.uint8).data
+
+
 def image_msg(array: NDArray[Any], encoding: str, t_ns: int, frame_id: str) -> bytes:
     """Serialize an HxW or HxWxC array as sensor_msgs/Image (little endian, tight rows)."""
     a = np.ascontiguousarray(array)
