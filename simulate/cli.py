@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from depthstation.core.capture.mcap_writer import COLOR_ENCODINGS, SIMULATION_COLOR_ENCODING
+from depthstation.core.errors import InputError
 from depthstation.core.results import ForceOption, result_folder, write_result_info
 from depthstation.simulate.checkerboard_session import load_truth, simulate_checkerboard
 from depthstation.simulate.model import load_model
@@ -55,17 +57,25 @@ def scan_cmd(
     width: int = typer.Option(640, "--width"),
     height: int = typer.Option(480, "--height"),
     fps: float = typer.Option(30.0, "--fps"),
+    color_encoding: str = typer.Option(
+        SIMULATION_COLOR_ENCODING, "--color-encoding",
+        help="colour as the D455 sends it over USB, YUYV 4:2:2 ('yuv422_yuy2', ~0.55 of the size), "
+             "or 'rgb8' as librealsense hands it on; every reader gives RGB either way"),
     force: ForceOption = False,
 ) -> None:
     """Simulate a scan sequence: sequence.mcap, trajectory.txt (TUM), scene.ply, truth.json."""
 
+    if color_encoding not in COLOR_ENCODINGS:
+        raise InputError(None, f"--color-encoding {color_encoding!r}: use one of "
+                               f"{', '.join(COLOR_ENCODINGS)}")
     with result_folder(out, force=force) as tmp:
         simulate_scan(scene, trajectory, model, tmp, seed=seed, frames=frames, width=width,
-                      height=height, fps=fps, progress=True)
+                      height=height, fps=fps, progress=True, color_encoding=color_encoding)
         truth = load_truth(tmp)
         write_result_info(tmp, "simulate-scan", [scene, trajectory, model],
                           {"scene": scene, "trajectory": trajectory, "model": model, "seed": seed,
-                           "frames": frames, "width": width, "height": height, "fps": fps},
+                           "frames": frames, "width": width, "height": height, "fps": fps,
+                           "color_encoding": color_encoding},
                           device=truth["stream_info"]["device"])
     typer.echo(f"{truth['frames']} frames simulated into {out}")
 

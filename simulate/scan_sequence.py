@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.core.capture.mcap_writer import SIMULATION_COMPRESSION
+from depthstation.core.capture.mcap_writer import SIMULATION_COLOR_ENCODING, SIMULATION_COMPRESSION
 from depthstation.core.capture.session import Session
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
@@ -48,12 +48,14 @@ def scan_trajectory(trajectory: str | Path, scene: Scene, fps: float,
 def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: SensorModel | str | Path,
                   out_dir: Path, *, seed: int = 0, frames: int | None = None, width: int = 640,
                   height: int = 480, fps: float = 30.0, color: bool = True, progress: bool = False,
-                  compression: str = SIMULATION_COMPRESSION, threads: int | None = None) -> Path:
+                  compression: str = SIMULATION_COMPRESSION, threads: int | None = None,
+                  color_encoding: str = SIMULATION_COLOR_ENCODING) -> Path:
     """Render a sequence along a trajectory into a capture session; returns out_dir.
 
     out_dir gets session.json + sequence.mcap (our format), trajectory.txt (true depth-camera
     poses, TUM, what ORB-SLAM3 would estimate), scene.ply (the reference mesh) and truth.json.
     `threads`: frames rendered side by side (default: up to 2, the cores this process may use).
+    `color_encoding`: colour recorded as the camera sends it (YUYV 4:2:2) or as RGB8.
     """
 
     mdl = load_model(model)
@@ -114,7 +116,8 @@ def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: Sens
     meta: dict[str, Any] = {"name": SEQUENCE_NAME, "kind": "scan", "trajectory_file": TRAJECTORY_FILE,
                             "mesh_file": MESH_FILE}
     with session.standpoint_writer(SEQUENCE_NAME, info, meta, blocking=True, compression=compression,
-                                   metadata={"simulation": {"seed": seed, "model": mdl.name}}) as w:
+                                   metadata={"simulation": {"seed": seed, "model": mdl.name}},
+                                   color_encoding=color_encoding) as w:
         w.write_temperature(START_NS, {"asic": WARM_TEMPERATURE_C, "projector": WARM_TEMPERATURE_C})
         for fs in gen():
             w.write(fs)

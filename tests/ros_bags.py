@@ -60,8 +60,9 @@ class BagWriter:
     def __init__(self, path: Path, info: StreamInfo, *, ros: int = 2, storage: str = "mcap",
                  namespace: str = "/camera/camera/", compressed: bool = False, depth_only: bool = False,
                  extrinsics_topic: bool = False, depth_float: bool = False, frame_prefix: str = "camera",
-                 color_offset_ns: int = 0) -> None:
+                 color_offset_ns: int = 0, color_encoding: str = "rgb8") -> None:
         self.info = info
+        self.color_encoding = color_encoding
         self.ros = ros
         self.ns = namespace
         self.compressed = compressed
@@ -246,7 +247,8 @@ class BagWriter:
         if fs.color is not None and info.color_intrinsics is not None:
             tc = t + self.color_offset_ns
             frame = f"{p}_color_optical_frame"
-            mt, msg = self._image(fs.color, "rgb8", tc, frame)
+            color = fs.color if self.color_encoding == "rgb8" else yuyv_bt601(fs.color)
+            mt, msg = self._image(color, self.color_encoding, tc, frame)
             self._write(self._topic("color"), mt, msg, tc)
             self._write(self._topic("color", "info"), "sensor_msgs/msg/CameraInfo",
                         self._camera_info(info.color_intrinsics, tc, frame), tc)
@@ -256,6 +258,20 @@ class BagWriter:
             self._write(self._topic("infra1"), mt, msg, t)
             self._write(self._topic("infra1", "info"), "sensor_msgs/msg/CameraInfo",
                         self._camera_info(info.infrared_intrinsics, t, frame), t)
+
+
+def yuyv_bt601(rgb: np.ndarray) -> np.ndarray:
+    """RGB -> YUYV as a D4xx sends it (ITU-R BT.601, video range), written here from the standard's
+    equations, not with the station's encoder."""
+    x = rgb.astype(np.float64)
+    m = np.array([[65.481, 128.553, 24.966], [-37.797, -74.203, 112.0], [112.0, -93.786, -18.214]]) / 255
+    ycc = x @ m.T + np.array([16.0, 128.0, 128.0])
+    pair = 0.5 * (ycc[:, 0::2, 1:] + ycc[:, 1::2, 1:])  # chroma of each pixel pair
+    out = np.empty((*rgb.shape[:2], 2), np.float64)
+    out[..., 0] = ycc[..., 0]
+    out[:, 0::2, 1] = pair[..., 0]
+    out[:, 1::2, 1] = pair[..., 1]
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
 def write_bag(path: Path, info: StreamInfo, frames: Iterable[FrameSet], **kwargs: Any) -> int:

@@ -13,7 +13,7 @@ from rich.table import Table
 from depthstation.core.capture.export import TARGETS, export_recordings
 from depthstation.core.capture.importer import import_recordings
 from depthstation.core.capture.mcap_reader import McapRecording
-from depthstation.core.capture.mcap_writer import CAPTURE_COMPRESSION, write_mcap
+from depthstation.core.capture.mcap_writer import CAPTURE_COMPRESSION, COLOR_ENCODINGS, write_mcap
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs, open_recording
 from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, TopicChoice, topic_choice
@@ -168,6 +168,7 @@ def compact_cmd(
     if not isinstance(rec, McapRecording):
         raise InputError(src, "compact takes our MCAP recordings; use `capture import` for others")
     temps = [(t, {k: v}) for k, (ts, vs) in rec.temperatures().items() for t, v in zip(ts, vs, strict=True)]
+    color_encoding = (rec.metadata.get("format") or {}).get("color_encoding", "rgb8")  # kept as it was
     n = write_mcap(
         out,
         rec.info,
@@ -175,6 +176,7 @@ def compact_cmd(
         {k: v for k, v in rec.metadata.items() if k != "format"},
         compression=compression,
         temperatures=temps,
+        color_encoding=color_encoding if color_encoding in COLOR_ENCODINGS else "rgb8",
     )
     typer.echo(
         f"{out}: {n} frames, {out.stat().st_size / 1e6:.1f} MB (from {src.stat().st_size / 1e6:.1f} MB)"

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from depthstation.core.camera_model import StreamInfo
-from depthstation.core.capture import rosmsgs
+from depthstation.core.capture import rosmsgs, yuv
 from depthstation.core.capture.mcap_chunks import ChunkedMcapWriter
 from depthstation.core.errors import CaptureError, InputError
 from depthstation.core.frames import FrameSet
@@ -43,6 +43,10 @@ COLOR_FRAME_ID = "camera_color_optical_frame"
 INFRARED_FRAME_ID = "camera_infra1_optical_frame"
 
 COMPRESSIONS = ("none", "lz4", "zstd")
+# colour as RGB8 (what librealsense hands the host) or as the D4xx sends it over USB, YUYV 4:2:2
+# (core/capture/yuv.py): 2 bytes a pixel instead of 3, and the simulator's choice for sequences
+COLOR_ENCODINGS = ("rgb8", yuv.ENCODING)
+SIMULATION_COLOR_ENCODING = yuv.ENCODING
 # rosbag2's offered_qos_profiles of a latched topic (tf2_ros::StaticBroadcasterQoS: keep last 1,
 # reliable, transient local), in the integer form every rosbag2 release decodes (Humble included)
 TF_STATIC_QOS = (
@@ -80,14 +84,19 @@ class McapFileWriter:
         *,
         compression: str = "none",
         chunk_size: int = 4 * 1024 * 1024,
+        color_encoding: str = "rgb8",
     ) -> None:
 
         if compression not in COMPRESSIONS:
             raise InputError(
                 None, f"unknown compression {compression!r}; use one of {', '.join(COMPRESSIONS)}"
             )
+        if color_encoding not in COLOR_ENCODINGS:
+            raise InputError(None, f"unknown colour encoding {color_encoding!r}; use one of "
+                                   f"{', '.join(COLOR_ENCODINGS)}")
         self.path = Path(path)
         self.info = info
+        self.color_encoding = color_encoding
         try:
             self._file: IO[bytes] = self.path.open("xb")
         except FileExistsError as exc:
@@ -124,7 +133,8 @@ class McapFileWriter:
 
     def _write_header(self, metadata: dict[str, Any]) -> None:
         info = self.info
-        self.add_metadata("format", {"name": FORMAT_NAME, "version": FORMAT_VERSION})
+        self.add_metadata("format", {"name": FORMAT_NAME, "version": FORMAT_VERSION,
+                                     "color_encoding": self.color_encoding})
         self.add_metadata("streams", info.to_dict())
         device = dict(info.device)
         device.update(metadata.get("device") or {})
@@ -189,8 +199,11 @@ class McapFileWriter:
         self._writer.add_message(self._channels[FRAME_TOPIC], t, (rosmsgs.string_msg(_json(record)),), t, seq)
         stamps = (fs.metadata or {}).get(STREAM_STAMPS_KEY) or {}
         self._image(DEPTH_TOPIC, fs.depth, "16UC1", t, self._depth_frame, seq)
+        color = fs.color
+        if color is not None and self.color_encoding == yuv.ENCODING:
+            color = yuv.rgb_to_yuy2(color)
         for topic, kind, array, encoding, frame_id in (
-            (COLOR_TOPIC, "color", fs.color, "rgb8", COLOR_FRAME_ID),
+            (COLOR_TOPIC, "color", color, self.color_encoding, COLOR_FRAME_ID),
             (INFRARED_TOPIC, "infrared", fs.infrared, "mono8", INFRARED_FRAME_ID),
         ):
             if array is None:
@@ -245,9 +258,11 @@ def write_mcap(
     *,
     compression: str = "none",
     temperatures: Iterable[tuple[int, dict[str, float]]] = (),
+    color_encoding: str = "rgb8",
 ) -> int:
     """Write a whole recording at once (never overwrites); returns the number of frame sets written."""
-    with McapFileWriter(Path(path), info, metadata, compression=compression) as w:
+    with McapFileWriter(Path(path), info, metadata, compression=compression,
+                        color_encoding=color_encoding) as w:
         for t_ns, temps in temperatures:
             w.write_temperature(t_ns, temps)
         for fs in frames:

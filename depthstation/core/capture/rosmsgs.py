@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from rosbags.typesys import Stores, get_typestore
 
 from depthstation.core.camera_model import Extrinsics, Intrinsics
+from depthstation.core.capture import yuv
 from depthstation.core.geometry import matrix_to_quaternion, quaternion_to_matrix
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -128,6 +129,7 @@ _ENCODINGS: dict[str, tuple[Any, int]] = {
     "y8": (np.uint8, 1),
     "rgba8": (np.uint8, 4),
     "bgra8": (np.uint8, 4),
+    **{name: (np.uint8, 2) for name in yuv.ALIASES},  # YUYV / UYVY 4:2:2, decoded to RGB
 }
 
 
@@ -148,6 +150,8 @@ def image_array(msg: Any) -> NDArray[Any]:
         a = a[..., [2, 1, 0]]
     elif enc == "rgba8":
         a = a[..., :3]
+    elif enc in yuv.ALIASES:
+        return yuv.yuv422_to_rgb(a, enc)
     return np.ascontiguousarray(a)
 
 

@@ -225,6 +225,7 @@ class Session:
         queue_frames: int = 64,
         metadata: dict[str, Any] | None = None,
         blocking: bool = False,
+        color_encoding: str = "rgb8",
     ) -> StandpointWriter:
         """A background writer for one standpoint; refuses a name that is complete already."""
         if self.read_only:
@@ -252,7 +253,8 @@ class Session:
         entry = self._entry(name, partial.name)
         entry["standpoint"] = dict(standpoint or {})
         self._save()
-        return StandpointWriter(self, entry, partial, final, info, meta, compression, queue_frames, blocking)
+        return StandpointWriter(self, entry, partial, final, info, meta, compression, queue_frames, blocking,
+                                color_encoding)
 
 
 _STOP = object()
@@ -296,6 +298,7 @@ class StandpointWriter:
         compression: str,
         queue_frames: int,
         blocking: bool = False,
+        color_encoding: str = "rgb8",
     ) -> None:
 
         self.session = session
@@ -308,7 +311,8 @@ class StandpointWriter:
         self.max_put_s = 0.0
         self._queue: queue.Queue[Any] = queue.Queue(maxsize=queue_frames)
         self._error: BaseException | None = None
-        self._writer = McapFileWriter(partial, info, metadata, compression=compression)
+        self._writer = McapFileWriter(partial, info, metadata, compression=compression,
+                                      color_encoding=color_encoding)
         self._closed = False
         self._thread = threading.Thread(target=self._run, name=f"mcap-writer-{final.stem}", daemon=True)
         self._thread.start()
