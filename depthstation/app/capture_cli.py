@@ -139,6 +139,9 @@ def info_cmd(
         t.add_row("fps", str(info.get("fps")))
         t.add_row("depth", _fmt_intr(info["depth_intrinsics"]))
         t.add_row("colour", _fmt_intr(info["color_intrinsics"]))
+        encoding = (d["metadata"].get("format") or {}).get("color_encoding")
+        if encoding and info["color_intrinsics"]:
+            t.add_row("colour recorded as", f"{encoding} (read as RGB)" if encoding != "rgb8" else encoding)
         if info.get("infrared_intrinsics"):
             t.add_row("infrared", _fmt_intr(info["infrared_intrinsics"]))
         e = info["depth_to_color"]
