@@ -384,12 +384,13 @@ def _mcap_files(path: Path) -> list[Path]:
     files = [p for p in path.iterdir() if p.suffix.lower() == ".mcap"]
     if not files or any(p.suffix.lower() == ".db3" for p in path.iterdir()):
         return []
+    return sorted(files, key=_split_order)
 
-    def order(p: Path) -> tuple[int, str]:
-        tail = p.stem.rsplit("_", 1)[-1]
-        return (int(tail) if tail.isdigit() else -1, p.name)
 
-    return sorted(files, key=order)
+def _split_order(p: Path) -> tuple[int, str]:
+    """rosbag2's order of split files: `x_0`, `x_1`, ..., `x_10` by the number after the last '_'."""
+    tail = p.stem.rsplit("_", 1)[-1]
+    return (int(tail) if tail.isdigit() else -1, p.name)
 
 
 def _db3_files(path: Path) -> list[Path]:
@@ -397,13 +398,7 @@ def _db3_files(path: Path) -> list[Path]:
     another storage."""
     if path.is_file():
         return [path] if path.suffix.lower() == ".db3" else []
-    files = [p for p in path.iterdir() if p.suffix.lower() == ".db3"]
-
-    def order(p: Path) -> tuple[int, str]:
-        tail = p.stem.rsplit("_", 1)[-1]
-        return (int(tail) if tail.isdigit() else -1, p.name)
-
-    return sorted(files, key=order)
+    return sorted((p for p in path.iterdir() if p.suffix.lower() == ".db3"), key=_split_order)
 
 
 def _db3_messages(path: Path, topics: set[str]) -> Iterator[tuple[str, int, memoryview]]:

@@ -102,19 +102,8 @@ def image_msg_parts(array: NDArray[Any], encoding: str, t_ns: int,
 
 def image_msg(array: NDArray[Any], encoding: str, t_ns: int, frame_id: str) -> bytes:
     """Serialize an HxW or HxWxC array as sensor_msgs/Image (little endian, tight rows)."""
-    a = np.ascontiguousarray(array)
-    h, w = a.shape[:2]
-    step = a.strides[0]
-    msg = typestore().types[IMAGE](
-        header=_header(t_ns, frame_id),
-        height=h,
-        width=w,
-        encoding=encoding,
-        is_bigendian=0,
-        step=step,
-        data=a.reshape(-1).view(np.uint8),
-    )
-    return serialize(msg, IMAGE)
+    prefix, pixels = image_msg_parts(array, encoding, t_ns, frame_id)
+    return prefix + pixels.tobytes()
 
 
 _ENCODINGS: dict[str, tuple[Any, int]] = {
