@@ -127,7 +127,7 @@ def main() -> None:
             bag = write_wrapper_bag(root / f"bag_{storage}", args.frames, storage)
             size = sum(p.stat().st_size for p in bag.iterdir()) / 1e9
             reads: list[tuple[int, float]] = []
-            imports: dict[str, list[float]] = {"none": [], "lz4": []}
+            imports: dict[str, list[float]] = {"lz4": [], "none": []}  # the uncompressed one is read last
             ours_path = None
             for k in range(args.repeat):
                 reads.append(timed_read(bag))
@@ -136,12 +136,13 @@ def main() -> None:
                     out = root / f"import_{storage}_{comp}_{k}"
                     session = import_recordings([bag], out, compression=comp)
                     times.append(time.perf_counter() - t)
-                    if comp == "none":
-                        ours_path = session.dir / session.standpoints[0]["file"]
-                    else:
-                        shutil.rmtree(session.dir)
+                    if ours_path is not None:  # one import kept for the reader; the machine's
+                        shutil.rmtree(ours_path.parent)  # state stays that of the first run
+                    ours_path = session.dir / session.standpoints[0]["file"]
             assert ours_path is not None
             ours = [timed_read(ours_path) for _ in range(args.repeat)]
+            shutil.rmtree(ours_path.parent)
+            shutil.rmtree(bag)
             n, r = min(reads, key=lambda x: x[1])
             i, z = min(imports["none"]), min(imports["lz4"])
             _, o = min(ours, key=lambda x: x[1])

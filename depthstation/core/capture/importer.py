@@ -11,6 +11,12 @@ from depthstation.core.capture.registry import open_inputs
 from depthstation.core.capture.session import Session
 from depthstation.core.capture.topics import TopicChoice
 
+# Frame sets in flight between the reader and the writer thread. A camera needs a deep queue (it
+# must never wait); an import waits anyway, and a short queue lets the memory of finished frames be
+# reused: with 64 in flight every 1280x720 image of a sqlite3 bag arrived in fresh pages, and
+# zeroing them held the import to ~125 frame sets/s (~350 with 4; benchmarks/bench_ros_import.py).
+IMPORT_QUEUE_FRAMES = 4
+
 
 def import_recordings(
     sources: Sequence[Path],
@@ -44,7 +50,8 @@ def import_recordings(
         standpoint.pop("name", None)
         standpoint.setdefault("source", str(rec.path))
         with session.standpoint_writer(
-            name, rec.info, standpoint, compression=compression, metadata=meta, blocking=True
+            name, rec.info, standpoint, compression=compression, metadata=meta, blocking=True,
+            queue_frames=IMPORT_QUEUE_FRAMES,
         ) as w:
             for temps_name, (times, values) in rec.temperatures().items():
                 for t, v in zip(times, values, strict=True):
