@@ -64,33 +64,22 @@ def _inclination_bin(c: float, cos_edges: Any, i_lo: float, i_step: float, ni: i
     return j
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _welford_cell(cells: Any, k: int, j: int, x: float) -> None:
-    """`core.grid.welford_add` on a cell-major (count, mean, M2) array: the same operations."""
-    n = cells[k, j, 0] + 1.0
-    cells[k, j, 0] = n
-    delta = x - cells[k, j, 1]
-    mu = cells[k, j, 1] + delta / n
-    cells[k, j, 1] = mu
-    cells[k, j, 2] += delta * (x - mu)
+@numba.njit(cache=True, nogil=True)
+def _world_dir(rot: Any, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """`core.raster.fill_rays`' direction of a camera-frame ray (float64 products, one rounding to
+    float32 per component). Its own function without fast maths: a contracted product would move
+    the direction by an ulp and pixels near a bin edge to the next bin."""
+    return (float(np.float32(rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z)),
+            float(np.float32(rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z)),
+            float(np.float32(rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z)))
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _fused_bin(t_hit: Any, normals: Any, rays: Any, inv_norm: Any, depth: Any, depth_scale: float,
-               cells: Any, fcells: Any, per_frame: bool, d_lo: float, d_step: float, nd: int,
-               cos_edges: Any, i_lo: float, i_step: float, ni: int, stats: Any, kk: Any, jj: Any, ee: Any,
-               tk: Any, tj: Any, te: Any, start: Any, jstart: Any) -> None:
-    """One frame: reference z, inclination, error, Welford into the cells (and the frame's);
-    counts into stats.
-
-    stats: [pixels, no_depth, no_hit, evaluated (hit and depth), binned]. inv_norm: 1/|ray| per
-    pixel (rotation keeps it, so it is computed once per camera). Why in passes: a frame's
-    pixels land on cells all over the grid, and Welford updates in pixel order stalled on cache
-    misses. The binned pixels are sorted by cell (a stable two-pass counting sort, inclination bin
-    then distance bin, so every cell still sees its pixels in pixel order: the same floats) and
-    then added cell after cell, walking the grid's memory forwards. kk, jj, ee, tk, tj, te (one
-    per pixel), start (distance bins + 1) and jstart (inclination bins + 1) are scratch.
-    """
+def _pixel_bins(t_hit: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, depth: Any, depth_scale: float,
+                d_lo: float, d_step: float, nd: int, cos_edges: Any, i_lo: float, i_step: float, ni: int,
+                kk: Any, jj: Any, ee: Any, start: Any, stats: Any) -> int:
+    """Per pixel: reference z, inclination, error and their cell; the binned pixels go to kk, jj, ee
+    (in pixel order) and start[k + 1] counts those of distance bin k. Returns how many."""
     n = depth.shape[0]
     no_depth = 0
     no_hit = 0
@@ -98,10 +87,7 @@ def _fused_bin(t_hit: Any, normals: Any, rays: Any, inv_norm: Any, depth: Any, d
     binned = 0
     for k in range(nd + 1):
         start[k] = 0
-    for j in range(ni + 1):
-        jstart[j] = 0
     for i in range(n):
-        kk[i] = -1
         raw = depth[i]
         hit = np.isfinite(t_hit[i])
         if raw == 0:
@@ -119,71 +105,97 @@ def _fused_bin(t_hit: Any, normals: Any, rays: Any, inv_norm: Any, depth: Any, d
         nn = np.sqrt(nx * nx + ny * ny + nz * nz)
         if nn == 0.0:
             continue
-        c = abs(nx * rays[i, 3] + ny * rays[i, 4] + nz * rays[i, 5]) * inv_norm[i] / nn
+        dx, dy, dz = _world_dir(rot, dirs[i, 0], dirs[i, 1], dirs[i, 2])
+        c = abs(nx * dx + ny * dy + nz * dz) * inv_norm[i] / nn
         j = _inclination_bin(c, cos_edges, i_lo, i_step, ni)
         if j < 0:
             continue
-        kk[i] = k
-        jj[i] = j
-        ee[i] = raw * depth_scale - z_ref
+        kk[binned] = k
+        jj[binned] = j
+        ee[binned] = raw * depth_scale - z_ref
         start[k + 1] += 1
-        jstart[j + 1] += 1
         binned += 1
-    for j in range(ni):
-        jstart[j + 1] += jstart[j]
-    for k in range(nd):
-        start[k + 1] += start[k]
-    for i in range(n):  # by inclination bin (values move with the key: the next pass reads in order)
-        if kk[i] >= 0:
-            j = jj[i]
-            q = jstart[j]
-            jstart[j] = q + 1
-            tk[q] = kk[i]
-            tj[q] = j
-            te[q] = ee[i]
-    for p in range(binned):  # then by distance bin, into kk, jj, ee
-        k = tk[p]
-        q = start[k]
-        start[k] = q + 1
-        kk[q] = k
-        jj[q] = tj[p]
-        ee[q] = te[p]
-    for q in range(binned):
-        _welford_cell(cells, kk[q], jj[q], ee[q])
-        if per_frame:
-            _welford_cell(fcells, kk[q], jj[q], ee[q])
     stats[0] += n
     stats[1] += no_depth
     stats[2] += no_hit
     stats[3] += evaluated
     stats[4] += binned
+    return binned
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _add_frame_moments(kk: Any, jj: Any, ee: Any, binned: int, frames: Any, n2: Any, n2_mean: Any,
-                       n2_mean2: Any) -> None:
-    """One frame's cell means into the frame-clustered moments (core.grid.FrameMoments).
+def _merge_cell(cells: Any, k: int, j: int, nb: float, mb: float, m2b: float) -> None:
+    """Chan's merge of a frame's (count, mean, M2) in one cell into a cell-major accumulator."""
+    na = cells[k, j, 0]
+    if na == 0.0:
+        cells[k, j, 0] = nb
+        cells[k, j, 1] = mb
+        cells[k, j, 2] = m2b
+        return
+    n = na + nb
+    delta = mb - cells[k, j, 1]
+    cells[k, j, 0] = n
+    cells[k, j, 1] += delta * nb / n
+    cells[k, j, 2] += m2b + delta * delta * (na * nb / n)
 
-    kk, jj, ee hold the frame's `binned` pixels sorted by cell (what `_fused_bin` leaves), so a
-    cell's pixels are one run: its n_f and mean m_f come without another pass over the grid.
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _fold_frame(kk: Any, jj: Any, ee: Any, binned: int, nd: int, ni: int, start: Any, sj: Any, se: Any,
+                row: Any, cells: Any, fcells: Any, per_frame: bool, moments: bool, frames: Any, n2: Any,
+                n2_mean: Any, n2_mean2: Any) -> None:
+    """A frame's binned pixels into the cells, once per cell it touched.
+
+    Why: a frame puts ~2 pixels in each cell it touches, all over a 26 MB grid. The pixels are
+    put in order of distance bin (one counting-sort scatter into sj, se); within a distance bin
+    they are summed per inclination bin in `row` (count, shift, sum and sum of squares about the
+    shift, ~30 kB: cache resident), then each touched cell gets one Chan merge of the frame's
+    (count, mean, M2) and its frame moment, walking the grid forwards. The shift (the cell's first
+    error of the frame) keeps the sums of squares exact enough: the errors' spread, not their size.
     """
-    q = 0
-    while q < binned:
-        k = kk[q]
-        j = jj[q]
-        s = 0.0
-        r = q
-        while r < binned and kk[r] == k and jj[r] == j:
-            s += ee[r]
-            r += 1
-        n = float(r - q)
-        m = s / n
-        w = n * n
-        frames[k, j] += 1
-        n2[k, j] += w
-        n2_mean[k, j] += w * m
-        n2_mean2[k, j] += w * m * m
-        q = r
+    for k in range(nd):
+        start[k + 1] += start[k]
+    for p in range(binned):
+        k = kk[p]
+        q = start[k]
+        start[k] = q + 1
+        sj[q] = jj[p]
+        se[q] = ee[p]
+    lo = 0
+    for k in range(nd):
+        hi = start[k]  # after the scatter start[k] is the end of bin k's run
+        if hi == lo:
+            continue
+        shift = se[lo]  # a frame's errors at one distance: sums about one of them stay exact
+        jlo = ni
+        jhi = 0
+        for q in range(lo, hi):
+            j = sj[q]
+            d = se[q] - shift
+            jlo = min(jlo, j)
+            jhi = max(jhi, j)
+            row[j, 0] += 1.0
+            row[j, 1] += d
+            row[j, 2] += d * d
+        for j in range(jlo, jhi + 1):  # in order: the grid's row is read forwards
+            nb = row[j, 0]
+            if nb == 0.0:
+                continue
+            s = row[j, 1]
+            mb = shift + s / nb
+            m2b = max(row[j, 2] - s * s / nb, 0.0)
+            row[j, 0] = 0.0
+            row[j, 1] = 0.0
+            row[j, 2] = 0.0
+            _merge_cell(cells, k, j, nb, mb, m2b)
+            if per_frame:
+                _merge_cell(fcells, k, j, nb, mb, m2b)
+            if moments:
+                w = nb * nb
+                frames[k, j] += 1
+                n2[k, j] += w
+                n2_mean[k, j] += w * mb
+                n2_mean2[k, j] += w * mb * mb
+        lo = hi
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
@@ -214,6 +226,7 @@ def cos_edges(grid: Grid) -> NDArray[np.float64]:
 _COS_CACHE: dict[tuple[int, float, float], NDArray[np.float64]] = {}
 
 STAT_NAMES = ("pixels", "no_depth", "no_hit", "evaluated", "binned")
+_NO_MOMENTS = FrameMoments.zeros((1, 1))  # a stand-in the pass does not touch (moments not kept)
 
 
 @dataclass
@@ -271,8 +284,9 @@ class FrameRenderer:
         self._scratch: tuple[NDArray[Any], ...] | None = None
 
     def cast(self, pose: F64) -> tuple[F32, F32]:
-        """(t_hit (inf = miss), unit normals) of every pixel for a camera-to-reference pose;
-        `self.rays` holds the frame's rays afterwards."""
+        """(t_hit (inf = miss), unit normals) of every pixel for a camera-to-reference pose (the rays
+        are `fill_rays(self.rays, ...)`'s; a ray caster leaves them in `self.rays`, the rasteriser
+        does not need them)."""
         raise NotImplementedError
 
     def describe(self) -> dict[str, Any]:
@@ -282,29 +296,32 @@ class FrameRenderer:
     def bin_frame(self, pose: F64, depth: NDArray[Any], depth_scale: float, cells: CellAccumulator,
                   stats: NDArray[np.int64], frame_cells: CellAccumulator | None = None,
                   moments: FrameMoments | None = None) -> None:
-        """Render one frame and Welford its errors into `cells` (and `frame_cells`); the frame's
-        cell means into `moments` (frames as clusters, for the standard error of a cell mean)."""
+        """Render one frame and merge its errors into `cells` (and `frame_cells`), one Chan merge per
+        cell it touches; the frame's cell means into `moments` (frames as clusters, for the standard
+        error of a cell mean)."""
         t_hit, normals = self.cast(pose)
         fc = frame_cells if frame_cells is not None else cells
         d_lo, d_step, nd, i_lo, i_step, ni = cells.grid.bins
         n = self.dirs.shape[0]
         sc = self._scratch
-        if sc is None or sc[6].shape[0] != nd + 1 or sc[7].shape[0] != ni + 1:
+        if sc is None or sc[5].shape[0] != nd + 1 or sc[6].shape[0] != ni:
             sc = (np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n), np.empty(n, np.int32),
-                  np.empty(n, np.int32), np.empty(n), np.empty(nd + 1, np.int64), np.empty(ni + 1, np.int64))
+                  np.empty(n), np.empty(nd + 1, np.int64), np.zeros((ni, 4)))
             self._scratch = sc
-        kk, jj, ee, tk, tj, te, start, jstart = sc
-        before = int(stats[4])
-        _fused_bin(t_hit, normals, self.rays, self.inv_norm, np.ascontiguousarray(depth).ravel(),
-                   float(depth_scale), cells.cells, fc.cells, frame_cells is not None, d_lo, d_step, nd,
-                   cos_edges(cells.grid), i_lo, i_step, ni, stats, kk, jj, ee, tk, tj, te, start, jstart)
-        if moments is not None:
-            _add_frame_moments(kk, jj, ee, int(stats[4]) - before, moments.frames, moments.n2,
-                               moments.n2_mean, moments.n2_mean2)
+        kk, jj, ee, sj, se, start, row = sc
+        rot = np.ascontiguousarray(np.asarray(pose, dtype=np.float64)[:3, :3])
+        flat = np.ascontiguousarray(depth).ravel()
+        binned = _pixel_bins(t_hit, normals, self.dirs, rot, self.inv_norm, flat, float(depth_scale), d_lo,
+                             d_step, nd, cos_edges(cells.grid), i_lo, i_step, ni, kk, jj, ee, start, stats)
+        fm = moments if moments is not None else _NO_MOMENTS
+        _fold_frame(kk, jj, ee, binned, nd, ni, start, sj, se, row, cells.cells, fc.cells,
+                    frame_cells is not None, moments is not None, fm.frames, fm.n2, fm.n2_mean, fm.n2_mean2)
 
     def images(self, pose: F64, depth: NDArray[Any], depth_scale: float) -> FrameImages:
         """The per-pixel maps of one frame (for figures and tests, not the hot loop)."""
         t_hit, normals = self.cast(pose)
+        pose = np.asarray(pose, dtype=np.float64)
+        fill_rays(self.rays, pose[:3, 3].copy(), pose[:3, :3].copy(), self.dirs)
         n = self.dirs.shape[0]
         z_ref = np.empty(n, np.float32)
         inc = np.empty(n, np.float32)
