@@ -349,27 +349,38 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
             ea[k], eb[k] = eb[k], ea[k]
     for k in range(nedge):
         inv_a[k] = 1.0 / ea[k] if ea[k] != 0.0 else 0.0
+    # every line's span first, edge by edge: loops over contiguous lines that LLVM vectorises (a
+    # long thin triangle has many lines and pixel centres on few of them)
+    span_lo, span_hi = dtab[6], dtab[7]
+    nl = l1 - l0 + 1
+    for t in range(nl):
+        span_lo[t] = float(c0)
+        span_hi[t] = float(c1)
+    for k in range(nedge):
+        a, b, c, r = ea[k], eb[k], ec[k], inv_a[k]
+        if a > 0.0:
+            for t in range(nl):
+                span_lo[t] = max(span_lo[t], -(b * (l0 + t) + c) * r)
+        elif a < 0.0:
+            for t in range(nl):
+                span_hi[t] = min(span_hi[t], -(b * (l0 + t) + c) * r)
+        else:
+            for t in range(nl):
+                span_hi[t] = -1.0 if b * (l0 + t) + c < 0.0 else span_hi[t]
     ready = False
     won = False
     tests = 0
     ux = uy = uz = wx = wy = wz = qx = qy = qz = nx = ny = nz = t2 = np.float32(0.0)
-    for line in range(l0, l1 + 1):
-        lo = float(c0)
-        hi = float(c1)
-        for k in range(nedge):
-            rest = eb[k] * line + ec[k]
-            if ea[k] > 0.0:
-                lo = max(lo, -rest * inv_a[k])
-            elif ea[k] < 0.0:
-                hi = min(hi, -rest * inv_a[k])
-            elif rest < 0.0:
-                hi = -1.0
+    for t in range(nl):
+        lo = span_lo[t]
+        hi = span_hi[t]
         if lo > hi:
             continue
         ra = int(np.ceil(lo))
         rb = int(np.floor(hi))
         if ra > rb:
             continue
+        line = l0 + t
         if not ready:  # the reference arithmetic (float32), once per triangle and frame
             ready = True
             ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup(
@@ -696,7 +707,7 @@ class MeshRaster:
         self._nrm = np.zeros((max(self.n_triangles, 1), 3), np.float32)
         nmax = int(np.diff(self.cl_vstart).max()) if self.n_triangles else 0
         self._work = np.zeros((16, max(nmax, 16)))
-        self._tab = np.zeros((6, 0))
+        self._tab = np.zeros((8, 0))
 
     def sibling(self) -> MeshRaster:
         """The same prepared mesh (shared, read only) with its own buffers: for another thread."""
@@ -759,9 +770,10 @@ class MeshRaster:
         self.stats[3] += ties.size
 
     def _dtab(self, intr: Intrinsics) -> NDArray[np.float64]:
+        """Per-column and per-row ray products (rows 0-5) and a polygon's line spans (6, 7)."""
         n = max(intr.width, intr.height)
         if self._tab.shape[1] < n:
-            self._tab = np.zeros((6, n))
+            self._tab = np.zeros((8, n))
         return self._tab
 
 
