@@ -13,8 +13,8 @@ import os
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
-from itertools import islice
+from dataclasses import dataclass, replace
+from itertools import islice, pairwise
 from pathlib import Path
 from queue import Queue
 
@@ -166,6 +166,8 @@ def run_scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajec
         Path(config.per_frame_dir).mkdir(parents=True, exist_ok=True)
     chunks = scan_chunks(sequence, mesh, trajectory, config, chunk_frames=chunk_frames,
                          intrinsics=intrinsics, source=source, topics=topics)
+    if runner.in_process:
+        chunks = balance_tail(chunks, _threads(config, len(chunks)))
     merges = [0]
 
     def merge(a: ChunkResult, b: ChunkResult) -> ChunkResult:
@@ -196,6 +198,24 @@ def run_scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajec
 
 def _quiet(done: int, total: int) -> None:
     return None
+
+
+def balance_tail(chunks: list[ScanChunk], threads: int) -> list[ScanChunk]:
+    """The last round of chunks cut so that every thread has a share of it.
+
+    Why: chunks run `threads` at a time; when their count is not a multiple of that, the last ones
+    run while the other threads idle (1334 frames in chunks of 64 on 2 threads: 54 frames on one
+    core at the end). The frames of the last `len % threads` chunks are cut into `threads` equal
+    chunks instead, still merged in frame order."""
+    r = len(chunks) % threads if threads > 1 else 0
+    if r == 0 or any(c.limit is None for c in chunks[-r:]):
+        return chunks
+    tail = chunks[-r:]
+    start = tail[0].start
+    total = sum(c.limit or 0 for c in tail)
+    cuts = [start + round(k * total / threads) for k in range(threads + 1)]
+    pieces = [replace(tail[0], start=a, limit=b - a) for a, b in pairwise(cuts) if b > a]
+    return chunks[:-r] + pieces
 
 
 @dataclass
