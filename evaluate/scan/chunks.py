@@ -30,7 +30,13 @@ from depthstation.core.grid import PackedGrid, pack_grid, unpack_grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn
 from depthstation.evaluate.scan.rasterise import MeshRasteriser, make_renderer
 from depthstation.evaluate.scan.raycast import FrameRenderer
-from depthstation.evaluate.scan.study import ChunkResult, FrameCallback, StudyConfig, evaluate_chunk
+from depthstation.evaluate.scan.study import (
+    ChunkCells,
+    ChunkResult,
+    FrameCallback,
+    StudyConfig,
+    evaluate_chunk,
+)
 from depthstation.evaluate.scan.trajectory import Trajectory
 
 
@@ -259,12 +265,14 @@ def _run_here(source: FrameSource, mesh: str | Path, chunks: list[ScanChunk], co
         renderers.put(base.sibling() if isinstance(base, MeshRasteriser)
                       else make_renderer(config.renderer, Path(mesh), intr, config.nthreads))
     frames = iter(source.frames())
+    spare: Queue[ChunkCells] = Queue()  # accumulators drained by `fold`, for the next chunks
 
     def evaluate(c: ScanChunk, items: list[FrameSet]) -> ChunkResult:
         r = renderers.get()
+        cells = ChunkCells.for_grid(config.empty_grid()) if spare.empty() else spare.get()
         try:
             return evaluate_chunk(r, _ChunkFrames(source.name, source.info, items), c.trajectory, c.config,
-                                  0, None, on_frame)
+                                  0, None, on_frame, reuse=cells)
         finally:
             renderers.put(r)
 
@@ -272,7 +280,13 @@ def _run_here(source: FrameSource, mesh: str | Path, chunks: list[ScanChunk], co
     done = [0]
 
     def fold(res: ChunkResult) -> None:
-        acc[:] = [res if not acc else merge(acc[0], res)]
+        if not acc:  # the first chunk becomes the running result (a grid of its own)
+            acc.append(ChunkResult(config.empty_grid().with_frame_moments()).merge(res))
+        else:
+            merge(acc[0], res)
+        if res.cells is not None:
+            spare.put(res.cells)
+            res.cells = None
         done[0] += 1
         progress(done[0], len(chunks))
 
