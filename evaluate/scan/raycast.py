@@ -65,19 +65,20 @@ def _inclination_bin(c: float, cos_edges: Any, i_lo: float, i_step: float, ni: i
 
 
 @numba.njit(cache=True, nogil=True)
-def _world_dir(rot: Any, x: float, y: float, z: float) -> tuple[float, float, float]:
+def _world_dir(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float, r20: float, r21: float,
+               r22: float, x: float, y: float, z: float) -> tuple[float, float, float]:
     """`core.raster.fill_rays`' direction of a camera-frame ray (float64 products, one rounding to
     float32 per component). Its own function without fast maths: a contracted product would move
-    the direction by an ulp and pixels near a bin edge to the next bin."""
-    return (float(np.float32(rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z)),
-            float(np.float32(rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z)),
-            float(np.float32(rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z)))
+    the direction by an ulp and pixels near a bin edge to the next bin. Scalars only: an array
+    argument costs reference counting per call."""
+    return (float(np.float32(r00 * x + r01 * y + r02 * z)), float(np.float32(r10 * x + r11 * y + r12 * z)),
+            float(np.float32(r20 * x + r21 * y + r22 * z)))
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _pixel_bins(t_hit: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, depth: Any, depth_scale: float,
-                d_lo: float, d_step: float, nd: int, cos_edges: Any, i_lo: float, i_step: float, ni: int,
-                kk: Any, jj: Any, ee: Any, start: Any, stats: Any) -> int:
+                d_lo: float, d_step: float, nd: int, cos_edges: Any, guess: Any, ni: int, kk: Any, jj: Any,
+                ee: Any, start: Any, stats: Any) -> int:
     """Per pixel: reference z, inclination, error and their cell; the binned pixels go to kk, jj, ee
     (in pixel order) and start[k + 1] counts those of distance bin k. Returns how many."""
     n = depth.shape[0]
@@ -87,6 +88,9 @@ def _pixel_bins(t_hit: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, de
     binned = 0
     for k in range(nd + 1):
         start[k] = 0
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
     for i in range(n):
         raw = depth[i]
         hit = np.isfinite(t_hit[i])
@@ -105,11 +109,22 @@ def _pixel_bins(t_hit: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, de
         nn = np.sqrt(nx * nx + ny * ny + nz * nz)
         if nn == 0.0:
             continue
-        dx, dy, dz = _world_dir(rot, dirs[i, 0], dirs[i, 1], dirs[i, 2])
+        dx, dy, dz = _world_dir(r00, r01, r02, r10, r11, r12, r20, r21, r22, dirs[i, 0], dirs[i, 1],
+                                dirs[i, 2])
         c = abs(nx * dx + ny * dy + nz * dz) * inv_norm[i] / nn
-        j = _inclination_bin(c, cos_edges, i_lo, i_step, ni)
-        if j < 0:
-            continue
+        # the inclination bin as `_inclination_bin`, its first guess from a table over c
+        # (`inclination_guess`) instead of a polynomial arccos with a square root; written out here
+        # because as a call (even inlined by numba) it took 2.5x as long
+        if c > cos_edges[0] or c < cos_edges[ni]:
+            if c > 1.0 and cos_edges[0] >= 1.0:  # rounding above 1 means 0 degrees
+                c = 1.0
+            else:
+                continue
+        j = np.int64(guess[int(min(c, 1.0) * (guess.shape[0] - 1))])
+        while j > 0 and c > cos_edges[j]:
+            j -= 1
+        while j < ni - 1 and c <= cos_edges[j + 1]:
+            j += 1
         kk[binned] = k
         jj[binned] = j
         ee[binned] = raw * depth_scale - z_ref
@@ -212,6 +227,24 @@ def _frame_images(t_hit: Any, normals: Any, rays: Any, depth: Any, depth_scale: 
             inc[i] = np.nan
 
 
+GUESS_CELLS = 65536  # table cells over cos(inclination) in [0, 1]: 0.1 deg bins hold >= 1 above 0.5 deg
+
+
+def inclination_guess(cos_e: NDArray[np.float64]) -> NDArray[np.int16] | NDArray[np.int32]:
+    """Per table cell q (c = q / GUESS_CELLS) the inclination bin of c: the largest bin of the cell,
+    which the pass corrects by comparing c with the exact cosines of the edges (any guess in range
+    gives the same bin; a good one saves steps)."""
+    key = (cos_e.size, float(cos_e[0]), float(cos_e[-1]))
+    hit = _GUESS_CACHE.get(key)
+    if hit is None:
+        ni = cos_e.size - 1
+        c = np.arange(GUESS_CELLS + 1) / GUESS_CELLS
+        j = np.clip(np.searchsorted(-cos_e, -c, side="right") - 1, 0, max(ni - 1, 0))
+        hit = j.astype(np.int16 if ni < 2**15 else np.int32)
+        _GUESS_CACHE[key] = hit
+    return hit
+
+
 def cos_edges(grid: Grid) -> NDArray[np.float64]:
     """Cosines of the inclination edges (decreasing), cached on the grid's edge array."""
     e = grid.inclination_edges_deg
@@ -224,6 +257,7 @@ def cos_edges(grid: Grid) -> NDArray[np.float64]:
 
 
 _COS_CACHE: dict[tuple[int, float, float], NDArray[np.float64]] = {}
+_GUESS_CACHE: dict[tuple[int, float, float], Any] = {}
 
 STAT_NAMES = ("pixels", "no_depth", "no_hit", "evaluated", "binned")
 _NO_MOMENTS = FrameMoments.zeros((1, 1))  # a stand-in the pass does not touch (moments not kept)
@@ -347,7 +381,7 @@ class FrameRenderer:
         error of a cell mean)."""
         t_hit, normals = self.cast(pose)
         fc = frame_cells if frame_cells is not None else cells
-        d_lo, d_step, nd, i_lo, i_step, ni = cells.grid.bins
+        d_lo, d_step, nd, _, _, ni = cells.grid.bins
         n = self.dirs.shape[0]
         sc = self._scratch
         if sc is None or sc[5].shape[0] != nd + 1 or sc[6].shape[0] != ni:
@@ -357,8 +391,9 @@ class FrameRenderer:
         kk, jj, ee, sj, se, start, row = sc
         rot = np.ascontiguousarray(np.asarray(pose, dtype=np.float64)[:3, :3])
         flat = np.ascontiguousarray(depth).ravel()
+        ce = cos_edges(cells.grid)
         binned = _pixel_bins(t_hit, normals, self.dirs, rot, self.inv_norm, flat, float(depth_scale), d_lo,
-                             d_step, nd, cos_edges(cells.grid), i_lo, i_step, ni, kk, jj, ee, start, stats)
+                             d_step, nd, ce, inclination_guess(ce), ni, kk, jj, ee, start, stats)
         fm = moments if moments is not None else _NO_MOMENTS
         _fold_frame(kk, jj, ee, binned, nd, ni, start, sj, se, row, cells.cells, fc.cells,
                     frame_cells is not None, moments is not None, fm.frames, fm.n2, fm.n2_mean, fm.n2_mean2)
