@@ -77,10 +77,14 @@ def _world_dir(r00: float, r01: float, r02: float, r10: float, r11: float, r12: 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
 def _pixel_bins(t_hit: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, depth: Any, depth_scale: float,
-                d_lo: float, d_step: float, nd: int, cos_edges: Any, guess: Any, ni: int, kk: Any, jj: Any,
-                ee: Any, start: Any, stats: Any) -> int:
-    """Per pixel: reference z, inclination, error and their cell; the binned pixels go to kk, jj, ee
-    (in pixel order) and start[k + 1] counts those of distance bin k. Returns how many."""
+                d_lo: float, d_step: float, nd: int, cos_edges: Any, guess: Any, ni: int, kk: Any, sj: Any,
+                se: Any, start: Any, stats: Any) -> None:
+    """Per pixel: reference z, inclination, error and their cell, put in order of distance bin.
+
+    Two passes: the distance bin of every pixel with depth and a hit (kk, -1 = none) and their count
+    per bin, then, in pixel order, inclination bin (sj, -1 = out of the grid) and error (se) each at
+    its place in its distance bin's run (a counting sort without a scatter pass of its own). After
+    it, start[k] is the end of bin k's run and its start start[k - 1] (0 for k = 0)."""
     n = depth.shape[0]
     no_depth = 0
     no_hit = 0
@@ -88,9 +92,6 @@ def _pixel_bins(t_hit: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, de
     binned = 0
     for k in range(nd + 1):
         start[k] = 0
-    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
-    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
-    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
     for i in range(n):
         raw = depth[i]
         hit = np.isfinite(t_hit[i])
@@ -98,13 +99,28 @@ def _pixel_bins(t_hit: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, de
             no_depth += 1
         if not hit:
             no_hit += 1
+        kk[i] = -1
         if raw == 0 or not hit:
             continue
         evaluated += 1
-        z_ref = t_hit[i]
-        k = bin_index(z_ref, d_lo, d_step, nd)
+        k = bin_index(t_hit[i], d_lo, d_step, nd)
+        kk[i] = k
+        if k >= 0:
+            start[k + 1] += 1
+    for k in range(nd):
+        start[k + 1] += start[k]
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    for i in range(n):
+        k = kk[i]
         if k < 0:
             continue
+        z_ref = t_hit[i]
+        q = start[k]
+        start[k] = q + 1
+        se[q] = depth[i] * depth_scale - z_ref
+        sj[q] = -1
         nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
         nn = np.sqrt(nx * nx + ny * ny + nz * nz)
         if nn == 0.0:
@@ -125,17 +141,13 @@ def _pixel_bins(t_hit: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, de
             j -= 1
         while j < ni - 1 and c <= cos_edges[j + 1]:
             j += 1
-        kk[binned] = k
-        jj[binned] = j
-        ee[binned] = raw * depth_scale - z_ref
-        start[k + 1] += 1
+        sj[q] = j
         binned += 1
     stats[0] += n
     stats[1] += no_depth
     stats[2] += no_hit
     stats[3] += evaluated
     stats[4] += binned
-    return binned
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
@@ -155,26 +167,16 @@ def _merge_cell(cells: Any, k: int, j: int, nb: float, mb: float, m2b: float) ->
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _fold_frame(kk: Any, jj: Any, ee: Any, binned: int, nd: int, ni: int, start: Any, sj: Any, se: Any,
-                row: Any, cells: Any, fcells: Any, per_frame: bool, moments: bool, frames: Any, n2: Any,
-                n2_mean: Any, n2_mean2: Any) -> None:
-    """A frame's binned pixels into the cells, once per cell it touched.
+def _fold_frame(nd: int, ni: int, start: Any, sj: Any, se: Any, row: Any, cells: Any, fcells: Any,
+                per_frame: bool, moments: bool, frames: Any, n2: Any, n2_mean: Any, n2_mean2: Any) -> None:
+    """A frame's binned pixels (`_pixel_bins`' runs) into the cells, once per cell it touched.
 
-    Why: a frame puts ~2 pixels in each cell it touches, all over a 26 MB grid. The pixels are
-    put in order of distance bin (one counting-sort scatter into sj, se); within a distance bin
-    they are summed per inclination bin in `row` (count, shift, sum and sum of squares about the
-    shift, ~30 kB: cache resident), then each touched cell gets one Chan merge of the frame's
-    (count, mean, M2) and its frame moment, walking the grid forwards. The shift (the cell's first
-    error of the frame) keeps the sums of squares exact enough: the errors' spread, not their size.
+    Why: a frame puts ~2 pixels in each cell it touches, all over a 26 MB grid. Within a distance
+    bin's run the pixels are summed per inclination bin in `row` (count, sum and sum of squares
+    about a shift, ~20 kB: cache resident), then each touched cell gets one Chan merge of the
+    frame's (count, mean, M2) and its frame moment, walking the grid's row forwards. The shift (the
+    run's first error: a frame's errors at one distance) keeps the sums of squares exact enough.
     """
-    for k in range(nd):
-        start[k + 1] += start[k]
-    for p in range(binned):
-        k = kk[p]
-        q = start[k]
-        start[k] = q + 1
-        sj[q] = jj[p]
-        se[q] = ee[p]
     lo = 0
     for k in range(nd):
         hi = start[k]  # after the scatter start[k] is the end of bin k's run
@@ -185,6 +187,8 @@ def _fold_frame(kk: Any, jj: Any, ee: Any, binned: int, nd: int, ni: int, start:
         jhi = 0
         for q in range(lo, hi):
             j = sj[q]
+            if j < 0:
+                continue
             d = se[q] - shift
             jlo = min(jlo, j)
             jhi = max(jhi, j)
@@ -384,19 +388,19 @@ class FrameRenderer:
         d_lo, d_step, nd, _, _, ni = cells.grid.bins
         n = self.dirs.shape[0]
         sc = self._scratch
-        if sc is None or sc[5].shape[0] != nd + 1 or sc[6].shape[0] != ni:
-            sc = (np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n), np.empty(n, np.int32),
-                  np.empty(n), np.empty(nd + 1, np.int64), np.zeros((ni, 4)))
+        if sc is None or sc[3].shape[0] != nd + 1 or sc[4].shape[0] != ni:
+            sc = (np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n), np.empty(nd + 1, np.int64),
+                  np.zeros((ni, 4)))
             self._scratch = sc
-        kk, jj, ee, sj, se, start, row = sc
+        kk, sj, se, start, row = sc
         rot = np.ascontiguousarray(np.asarray(pose, dtype=np.float64)[:3, :3])
         flat = np.ascontiguousarray(depth).ravel()
         ce = cos_edges(cells.grid)
-        binned = _pixel_bins(t_hit, normals, self.dirs, rot, self.inv_norm, flat, float(depth_scale), d_lo,
-                             d_step, nd, ce, inclination_guess(ce), ni, kk, jj, ee, start, stats)
+        _pixel_bins(t_hit, normals, self.dirs, rot, self.inv_norm, flat, float(depth_scale), d_lo, d_step, nd,
+                    ce, inclination_guess(ce), ni, kk, sj, se, start, stats)
         fm = moments if moments is not None else _NO_MOMENTS
-        _fold_frame(kk, jj, ee, binned, nd, ni, start, sj, se, row, cells.cells, fc.cells,
-                    frame_cells is not None, moments is not None, fm.frames, fm.n2, fm.n2_mean, fm.n2_mean2)
+        _fold_frame(nd, ni, start, sj, se, row, cells.cells, fc.cells, frame_cells is not None,
+                    moments is not None, fm.frames, fm.n2, fm.n2_mean, fm.n2_mean2)
 
     def images(self, pose: F64, depth: NDArray[Any], depth_scale: float) -> FrameImages:
         """The per-pixel maps of one frame (for figures and tests, not the hot loop)."""
