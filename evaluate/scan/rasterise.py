@@ -58,6 +58,12 @@ class MeshRasteriser(FrameRenderer):
         self.raster.render(self.intr, pose, self._t, self._ids, self._normals)
         return self._t, self._normals
 
+    def cast_indexed(self, pose: F64) -> tuple[F32, NDArray[np.int32], F32]:
+        """(t_hit, hit triangle ids, per-triangle normals): the pass reads each pixel's normal from
+        the table, so no per-pixel normal array is gathered (7 MB written and read per frame)."""
+        self.raster.render(self.intr, np.asarray(pose, dtype=np.float64), self._t, self._ids, None)
+        return self._t, self._ids, self.raster.normal_table()
+
     def describe(self) -> dict[str, Any]:
         return {"renderer": self.name, **arithmetic_report()}
 

@@ -76,15 +76,17 @@ def _world_dir(r00: float, r01: float, r02: float, r10: float, r11: float, r12: 
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _pixel_bins(t_hit: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, depth: Any, depth_scale: float,
-                d_lo: float, d_step: float, nd: int, cos_edges: Any, guess: Any, ni: int, kk: Any, sj: Any,
-                se: Any, start: Any, stats: Any) -> None:
+def _pixel_bins(t_hit: Any, index: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, depth: Any,
+                depth_scale: float, d_lo: float, d_step: float, nd: int, cos_edges: Any, guess: Any, ni: int,
+                kk: Any, sj: Any, se: Any, start: Any, stats: Any) -> None:
     """Per pixel: reference z, inclination, error and their cell, put in order of distance bin.
 
-    Two passes: the distance bin of every pixel with depth and a hit (kk, -1 = none) and their count
-    per bin, then, in pixel order, inclination bin (sj, -1 = out of the grid) and error (se) each at
-    its place in its distance bin's run (a counting sort without a scatter pass of its own). After
-    it, start[k] is the end of bin k's run and its start start[k - 1] (0 for k = 0)."""
+    The normal of pixel i is normals[index[i]] (a per-pixel array and 0, 1, 2, ... or a renderer's
+    per-triangle table and the hit triangles). Two passes: the distance bin of every pixel with
+    depth and a hit (kk, -1 = none) and their count per bin, then, in pixel order, inclination bin
+    (sj, -1 = out of the grid) and error (se) each at its place in its distance bin's run (a
+    counting sort without a scatter pass of its own). After it, start[k] is the end of bin k's
+    run and its start start[k - 1] (0 for k = 0)."""
     n = depth.shape[0]
     no_depth = 0
     no_hit = 0
@@ -121,7 +123,8 @@ def _pixel_bins(t_hit: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, de
         start[k] = q + 1
         se[q] = depth[i] * depth_scale - z_ref
         sj[q] = -1
-        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        m = index[i]
+        nx, ny, nz = normals[m, 0], normals[m, 1], normals[m, 2]
         nn = np.sqrt(nx * nx + ny * ny + nz * nz)
         if nn == 0.0:
             continue
@@ -366,12 +369,22 @@ class FrameRenderer:
         self.inv_norm = (1.0 / np.linalg.norm(self.dirs.astype(np.float64), axis=1)).astype(np.float32)
         self.rays = np.empty((self.dirs.shape[0], 6), dtype=np.float32)
         self._scratch: tuple[NDArray[Any], ...] | None = None
+        self._identity = np.zeros(0, np.int32)
 
     def cast(self, pose: F64) -> tuple[F32, F32]:
         """(t_hit (inf = miss), unit normals) of every pixel for a camera-to-reference pose (the rays
         are `fill_rays(self.rays, ...)`'s; a ray caster leaves them in `self.rays`, the rasteriser
         does not need them)."""
         raise NotImplementedError
+
+    def cast_indexed(self, pose: F64) -> tuple[F32, NDArray[np.int32], F32]:
+        """`cast` for the per-pixel pass: (t_hit, index, table), pixel i's normal table[index[i]]
+        (here the pixels' own; the rasteriser hands its per-triangle table and the hit triangles)."""
+        t_hit, normals = self.cast(pose)
+        n = t_hit.shape[0]
+        if self._identity.shape[0] != n:
+            self._identity = np.arange(n, dtype=np.int32)
+        return t_hit, self._identity, normals
 
     def describe(self) -> dict[str, Any]:
         """What result.json records about the renderer."""
@@ -383,7 +396,7 @@ class FrameRenderer:
         """Render one frame and merge its errors into `cells` (and `frame_cells`), one Chan merge per
         cell it touches; the frame's cell means into `moments` (frames as clusters, for the standard
         error of a cell mean)."""
-        t_hit, normals = self.cast(pose)
+        t_hit, index, normals = self.cast_indexed(pose)
         fc = frame_cells if frame_cells is not None else cells
         d_lo, d_step, nd, _, _, ni = cells.grid.bins
         n = self.dirs.shape[0]
@@ -396,8 +409,8 @@ class FrameRenderer:
         rot = np.ascontiguousarray(np.asarray(pose, dtype=np.float64)[:3, :3])
         flat = np.ascontiguousarray(depth).ravel()
         ce = cos_edges(cells.grid)
-        _pixel_bins(t_hit, normals, self.dirs, rot, self.inv_norm, flat, float(depth_scale), d_lo, d_step, nd,
-                    ce, inclination_guess(ce), ni, kk, sj, se, start, stats)
+        _pixel_bins(t_hit, index, normals, self.dirs, rot, self.inv_norm, flat, float(depth_scale), d_lo,
+                    d_step, nd, ce, inclination_guess(ce), ni, kk, sj, se, start, stats)
         fm = moments if moments is not None else _NO_MOMENTS
         _fold_frame(nd, ni, start, sj, se, row, cells.cells, fc.cells, frame_cells is not None,
                     moments is not None, fm.frames, fm.n2, fm.n2_mean, fm.n2_mean2)
