@@ -4,8 +4,9 @@ and merges them (Chan) to the same result.
 
 Why processes: the renderers hold one core each (the rasteriser is one thread, Open3D's ray
 casting holds the GIL), so chunks run in processes; partial grids are merged once per chunk, in
-chunk order, never per frame. Within a chunk the pixels are Welford-added into a cell-major
-accumulator (`CellAccumulator`), turned into the chunk's Grid at its end.
+chunk order, never per frame. Within a chunk each frame is merged into a cell-major accumulator
+(`CellAccumulator`, one Chan merge per cell the frame touches), turned into the chunk's Grid at
+its end, or, in one process, drained straight into the running grid (`ChunkCells`).
 """
 
 from __future__ import annotations
