@@ -353,38 +353,41 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
     # long thin triangle has many lines and pixel centres on few of them)
     span_lo, span_hi = dtab[6], dtab[7]
     nl = l1 - l0 + 1
-    for t in range(nl):
-        span_lo[t] = float(c0)
-        span_hi[t] = float(c1)
+    for p in range(nl):
+        span_lo[p] = float(c0)
+        span_hi[p] = float(c1)
     for k in range(nedge):
         a, b, c, r = ea[k], eb[k], ec[k], inv_a[k]
         if a > 0.0:
-            for t in range(nl):
-                span_lo[t] = max(span_lo[t], -(b * (l0 + t) + c) * r)
+            for p in range(nl):
+                span_lo[p] = max(span_lo[p], -(b * (l0 + p) + c) * r)
         elif a < 0.0:
-            for t in range(nl):
-                span_hi[t] = min(span_hi[t], -(b * (l0 + t) + c) * r)
+            for p in range(nl):
+                span_hi[p] = min(span_hi[p], -(b * (l0 + p) + c) * r)
         else:
-            for t in range(nl):
-                span_hi[t] = -1.0 if b * (l0 + t) + c < 0.0 else span_hi[t]
-    ready = False
+            for p in range(nl):
+                span_hi[p] = -1.0 if b * (l0 + p) + c < 0.0 else span_hi[p]
+    first = nl
+    for p in range(nl):  # the first line with a pixel centre
+        if span_lo[p] <= span_hi[p] and np.ceil(span_lo[p]) <= np.floor(span_hi[p]):
+            first = p
+            break
+    if first == nl:
+        return 0, 0
+    # the reference arithmetic (float32), once per triangle and frame
+    ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup(lvx, ia, ib, ic, ox32, oy32, oz32, fma)
     won = False
     tests = 0
-    ux = uy = uz = wx = wy = wz = qx = qy = qz = nx = ny = nz = t2 = np.float32(0.0)
-    for t in range(nl):
-        lo = span_lo[t]
-        hi = span_hi[t]
+    for p in range(first, nl):
+        lo = span_lo[p]
+        hi = span_hi[p]
         if lo > hi:
             continue
         ra = int(np.ceil(lo))
         rb = int(np.floor(hi))
         if ra > rb:
             continue
-        line = l0 + t
-        if not ready:  # the reference arithmetic (float32), once per triangle and frame
-            ready = True
-            ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup(
-                lvx, ia, ib, ic, ox32, oy32, oz32, fma)
+        line = l0 + p
         tests += rb - ra + 1
         for cc in range(ra, rb + 1):
             if by_rows:
@@ -403,7 +406,7 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
             won |= better
     if won:
         _unit_normal(nx, ny, nz, nrm, ident)
-    return (1 if ready else 0), tests
+    return 1, tests
 
 
 @cache
