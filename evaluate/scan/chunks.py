@@ -16,7 +16,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from itertools import islice, pairwise
 from pathlib import Path
-from queue import Queue
+from queue import Empty, Queue
 
 import numpy as np
 from numpy.typing import NDArray
@@ -269,7 +269,10 @@ def _run_here(source: FrameSource, mesh: str | Path, chunks: list[ScanChunk], co
 
     def evaluate(c: ScanChunk, items: list[FrameSet]) -> ChunkResult:
         r = renderers.get()
-        cells = ChunkCells.for_grid(config.empty_grid()) if spare.empty() else spare.get()
+        try:  # never wait: the drained ones come back only as the main thread folds in order
+            cells = spare.get_nowait()
+        except Empty:
+            cells = ChunkCells.for_grid(config.empty_grid())
         try:
             return evaluate_chunk(r, _ChunkFrames(source.name, source.info, items), c.trajectory, c.config,
                                   0, None, on_frame, reuse=cells)
