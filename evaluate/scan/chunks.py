@@ -14,7 +14,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
-from itertools import islice, pairwise
+from itertools import islice
 from pathlib import Path
 from queue import Empty, Queue
 
@@ -172,8 +172,7 @@ def run_scan_chunks(sequence: Path | FrameSource, mesh: Path, trajectory: Trajec
         Path(config.per_frame_dir).mkdir(parents=True, exist_ok=True)
     chunks = scan_chunks(sequence, mesh, trajectory, config, chunk_frames=chunk_frames,
                          intrinsics=intrinsics, source=source, topics=topics)
-    if runner.in_process:
-        chunks = balance_tail(chunks, _threads(config, len(chunks)))
+    chunks = split_last(chunks)
     merges = [0]
 
     def merge(a: ChunkResult, b: ChunkResult) -> ChunkResult:
@@ -206,22 +205,20 @@ def _quiet(done: int, total: int) -> None:
     return None
 
 
-def balance_tail(chunks: list[ScanChunk], threads: int) -> list[ScanChunk]:
-    """The last round of chunks cut so that every thread has a share of it.
+def split_last(chunks: list[ScanChunk]) -> list[ScanChunk]:
+    """The study's chunks: the last one cut in two halves.
 
-    Why: chunks run `threads` at a time; when their count is not a multiple of that, the last ones
-    run while the other threads idle (1334 frames in chunks of 64 on 2 threads: 54 frames on one
-    core at the end). The frames of the last `len % threads` chunks are cut into `threads` equal
-    chunks instead, still merged in frame order."""
-    r = len(chunks) % threads if threads > 1 else 0
-    if r == 0 or any(c.limit is None for c in chunks[-r:]):
+    Why: chunks run a thread (or process) each; when a count of full chunks is done, the last
+    chunk ran on one core while the other idled (1334 frames in chunks of 64 on 2 cores: 54 frames
+    at the end). Halving the last chunk balances 2 cores whatever the count's parity. The rule does
+    not depend on threads or processes, so every way of running a study (command, batch item,
+    workers) merges the same chunks in the same order: the same floats."""
+    last = chunks[-1] if chunks else None
+    if last is None or last.limit is None or last.limit < 2:
         return chunks
-    tail = chunks[-r:]
-    start = tail[0].start
-    total = sum(c.limit or 0 for c in tail)
-    cuts = [start + round(k * total / threads) for k in range(threads + 1)]
-    pieces = [replace(tail[0], start=a, limit=b - a) for a, b in pairwise(cuts) if b > a]
-    return chunks[:-r] + pieces
+    half = last.limit // 2
+    return [*chunks[:-1], replace(last, limit=last.limit - half),
+            replace(last, start=last.start + last.limit - half, limit=half)]
 
 
 @dataclass
@@ -287,7 +284,8 @@ def _run_here(source: FrameSource, mesh: str | Path, chunks: list[ScanChunk], co
             acc.append(ChunkResult(config.empty_grid().with_frame_moments()).merge(res))
         else:
             merge(acc[0], res)
-        if res.cells is not None:
+        if res.cells is not None:  # merged: its accumulators serve the next chunk
+            res.cells.clear_moments()
             spare.put(res.cells)
             res.cells = None
         done[0] += 1

@@ -283,39 +283,18 @@ class FrameImages:
         return self.measured_m - self.reference_m
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _drain_cells(cells: Any, ofr: Any, on2: Any, on2m: Any, on2m2: Any, count: Any, mean: Any, m2: Any,
-                 fr: Any, n2: Any, n2m: Any, n2m2: Any) -> None:
-    """Chan-merge a cell-major accumulator and its frame moments into a grid's arrays (the operations
-    of `core.grid._chan_merge` and `FrameMoments.merge`), zeroing them for the next chunk."""
+@numba.njit(cache=True, nogil=True)
+def _split_cells(cells: Any, count: Any, mean: Any, m2: Any) -> None:
+    """A cell-major accumulator into a grid's three arrays (what `to_grid` copies), zeroing it."""
     nd, ni = count.shape
     for k in range(nd):
         for j in range(ni):
-            if cells[k, j, 0] == 0.0:
-                continue
-            nb = np.int64(cells[k, j, 0])
-            na = count[k, j]
-            if na == 0:
-                count[k, j] = nb
-                mean[k, j] = cells[k, j, 1]
-                m2[k, j] = cells[k, j, 2]
-            else:
-                n = na + nb
-                delta = cells[k, j, 1] - mean[k, j]
-                mean[k, j] += delta * nb / n
-                m2[k, j] += cells[k, j, 2] + delta * delta * (na * nb / n)
-                count[k, j] = n
-            fr[k, j] += ofr[k, j]
-            n2[k, j] += on2[k, j]
-            n2m[k, j] += on2m[k, j]
-            n2m2[k, j] += on2m2[k, j]
+            count[k, j] = np.int64(cells[k, j, 0])
+            mean[k, j] = cells[k, j, 1]
+            m2[k, j] = cells[k, j, 2]
             cells[k, j, 0] = 0.0
             cells[k, j, 1] = 0.0
             cells[k, j, 2] = 0.0
-            ofr[k, j] = 0
-            on2[k, j] = 0.0
-            on2m[k, j] = 0.0
-            on2m2[k, j] = 0.0
 
 
 @dataclass
@@ -338,16 +317,11 @@ class CellAccumulator:
     def reset(self) -> None:
         self.cells[:] = 0.0
 
-    def drain_into(self, grid: Grid, moments: FrameMoments) -> None:
-        """Merge these cells and their frame moments into `grid` (which keeps frame moments, or is
-        empty) and zero both: the accumulator is ready for the next chunk, no copy made."""
-        if grid.moments is None:
-            if grid.total:
-                raise ValueError("the grid keeps no frame moments")
-            grid.moments = FrameMoments.zeros(grid.shape)
-        fm = grid.moments
-        _drain_cells(self.cells, moments.frames, moments.n2, moments.n2_mean, moments.n2_mean2, grid.count,
-                     grid.mean, grid.m2, fm.frames, fm.n2, fm.n2_mean, fm.n2_mean2)
+    def take_grid(self, grid: Grid) -> Grid:
+        """`to_grid` into the arrays of `grid` (same bins, reused: no fresh pages, one pass), leaving
+        this accumulator zeroed for the next chunk; returns `grid`."""
+        _split_cells(self.cells, grid.count, grid.mean, grid.m2)
+        return grid
 
     def to_grid(self) -> Grid:
         g = self.grid.like()

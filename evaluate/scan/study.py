@@ -51,23 +51,31 @@ class StudyConfig:
 
 @dataclass
 class ChunkCells:
-    """A thread's cells and frame moments, reused chunk after chunk in one process.
+    """A thread's accumulators, reused chunk after chunk in one process: the cells and frame
+    moments, and the grid the chunk's result is written to.
 
-    Why: a chunk's fresh 60 MB of accumulators (page faults) and their copy into a Grid cost ~0.1 s
-    per chunk; these are merged into the running grid and zeroed in one pass instead."""
+    Why: a chunk's fresh 60 MB of accumulators (page faults) and their strided copy into a Grid
+    cost ~0.1 s per chunk. The merge itself stays `Grid.merge`, so a study gives the same floats
+    however it is run (command, batch item, workers)."""
 
     cells: CellAccumulator
     moments: FrameMoments
+    grid: Grid
 
     @classmethod
     def for_grid(cls, grid: Grid) -> ChunkCells:
-        return cls(CellAccumulator.for_grid(grid), FrameMoments.zeros(grid.shape))
+        return cls(CellAccumulator.for_grid(grid), FrameMoments.zeros(grid.shape), grid.like())
+
+    def clear_moments(self) -> None:
+        """After the chunk's grid was merged: its frame moments back to zero (the cells already are)."""
+        for a in (self.moments.frames, self.moments.n2, self.moments.n2_mean, self.moments.n2_mean2):
+            a.fill(0)
 
 
 @dataclass
 class ChunkResult:
     """A partial result: grid, pixel counts, and which frames were used or skipped why. A chunk run
-    on reused `ChunkCells` has its samples there (its grid stays empty) until merged."""
+    on reused `ChunkCells` keeps them in `cells` (its grid lives there) until merged."""
 
     grid: Grid
     stats: NDArray[np.int64] = field(default_factory=lambda: np.zeros(len(STAT_NAMES), np.int64))
@@ -77,10 +85,7 @@ class ChunkResult:
     cells: ChunkCells | None = None
 
     def merge(self, other: ChunkResult) -> ChunkResult:
-        if other.cells is not None:  # drained: the caller may reuse other.cells
-            other.cells.cells.drain_into(self.grid, other.cells.moments)
-        else:
-            self.grid.merge(other.grid)
+        self.grid.merge(other.grid)
         self.stats += other.stats
         self.used += other.used
         self.no_pose += other.no_pose
@@ -102,7 +107,8 @@ def evaluate_chunk(caster: FrameRenderer, source: FrameSource, trajectory: Traje
                    on_frame: FrameCallback | None = None, reuse: ChunkCells | None = None) -> ChunkResult:
     """Frames [start, start+limit) of the source, posed by `trajectory` (camera-to-reference).
 
-    `reuse`: zeroed accumulators to add into (kept in the result, `ChunkResult.merge` drains them)."""
+    `reuse`: zeroed accumulators to add into; the result's grid and moments are theirs (merge it,
+    then `reuse.clear_moments()`, before they serve another chunk)."""
     res = ChunkResult(config.empty_grid(), cells=reuse)
     units = source.info.depth_units_m
     intr = caster.intr
@@ -134,9 +140,8 @@ def evaluate_chunk(caster: FrameRenderer, source: FrameSource, trajectory: Traje
             frame_cells.reset()
         if on_frame is not None:
             on_frame(fs.index, res.stats - before)
-    if reuse is None:
-        res.grid = cells.to_grid()
-        res.grid.moments = moments
+    res.grid = cells.to_grid() if reuse is None else cells.take_grid(reuse.grid)
+    res.grid.moments = moments
     return res
 
 
