@@ -349,31 +349,45 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
             ea[k], eb[k] = eb[k], ea[k]
     for k in range(nedge):
         inv_a[k] = 1.0 / ea[k] if ea[k] != 0.0 else 0.0
-    ready = False
+    # every line's span first, edge by edge: loops over contiguous lines that LLVM vectorises (a
+    # long thin triangle has many lines and pixel centres on few of them)
+    span_lo, span_hi = dtab[6], dtab[7]
+    nl = l1 - l0 + 1
+    for p in range(nl):
+        span_lo[p] = float(c0)
+        span_hi[p] = float(c1)
+    for k in range(nedge):
+        a, b, c, r = ea[k], eb[k], ec[k], inv_a[k]
+        if a > 0.0:
+            for p in range(nl):
+                span_lo[p] = max(span_lo[p], -(b * (l0 + p) + c) * r)
+        elif a < 0.0:
+            for p in range(nl):
+                span_hi[p] = min(span_hi[p], -(b * (l0 + p) + c) * r)
+        else:
+            for p in range(nl):
+                span_hi[p] = -1.0 if b * (l0 + p) + c < 0.0 else span_hi[p]
+    first = nl
+    for p in range(nl):  # the first line with a pixel centre
+        if span_lo[p] <= span_hi[p] and np.ceil(span_lo[p]) <= np.floor(span_hi[p]):
+            first = p
+            break
+    if first == nl:
+        return 0, 0
+    # the reference arithmetic (float32), once per triangle and frame
+    ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup(lvx, ia, ib, ic, ox32, oy32, oz32, fma)
     won = False
     tests = 0
-    ux = uy = uz = wx = wy = wz = qx = qy = qz = nx = ny = nz = t2 = np.float32(0.0)
-    for line in range(l0, l1 + 1):
-        lo = float(c0)
-        hi = float(c1)
-        for k in range(nedge):
-            rest = eb[k] * line + ec[k]
-            if ea[k] > 0.0:
-                lo = max(lo, -rest * inv_a[k])
-            elif ea[k] < 0.0:
-                hi = min(hi, -rest * inv_a[k])
-            elif rest < 0.0:
-                hi = -1.0
+    for p in range(first, nl):
+        lo = span_lo[p]
+        hi = span_hi[p]
         if lo > hi:
             continue
         ra = int(np.ceil(lo))
         rb = int(np.floor(hi))
         if ra > rb:
             continue
-        if not ready:  # the reference arithmetic (float32), once per triangle and frame
-            ready = True
-            ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup(
-                lvx, ia, ib, ic, ox32, oy32, oz32, fma)
+        line = l0 + p
         tests += rb - ra + 1
         for cc in range(ra, rb + 1):
             if by_rows:
@@ -392,7 +406,7 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
             won |= better
     if won:
         _unit_normal(nx, ny, nz, nrm, ident)
-    return (1 if ready else 0), tests
+    return 1, tests
 
 
 @cache
@@ -696,7 +710,7 @@ class MeshRaster:
         self._nrm = np.zeros((max(self.n_triangles, 1), 3), np.float32)
         nmax = int(np.diff(self.cl_vstart).max()) if self.n_triangles else 0
         self._work = np.zeros((16, max(nmax, 16)))
-        self._tab = np.zeros((6, 0))
+        self._tab = np.zeros((8, 0))
 
     def sibling(self) -> MeshRaster:
         """The same prepared mesh (shared, read only) with its own buffers: for another thread."""
@@ -746,22 +760,34 @@ class MeshRaster:
                       normals: NDArray[np.float32] | None) -> None:
         """Pixels whose ray meets two triangles at the same nearest depth (through a shared edge):
         which one ray casting reports depends on its tree, so those few rays are ray cast."""
-        dirs = pixel_rays(intr).reshape(-1, 3)[ties]
+        xs, ys = _pinhole_axes(intr)  # pixel_rays(intr)[ties] without building all 307 k of them
+        dirs = np.ones((ties.size, 3), np.float32)
+        dirs[:, 0] = xs[ties % intr.width]
+        dirs[:, 1] = ys[ties // intr.width]
         rays = np.empty((ties.size, 6), np.float32)
         fill_rays(rays, np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(pose[:3, :3]), dirs)
         ans = self._ties.cast(rays)
         t = ans["t_hit"].numpy()
         hit = np.isfinite(t)
+        won = ans["primitive_ids"].numpy().astype(np.int64)
         t_hit[ties] = t
-        ids[ties] = np.where(hit, ans["primitive_ids"].numpy().astype(np.int64), -1)
+        ids[ties] = np.where(hit, won, -1)
+        n = ans["primitive_normals"].numpy()
+        self._nrm[won[hit]] = n[hit]  # so that `normal_table()[ids]` holds for these pixels too
         if normals is not None:
-            normals[ties] = ans["primitive_normals"].numpy()
+            normals[ties] = n
         self.stats[3] += ties.size
 
+    def normal_table(self) -> NDArray[np.float32]:
+        """Unit normal per triangle id, valid for every id `render` put in `ids` in its last frame
+        (what `normals` gathers from): for the per-pixel pass, without a per-pixel copy."""
+        return self._nrm
+
     def _dtab(self, intr: Intrinsics) -> NDArray[np.float64]:
+        """Per-column and per-row ray products (rows 0-5) and a polygon's line spans (6, 7)."""
         n = max(intr.width, intr.height)
         if self._tab.shape[1] < n:
-            self._tab = np.zeros((6, n))
+            self._tab = np.zeros((8, n))
         return self._tab
 
 

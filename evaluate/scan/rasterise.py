@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from depthstation.core.camera_model import Intrinsics
 from depthstation.core.errors import InputError
 from depthstation.core.lazy_open3d import open3d
-from depthstation.core.raster import MeshRaster, arithmetic_report, fill_rays
+from depthstation.core.raster import MeshRaster, arithmetic_report
 from depthstation.evaluate.scan.raycast import F32, F64, FrameRenderer, MeshCaster
 
 RENDERERS = ("raster", "raycast")
@@ -55,9 +55,14 @@ class MeshRasteriser(FrameRenderer):
     def cast(self, pose: F64) -> tuple[F32, F32]:
         """(t_hit, normals) as Open3D would cast them; the arrays are reused by the next frame."""
         pose = np.asarray(pose, dtype=np.float64)
-        fill_rays(self.rays, pose[:3, 3].copy(), pose[:3, :3].copy(), self.dirs)
         self.raster.render(self.intr, pose, self._t, self._ids, self._normals)
         return self._t, self._normals
+
+    def cast_indexed(self, pose: F64) -> tuple[F32, NDArray[np.int32], F32]:
+        """(t_hit, hit triangle ids, per-triangle normals): the pass reads each pixel's normal from
+        the table, so no per-pixel normal array is gathered (7 MB written and read per frame)."""
+        self.raster.render(self.intr, np.asarray(pose, dtype=np.float64), self._t, self._ids, None)
+        return self._t, self._ids, self.raster.normal_table()
 
     def describe(self) -> dict[str, Any]:
         return {"renderer": self.name, **arithmetic_report()}

@@ -1,7 +1,7 @@
 """Ray casting of posed depth frames against the reference mesh, with the post-processing fused.
 
 Why fused: Open3D casts 6-12 M rays/s on two cores; the per-pixel work around it (rays out,
-reference z-depth, inclination from the hit triangle's normal, error, Welford binning) must cost
+reference z-depth, inclination from the hit triangle's normal, error, binning) must cost
 less than that, so it runs as one numba pass over the frame instead of a dozen numpy temporaries.
 
 Conventions (DESIGN §2): rays go through integer pixel centres (librealsense, not Open3D's +0.5
@@ -64,33 +64,29 @@ def _inclination_bin(c: float, cos_edges: Any, i_lo: float, i_step: float, ni: i
     return j
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _welford_cell(cells: Any, k: int, j: int, x: float) -> None:
-    """`core.grid.welford_add` on a cell-major (count, mean, M2) array: the same operations."""
-    n = cells[k, j, 0] + 1.0
-    cells[k, j, 0] = n
-    delta = x - cells[k, j, 1]
-    mu = cells[k, j, 1] + delta / n
-    cells[k, j, 1] = mu
-    cells[k, j, 2] += delta * (x - mu)
+@numba.njit(cache=True, nogil=True)
+def _world_dir(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float, r20: float, r21: float,
+               r22: float, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """`core.raster.fill_rays`' direction of a camera-frame ray (float64 products, one rounding to
+    float32 per component). Its own function without fast maths: a contracted product would move
+    the direction by an ulp and pixels near a bin edge to the next bin. Scalars only: an array
+    argument costs reference counting per call."""
+    return (float(np.float32(r00 * x + r01 * y + r02 * z)), float(np.float32(r10 * x + r11 * y + r12 * z)),
+            float(np.float32(r20 * x + r21 * y + r22 * z)))
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _fused_bin(t_hit: Any, normals: Any, rays: Any, inv_norm: Any, depth: Any, depth_scale: float,
-               cells: Any, fcells: Any, per_frame: bool, d_lo: float, d_step: float, nd: int,
-               cos_edges: Any, i_lo: float, i_step: float, ni: int, stats: Any, kk: Any, jj: Any, ee: Any,
-               tk: Any, tj: Any, te: Any, start: Any, jstart: Any) -> None:
-    """One frame: reference z, inclination, error, Welford into the cells (and the frame's);
-    counts into stats.
+def _pixel_bins(t_hit: Any, index: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, depth: Any,
+                depth_scale: float, d_lo: float, d_step: float, nd: int, cos_edges: Any, guess: Any, ni: int,
+                kk: Any, sj: Any, se: Any, start: Any, stats: Any) -> None:
+    """Per pixel: reference z, inclination, error and their cell, put in order of distance bin.
 
-    stats: [pixels, no_depth, no_hit, evaluated (hit and depth), binned]. inv_norm: 1/|ray| per
-    pixel (rotation keeps it, so it is computed once per camera). Why in passes: a frame's
-    pixels land on cells all over the grid, and Welford updates in pixel order stalled on cache
-    misses. The binned pixels are sorted by cell (a stable two-pass counting sort, inclination bin
-    then distance bin, so every cell still sees its pixels in pixel order: the same floats) and
-    then added cell after cell, walking the grid's memory forwards. kk, jj, ee, tk, tj, te (one
-    per pixel), start (distance bins + 1) and jstart (inclination bins + 1) are scratch.
-    """
+    The normal of pixel i is normals[index[i]] (a per-pixel array and 0, 1, 2, ... or a renderer's
+    per-triangle table and the hit triangles). Two passes: the distance bin of every pixel with
+    depth and a hit (kk, -1 = none) and their count per bin, then, in pixel order, inclination bin
+    (sj, -1 = out of the grid) and error (se) each at its place in its distance bin's run (a
+    counting sort without a scatter pass of its own). After it, start[k] is the end of bin k's
+    run and its start start[k - 1] (0 for k = 0)."""
     n = depth.shape[0]
     no_depth = 0
     no_hit = 0
@@ -98,60 +94,58 @@ def _fused_bin(t_hit: Any, normals: Any, rays: Any, inv_norm: Any, depth: Any, d
     binned = 0
     for k in range(nd + 1):
         start[k] = 0
-    for j in range(ni + 1):
-        jstart[j] = 0
     for i in range(n):
-        kk[i] = -1
         raw = depth[i]
         hit = np.isfinite(t_hit[i])
         if raw == 0:
             no_depth += 1
         if not hit:
             no_hit += 1
+        kk[i] = -1
         if raw == 0 or not hit:
             continue
         evaluated += 1
-        z_ref = t_hit[i]
-        k = bin_index(z_ref, d_lo, d_step, nd)
+        k = bin_index(t_hit[i], d_lo, d_step, nd)
+        kk[i] = k
+        if k >= 0:
+            start[k + 1] += 1
+    for k in range(nd):
+        start[k + 1] += start[k]
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    for i in range(n):
+        k = kk[i]
         if k < 0:
             continue
-        nx, ny, nz = normals[i, 0], normals[i, 1], normals[i, 2]
+        z_ref = t_hit[i]
+        q = start[k]
+        start[k] = q + 1
+        se[q] = depth[i] * depth_scale - z_ref
+        sj[q] = -1
+        m = index[i]
+        nx, ny, nz = normals[m, 0], normals[m, 1], normals[m, 2]
         nn = np.sqrt(nx * nx + ny * ny + nz * nz)
         if nn == 0.0:
             continue
-        c = abs(nx * rays[i, 3] + ny * rays[i, 4] + nz * rays[i, 5]) * inv_norm[i] / nn
-        j = _inclination_bin(c, cos_edges, i_lo, i_step, ni)
-        if j < 0:
-            continue
-        kk[i] = k
-        jj[i] = j
-        ee[i] = raw * depth_scale - z_ref
-        start[k + 1] += 1
-        jstart[j + 1] += 1
+        dx, dy, dz = _world_dir(r00, r01, r02, r10, r11, r12, r20, r21, r22, dirs[i, 0], dirs[i, 1],
+                                dirs[i, 2])
+        c = abs(nx * dx + ny * dy + nz * dz) * inv_norm[i] / nn
+        # the inclination bin as `_inclination_bin`, its first guess from a table over c
+        # (`inclination_guess`) instead of a polynomial arccos with a square root; written out here
+        # because as a call (even inlined by numba) it took 2.5x as long
+        if c > cos_edges[0] or c < cos_edges[ni]:
+            if c > 1.0 and cos_edges[0] >= 1.0:  # rounding above 1 means 0 degrees
+                c = 1.0
+            else:
+                continue
+        j = np.int64(guess[int(min(c, 1.0) * (guess.shape[0] - 1))])
+        while j > 0 and c > cos_edges[j]:
+            j -= 1
+        while j < ni - 1 and c <= cos_edges[j + 1]:
+            j += 1
+        sj[q] = j
         binned += 1
-    for j in range(ni):
-        jstart[j + 1] += jstart[j]
-    for k in range(nd):
-        start[k + 1] += start[k]
-    for i in range(n):  # by inclination bin (values move with the key: the next pass reads in order)
-        if kk[i] >= 0:
-            j = jj[i]
-            q = jstart[j]
-            jstart[j] = q + 1
-            tk[q] = kk[i]
-            tj[q] = j
-            te[q] = ee[i]
-    for p in range(binned):  # then by distance bin, into kk, jj, ee
-        k = tk[p]
-        q = start[k]
-        start[k] = q + 1
-        kk[q] = k
-        jj[q] = tj[p]
-        ee[q] = te[p]
-    for q in range(binned):
-        _welford_cell(cells, kk[q], jj[q], ee[q])
-        if per_frame:
-            _welford_cell(fcells, kk[q], jj[q], ee[q])
     stats[0] += n
     stats[1] += no_depth
     stats[2] += no_hit
@@ -160,30 +154,70 @@ def _fused_bin(t_hit: Any, normals: Any, rays: Any, inv_norm: Any, depth: Any, d
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _add_frame_moments(kk: Any, jj: Any, ee: Any, binned: int, frames: Any, n2: Any, n2_mean: Any,
-                       n2_mean2: Any) -> None:
-    """One frame's cell means into the frame-clustered moments (core.grid.FrameMoments).
+def _merge_cell(cells: Any, k: int, j: int, nb: float, mb: float, m2b: float) -> None:
+    """Chan's merge of a frame's (count, mean, M2) in one cell into a cell-major accumulator."""
+    na = cells[k, j, 0]
+    if na == 0.0:
+        cells[k, j, 0] = nb
+        cells[k, j, 1] = mb
+        cells[k, j, 2] = m2b
+        return
+    n = na + nb
+    delta = mb - cells[k, j, 1]
+    cells[k, j, 0] = n
+    cells[k, j, 1] += delta * nb / n
+    cells[k, j, 2] += m2b + delta * delta * (na * nb / n)
 
-    kk, jj, ee hold the frame's `binned` pixels sorted by cell (what `_fused_bin` leaves), so a
-    cell's pixels are one run: its n_f and mean m_f come without another pass over the grid.
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def _fold_frame(nd: int, ni: int, start: Any, sj: Any, se: Any, row: Any, cells: Any, fcells: Any,
+                per_frame: bool, moments: bool, frames: Any, n2: Any, n2_mean: Any, n2_mean2: Any) -> None:
+    """A frame's binned pixels (`_pixel_bins`' runs) into the cells, once per cell it touched.
+
+    Why: a frame puts ~2 pixels in each cell it touches, all over a 26 MB grid. Within a distance
+    bin's run the pixels are summed per inclination bin in `row` (count, sum and sum of squares
+    about a shift, ~20 kB: cache resident), then each touched cell gets one Chan merge of the
+    frame's (count, mean, M2) and its frame moment, walking the grid's row forwards. The shift (the
+    run's first error: a frame's errors at one distance) keeps the sums of squares exact enough.
     """
-    q = 0
-    while q < binned:
-        k = kk[q]
-        j = jj[q]
-        s = 0.0
-        r = q
-        while r < binned and kk[r] == k and jj[r] == j:
-            s += ee[r]
-            r += 1
-        n = float(r - q)
-        m = s / n
-        w = n * n
-        frames[k, j] += 1
-        n2[k, j] += w
-        n2_mean[k, j] += w * m
-        n2_mean2[k, j] += w * m * m
-        q = r
+    lo = 0
+    for k in range(nd):
+        hi = start[k]  # after the scatter start[k] is the end of bin k's run
+        if hi == lo:
+            continue
+        shift = se[lo]  # a frame's errors at one distance: sums about one of them stay exact
+        jlo = ni
+        jhi = 0
+        for q in range(lo, hi):
+            j = sj[q]
+            if j < 0:
+                continue
+            d = se[q] - shift
+            jlo = min(jlo, j)
+            jhi = max(jhi, j)
+            row[j, 0] += 1.0
+            row[j, 1] += d
+            row[j, 2] += d * d
+        for j in range(jlo, jhi + 1):  # in order: the grid's row is read forwards
+            nb = row[j, 0]
+            if nb == 0.0:
+                continue
+            s = row[j, 1]
+            mb = shift + s / nb
+            m2b = max(row[j, 2] - s * s / nb, 0.0)
+            row[j, 0] = 0.0
+            row[j, 1] = 0.0
+            row[j, 2] = 0.0
+            _merge_cell(cells, k, j, nb, mb, m2b)
+            if per_frame:
+                _merge_cell(fcells, k, j, nb, mb, m2b)
+            if moments:
+                w = nb * nb
+                frames[k, j] += 1
+                n2[k, j] += w
+                n2_mean[k, j] += w * mb
+                n2_mean2[k, j] += w * mb * mb
+        lo = hi
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
@@ -200,6 +234,24 @@ def _frame_images(t_hit: Any, normals: Any, rays: Any, depth: Any, depth_scale: 
             inc[i] = np.nan
 
 
+GUESS_CELLS = 65536  # table cells over cos(inclination) in [0, 1]: 0.1 deg bins hold >= 1 above 0.5 deg
+
+
+def inclination_guess(cos_e: NDArray[np.float64]) -> NDArray[np.int16] | NDArray[np.int32]:
+    """Per table cell q (c = q / GUESS_CELLS) the inclination bin of c: the largest bin of the cell,
+    which the pass corrects by comparing c with the exact cosines of the edges (any guess in range
+    gives the same bin; a good one saves steps)."""
+    key = (cos_e.size, float(cos_e[0]), float(cos_e[-1]))
+    hit = _GUESS_CACHE.get(key)
+    if hit is None:
+        ni = cos_e.size - 1
+        c = np.arange(GUESS_CELLS + 1) / GUESS_CELLS
+        j = np.clip(np.searchsorted(-cos_e, -c, side="right") - 1, 0, max(ni - 1, 0))
+        hit = j.astype(np.int16 if ni < 2**15 else np.int32)
+        _GUESS_CACHE[key] = hit
+    return hit
+
+
 def cos_edges(grid: Grid) -> NDArray[np.float64]:
     """Cosines of the inclination edges (decreasing), cached on the grid's edge array."""
     e = grid.inclination_edges_deg
@@ -212,8 +264,10 @@ def cos_edges(grid: Grid) -> NDArray[np.float64]:
 
 
 _COS_CACHE: dict[tuple[int, float, float], NDArray[np.float64]] = {}
+_GUESS_CACHE: dict[tuple[int, float, float], Any] = {}
 
 STAT_NAMES = ("pixels", "no_depth", "no_hit", "evaluated", "binned")
+_NO_MOMENTS = FrameMoments.zeros((1, 1))  # a stand-in the pass does not touch (moments not kept)
 
 
 @dataclass
@@ -229,14 +283,28 @@ class FrameImages:
         return self.measured_m - self.reference_m
 
 
+@numba.njit(cache=True, nogil=True)
+def _split_cells(cells: Any, count: Any, mean: Any, m2: Any) -> None:
+    """A cell-major accumulator into a grid's three arrays (what `to_grid` copies), zeroing it."""
+    nd, ni = count.shape
+    for k in range(nd):
+        for j in range(ni):
+            count[k, j] = np.int64(cells[k, j, 0])
+            mean[k, j] = cells[k, j, 1]
+            m2[k, j] = cells[k, j, 2]
+            cells[k, j, 0] = 0.0
+            cells[k, j, 1] = 0.0
+            cells[k, j, 2] = 0.0
+
+
 @dataclass
 class CellAccumulator:
-    """Welford count, mean and M2 of a grid's cells side by side (cell-major, count as float).
+    """Count, mean and M2 of a grid's cells side by side (cell-major, count as float).
 
-    Why: the per-pixel pass lands on cells of a 26 MB grid in an order no cache predicts; with
-    the three numbers of a cell in one cache line an update costs one miss instead of three.
-    The operations are those of `core.grid.welford_add` in the same order, so `to_grid` gives
-    the grid the separate arrays would hold, bit for bit.
+    Why: a frame touches ~130 k cells of a 26 MB grid; with the three numbers of a cell in one
+    cache line a cell's update reads one line instead of three. The pass merges each frame into
+    its cells with Chan's formula (one merge per touched cell, `_fold_frame`), so the cells equal
+    a per-pixel Welford of the same samples up to float rounding (~1e-17 m in a mean).
     """
 
     grid: Grid  # the bins (its arrays are not used)
@@ -248,6 +316,12 @@ class CellAccumulator:
 
     def reset(self) -> None:
         self.cells[:] = 0.0
+
+    def take_grid(self, grid: Grid) -> Grid:
+        """`to_grid` into the arrays of `grid` (same bins, reused: no fresh pages, one pass), leaving
+        this accumulator zeroed for the next chunk; returns `grid`."""
+        _split_cells(self.cells, grid.count, grid.mean, grid.m2)
+        return grid
 
     def to_grid(self) -> Grid:
         g = self.grid.like()
@@ -269,11 +343,22 @@ class FrameRenderer:
         self.inv_norm = (1.0 / np.linalg.norm(self.dirs.astype(np.float64), axis=1)).astype(np.float32)
         self.rays = np.empty((self.dirs.shape[0], 6), dtype=np.float32)
         self._scratch: tuple[NDArray[Any], ...] | None = None
+        self._identity = np.zeros(0, np.int32)
 
     def cast(self, pose: F64) -> tuple[F32, F32]:
-        """(t_hit (inf = miss), unit normals) of every pixel for a camera-to-reference pose;
-        `self.rays` holds the frame's rays afterwards."""
+        """(t_hit (inf = miss), unit normals) of every pixel for a camera-to-reference pose (the rays
+        are `fill_rays(self.rays, ...)`'s; a ray caster leaves them in `self.rays`, the rasteriser
+        does not need them)."""
         raise NotImplementedError
+
+    def cast_indexed(self, pose: F64) -> tuple[F32, NDArray[np.int32], F32]:
+        """`cast` for the per-pixel pass: (t_hit, index, table), pixel i's normal table[index[i]]
+        (here the pixels' own; the rasteriser hands its per-triangle table and the hit triangles)."""
+        t_hit, normals = self.cast(pose)
+        n = t_hit.shape[0]
+        if self._identity.shape[0] != n:
+            self._identity = np.arange(n, dtype=np.int32)
+        return t_hit, self._identity, normals
 
     def describe(self) -> dict[str, Any]:
         """What result.json records about the renderer."""
@@ -282,29 +367,33 @@ class FrameRenderer:
     def bin_frame(self, pose: F64, depth: NDArray[Any], depth_scale: float, cells: CellAccumulator,
                   stats: NDArray[np.int64], frame_cells: CellAccumulator | None = None,
                   moments: FrameMoments | None = None) -> None:
-        """Render one frame and Welford its errors into `cells` (and `frame_cells`); the frame's
-        cell means into `moments` (frames as clusters, for the standard error of a cell mean)."""
-        t_hit, normals = self.cast(pose)
+        """Render one frame and merge its errors into `cells` (and `frame_cells`), one Chan merge per
+        cell it touches; the frame's cell means into `moments` (frames as clusters, for the standard
+        error of a cell mean)."""
+        t_hit, index, normals = self.cast_indexed(pose)
         fc = frame_cells if frame_cells is not None else cells
-        d_lo, d_step, nd, i_lo, i_step, ni = cells.grid.bins
+        d_lo, d_step, nd, _, _, ni = cells.grid.bins
         n = self.dirs.shape[0]
         sc = self._scratch
-        if sc is None or sc[6].shape[0] != nd + 1 or sc[7].shape[0] != ni + 1:
-            sc = (np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n), np.empty(n, np.int32),
-                  np.empty(n, np.int32), np.empty(n), np.empty(nd + 1, np.int64), np.empty(ni + 1, np.int64))
+        if sc is None or sc[3].shape[0] != nd + 1 or sc[4].shape[0] != ni:
+            sc = (np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n), np.empty(nd + 1, np.int64),
+                  np.zeros((ni, 4)))
             self._scratch = sc
-        kk, jj, ee, tk, tj, te, start, jstart = sc
-        before = int(stats[4])
-        _fused_bin(t_hit, normals, self.rays, self.inv_norm, np.ascontiguousarray(depth).ravel(),
-                   float(depth_scale), cells.cells, fc.cells, frame_cells is not None, d_lo, d_step, nd,
-                   cos_edges(cells.grid), i_lo, i_step, ni, stats, kk, jj, ee, tk, tj, te, start, jstart)
-        if moments is not None:
-            _add_frame_moments(kk, jj, ee, int(stats[4]) - before, moments.frames, moments.n2,
-                               moments.n2_mean, moments.n2_mean2)
+        kk, sj, se, start, row = sc
+        rot = np.ascontiguousarray(np.asarray(pose, dtype=np.float64)[:3, :3])
+        flat = np.ascontiguousarray(depth).ravel()
+        ce = cos_edges(cells.grid)
+        _pixel_bins(t_hit, index, normals, self.dirs, rot, self.inv_norm, flat, float(depth_scale), d_lo,
+                    d_step, nd, ce, inclination_guess(ce), ni, kk, sj, se, start, stats)
+        fm = moments if moments is not None else _NO_MOMENTS
+        _fold_frame(nd, ni, start, sj, se, row, cells.cells, fc.cells, frame_cells is not None,
+                    moments is not None, fm.frames, fm.n2, fm.n2_mean, fm.n2_mean2)
 
     def images(self, pose: F64, depth: NDArray[Any], depth_scale: float) -> FrameImages:
         """The per-pixel maps of one frame (for figures and tests, not the hot loop)."""
         t_hit, normals = self.cast(pose)
+        pose = np.asarray(pose, dtype=np.float64)
+        fill_rays(self.rays, pose[:3, 3].copy(), pose[:3, :3].copy(), self.dirs)
         n = self.dirs.shape[0]
         z_ref = np.empty(n, np.float32)
         inc = np.empty(n, np.float32)

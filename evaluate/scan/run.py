@@ -33,6 +33,7 @@ from depthstation.evaluate.scan.chunks import (
     renderer_for,
     run_scan_chunks,
     scan_chunks,
+    split_last,
 )
 from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, check_renderer
 from depthstation.evaluate.scan.reference import PoissonParams, reference_mesh, sample_reference_points
@@ -200,8 +201,8 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                     tolerance_s=opt.tolerance_s)
     say_registration(reg, fit, Path(sequence))
     t_reg = time.perf_counter()
-    chunks = scan_chunks(Path(sequence), mesh_path, posed, config, chunk_frames=opt.chunk_frames,
-                         intrinsics=opt.intrinsics, source=source, topics=opt.topics)
+    chunks = split_last(scan_chunks(Path(sequence), mesh_path, posed, config, chunk_frames=opt.chunk_frames,
+                                    intrinsics=opt.intrinsics, source=source, topics=opt.topics))
     return ScanJob(Path(sequence), Path(poses), Path(reference), out, opt, source, given, posed, reg,
                    mesh_path, mesh_info, fit, config, chunks,
                    {"reference": t_mesh - t0, "registration": t_reg - t_mesh})
