@@ -5,7 +5,8 @@ BytesIO, `getvalue`, the record builder, the flush) plus a CRC pass; on 2 cores 
 `capture import` of a 1280x720 realsense-ros bag to ~150 frame sets/s. Here a message is a header
 packed by `struct` followed by the caller's buffers (an image's CDR prefix and a memoryview of its
 pixels), an uncompressed chunk goes to the file as those same buffers, and a compressed chunk is
-joined once for the compressor. The file is a standard MCAP (data section, message indexes after
+joined once and compressed on two compressor threads while the writer goes on (lz4 and zstd
+release the GIL), then written in order. The file is a standard MCAP (data section, message indexes after
 each chunk, summary with schemas, channels, statistics, chunk and metadata indexes, summary
 offsets): mcap's readers, rosbags, rerun and ours read it.
 
@@ -18,9 +19,11 @@ The summary has its CRC.
 from __future__ import annotations
 
 import struct
+import threading
 import zlib
-from collections import defaultdict
+from collections import defaultdict, deque
 from collections.abc import Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import IO, Any
 
 import lz4.frame
@@ -45,6 +48,19 @@ OP_MESSAGE, OP_CHUNK, OP_FOOTER = 0x05, 0x06, 0x02
 _MESSAGE = struct.Struct("<BQHIQQ")  # opcode, record length, channel, sequence, log time, publish time
 _CHUNK_HEAD = struct.Struct("<BQQQQI")  # opcode, length, start, end, uncompressed size, uncompressed crc
 Buffer = bytes | bytearray | memoryview
+# Compressed chunks in flight on the compressor threads: lz4 and zstd release the GIL, so while
+# the writer's thread hands on one chunk, the next ones compress on the other core
+COMPRESS_AHEAD = 2
+_POOL: list[ThreadPoolExecutor] = []
+_POOL_LOCK = threading.Lock()
+
+
+def _compressors() -> ThreadPoolExecutor:
+    """The process's chunk compressors (two threads, made on first use)."""
+    with _POOL_LOCK:
+        if not _POOL:
+            _POOL.append(ThreadPoolExecutor(COMPRESS_AHEAD, thread_name_prefix="mcap-compress"))
+        return _POOL[0]
 
 
 class ChunkedMcapWriter:
@@ -60,8 +76,10 @@ class ChunkedMcapWriter:
         self._out = stream
         self._offset = 0
         self._compression = compression
-        self._zstd = zstandard.ZstdCompressor(level=zstd_level) if compression == "zstd" else None
+        self._zstd_level = zstd_level
         self._chunk_size = chunk_size
+        self._pending: deque[tuple[Future[tuple[int, list[Buffer]]],
+                                   tuple[int, int, int, dict[int, list[tuple[int, int]]]]]] = deque()
         self._schemas: list[Schema] = []
         self._channels: list[Channel] = []
         self._chunk_indexes: list[ChunkIndex] = []
@@ -95,6 +113,7 @@ class ChunkedMcapWriter:
 
     # -- records -------------------------------------------------------------------------------
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
+        self._drain()
         schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
         self._schemas.append(schema)
         self._stats.schema_count += 1
@@ -103,6 +122,7 @@ class ChunkedMcapWriter:
 
     def register_channel(self, topic: str, message_encoding: str, schema_id: int,
                          metadata: dict[str, str] | None = None) -> int:
+        self._drain()
         channel = Channel(id=len(self._channels) + 1, topic=topic, message_encoding=message_encoding,
                           schema_id=schema_id, metadata=dict(metadata or {}))
         self._channels.append(channel)
@@ -112,6 +132,7 @@ class ChunkedMcapWriter:
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """A metadata record (outside chunks, indexed in the summary)."""
+        self._drain()
         offset = self._offset
         length = self._record(Metadata(name=name, metadata=data))
         self._metadata_indexes.append(MetadataIndex(offset=offset, length=length, name=name))
@@ -140,42 +161,66 @@ class ChunkedMcapWriter:
             self.flush_chunk()
 
     def flush_chunk(self) -> None:
-        """Write the chunk in progress (if any) and its message indexes."""
+        """Close the chunk in progress (if any): written now when uncompressed; compressed on the
+        compressor threads (up to COMPRESS_AHEAD chunks ahead), written in order as they finish."""
         if not self._parts:
             return
-        name = self._compression
-        if name:
+        meta = (self._chunk_start, self._chunk_end, self._chunk_bytes, self._chunk_index)
+        if self._compression:
             raw = b"".join(self._parts)
-            crc = zlib.crc32(raw)
-            body: list[Buffer] = [lz4.frame.compress(raw) if name == "lz4" else self._zstd.compress(raw)]  # type: ignore[union-attr]
+            self._pending.append((_compressors().submit(self._compress, raw), meta))
+            while len(self._pending) > COMPRESS_AHEAD:
+                self._write_pending()
         else:
-            crc, body = 0, self._parts
+            self._write_chunk(0, self._parts, meta)
+        self._reset_chunk()
+
+    def _compress(self, raw: bytes) -> tuple[int, list[Buffer]]:
+        """(CRC of the records, compressed records): on a compressor thread (both release the GIL)."""
+        if self._compression == "lz4":
+            return zlib.crc32(raw), [lz4.frame.compress(raw)]
+        # a compressor per chunk: a ZstdCompressor must not be shared by two threads at once
+        return zlib.crc32(raw), [zstandard.ZstdCompressor(level=self._zstd_level).compress(raw)]
+
+    def _write_pending(self) -> None:
+        future, meta = self._pending.popleft()
+        crc, body = future.result()
+        self._write_chunk(crc, body, meta)
+
+    def _drain(self) -> None:
+        """Every compressed chunk on the file, before a record that must follow them."""
+        while self._pending:
+            self._write_pending()
+
+    def _write_chunk(self, crc: int, body: Sequence[Buffer],
+                     meta: tuple[int, int, int, dict[int, list[tuple[int, int]]]]) -> None:
+        start, end, size, index = meta
         body_len = sum(p.nbytes if isinstance(p, memoryview) else len(p) for p in body)
+        name = self._compression
         enc = name.encode()
         chunk_start = self._offset
         length = 8 + 8 + 8 + 4 + 4 + len(enc) + 8 + body_len
-        self._write(_CHUNK_HEAD.pack(OP_CHUNK, length, self._chunk_start, self._chunk_end,
-                                     self._chunk_bytes, crc)
+        self._write(_CHUNK_HEAD.pack(OP_CHUNK, length, start, end, size, crc)
                     + struct.pack("<I", len(enc)) + enc + struct.pack("<Q", body_len))
         for p in body:
             self._write(p)
         chunk_length = self._offset - chunk_start
         offsets: dict[int, int] = {}
         index_start = self._offset
-        for cid, records in self._chunk_index.items():
+        for cid, records in index.items():
             offsets[cid] = self._offset
             self._record(MessageIndex(channel_id=cid, records=records))
         self._chunk_indexes.append(ChunkIndex(
-            message_start_time=self._chunk_start, message_end_time=self._chunk_end,
-            chunk_start_offset=chunk_start, chunk_length=chunk_length, message_index_offsets=offsets,
+            message_start_time=start, message_end_time=end, chunk_start_offset=chunk_start,
+            chunk_length=chunk_length, message_index_offsets=offsets,
             message_index_length=self._offset - index_start, compression=name,
-            compressed_size=body_len, uncompressed_size=self._chunk_bytes))
+            compressed_size=body_len, uncompressed_size=size))
         self._stats.chunk_count += 1
-        self._reset_chunk()
 
     def finish(self) -> None:
         """The last chunk, the data end, the summary and the footer; the stream stays open."""
         self.flush_chunk()
+        self._drain()
         self._record(DataEnd(data_section_crc=0))
         summary_start = self._offset
         rb = RecordBuilder()
