@@ -69,40 +69,46 @@ class FusedSampler:
         self.fb = float(ctx.focal_baseline)
         z = np.asarray(z_m, dtype=np.float64)
         with np.errstate(divide="ignore", invalid="ignore"):
-            d = self.fb / z
-        var = np.zeros(shape)
-        keep = np.ones(shape)
+            d = np.divide(self.fb, z)
+        var: Any = 0.0  # a scalar while every noise RMS is one (a map costs a pass per effect)
+        keep: Any = None
         self.scale = 1.0
         self.step = 0.0
         self.unit = 0.0
         self.flying: FlyingPixels | None = None
+        self.flying_table: tuple[NDArray[np.int64], NDArray[Any]] | None = None
         # noises that are not independent per pixel: drawn per frame as a whole field (window) or
         # one number (frame-common), added to the disparity before the per-pixel pass
         self.correlated: list[tuple[CorrelatedJitter, NDArray[np.float32]]] = []
         self.common: list[NDArray[np.float32]] = []
         for e in effects:
             if isinstance(e, CorrelatedJitter):
-                self.correlated.append((e, np.ascontiguousarray(np.broadcast_to(
-                    e.sigma_px(ctx), shape), dtype=np.float32)))
+                self.correlated.append((e, np.asarray(e.sigma_px(ctx), dtype=np.float32)))
             elif isinstance(e, FrameJitter):
-                self.common.append(np.ascontiguousarray(np.broadcast_to(e.sigma_px(ctx), shape),
-                                                        dtype=np.float32).ravel())
+                self.common.append(np.asarray(e.sigma_px(ctx), dtype=np.float32))
             elif isinstance(e, DisparityShift):
                 d = d + np.broadcast_to(e.shift_px(ctx), shape)
             elif isinstance(e, DisparityJitter):
-                var = var + np.broadcast_to(np.asarray(e.sigma_px(ctx), dtype=np.float64) ** 2, shape)
+                var = var + np.asarray(e.sigma_px(ctx), dtype=np.float64) ** 2
             elif isinstance(e, DepthScale):
                 self.scale *= 1.0 + e.params["scale_error"]
             elif isinstance(e, Quantization):
                 self.step = e.params["disparity_step_px"]
                 self.unit = e.params["depth_unit_m"]
             elif isinstance(e, Dropout):
-                keep = keep * np.broadcast_to(e.valid_probability(ctx), shape)
+                p = e.valid_probability(ctx)
+                keep = p if keep is None else keep * p
             elif isinstance(e, FlyingPixels):
                 self.flying = e
-        self.d0 = np.ascontiguousarray(np.nan_to_num(d, nan=-1.0), dtype=np.float32).ravel()
-        self.sigma = np.ascontiguousarray(np.sqrt(var), dtype=np.float32).ravel()
-        self.keep = np.ascontiguousarray(keep, dtype=np.float32).ravel()
+                self.flying_table = e.near_table(ctx, shape)
+        n = int(np.prod(shape))
+        d32 = np.empty(shape, np.float32)
+        np.copyto(d32, d, casting="same_kind")
+        d32[np.isnan(d32)] = -1.0
+        self.d0 = d32.reshape(n)
+        self.no_depth = np.flatnonzero(~(self.d0 > 0)) if self.correlated or self.common else None
+        self.sigma = _full(np.sqrt(var), shape, n)
+        self.keep = _full(1.0 if keep is None else keep, shape, n)
 
     def sample(self, rng: np.random.Generator) -> NDArray[np.float32]:
         """One measured z map (float32, NaN = no depth)."""
@@ -112,13 +118,21 @@ class FusedSampler:
         d0 = self.d0
         if self.correlated or self.common:
             d0 = d0.copy()
+            grid = d0.reshape(self.shape)
             for e, sig in self.correlated:
-                d0 += (e.field(self.shape, rng, self.ctx) * sig).ravel()
+                grid += np.asarray(e.field(self.shape, rng, self.ctx), dtype=np.float32) * sig
             for sig in self.common:
-                d0 += sig * np.float32(rng.standard_normal())
-            d0[self.d0 <= 0] = -1.0   # no depth stays no depth
+                grid += sig * np.float32(rng.standard_normal())
+            d0[self.no_depth] = -1.0   # no depth stays no depth
         _fused(d0, self.sigma, noise, self.fb, self.step, self.scale, self.unit, self.keep, draw, out)
         z = out.reshape(self.shape)
-        if self.flying is not None:
-            z = self.flying.apply(self.ctx, z, rng)
+        if self.flying is not None and self.flying_table is not None:
+            z = self.flying.displace(self.flying_table, z, rng)
         return z
+
+
+def _full(value: Any, shape: tuple[int, ...], n: int) -> NDArray[np.float32]:
+    """A flat float32 map of `shape` from a scalar or a broadcastable array."""
+    out = np.empty(shape, np.float32)
+    out[...] = value
+    return out.reshape(n)

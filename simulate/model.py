@@ -74,11 +74,17 @@ class SensorModel:
         distribution; others apply effect by effect (`fused=False` forces that).
         """
         if fused and ctx is not None and fusable(self.effects):
+            # the last context's sampler is kept (a standpoint samples one context 150 times);
+            # it is built outside the lock, so renderers on several threads build theirs side by side
+            key = (id(ctx), id(z_m))
             with self._lock:
-                key = (id(ctx), id(z_m))
-                if self._fused is None or self._fused[0] != key:
-                    self._fused = (key, FusedSampler(self.effects, ctx, z_m), ctx, z_m)
-                sampler = self._fused[1]
+                last = self._fused
+            if last is not None and last[0] == key:
+                sampler = last[1]
+            else:
+                sampler = FusedSampler(self.effects, ctx, z_m)
+                with self._lock:
+                    self._fused = (key, sampler, ctx, z_m)
             return sampler.sample(rng)
         z = np.array(z_m, dtype=np.float32, copy=True)
         for e in self.effects:

@@ -19,7 +19,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from depthstation.core.camera_model import Intrinsics, pixel_rays
-from depthstation.core.raster import MeshRaster, clip_polygon, fill_rays
+from depthstation.core.raster import MeshRaster, clip_polygon, fill_rays, pinhole_axes, world_direction
 from depthstation.simulate.effects.base import PixelContext
 from depthstation.simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO, Scene
 
@@ -53,7 +53,7 @@ class GeometryMaps:
         camera; pixel positions and the focal length then go to the effects in its pixels.
         """
         h, w = self.z_m.shape
-        v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+        v, u = _pixel_grid(h, w)
         i = self.intrinsics
         edge = self.edge_distance_px
         if stereo is not None:
@@ -65,6 +65,15 @@ class GeometryMaps:
                             albedo=self.albedo, time_s=time_s, temperature_c=temperature_c,
                             edge_distance_px=edge, fx=i.fx, ppx=i.ppx, ppy=i.ppy,
                             baseline_m=baseline_m)
+
+
+@lru_cache(maxsize=8)
+def _pixel_grid(h: int, w: int) -> tuple[F32, F32]:
+    """(v, u) pixel coordinates of an h x w image as float32 maps, made once; read-only."""
+    v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+    v.setflags(write=False)
+    u.setflags(write=False)
+    return v, u
 
 
 @lru_cache(maxsize=8)
@@ -117,6 +126,16 @@ class SceneRaster:
         return {"t_hit": t.reshape(shape), "geometry_ids": gid.reshape(shape),
                 "primitive_normals": normals.reshape((*shape, 3))}
 
+    def cast_indexed(self, intr: Intrinsics,
+                     cam_to_world: NDArray[Any]) -> tuple[F32, NDArray[np.int32], F32]:
+        """Pinhole view only: t_hit (inf = miss) and hit triangle (-1 = miss) per pixel, and the unit
+        normal per triangle (valid for the ids returned): no rays, no per-pixel normals to copy."""
+        n = intr.width * intr.height
+        t = np.empty(n, np.float32)
+        ids = np.empty(n, np.int32)
+        self.raster.render(intr, cam_to_world, t, ids)
+        return t, ids, self.raster.normal_table()
+
 
 def _cast(rc: Any, intr: Intrinsics, cam_to_world: NDArray[Any], rays: F32) -> dict[str, NDArray[Any]]:
     if isinstance(rc, SceneRaster):
@@ -130,19 +149,44 @@ def _cast(rc: Any, intr: Intrinsics, cam_to_world: NDArray[Any], rays: F32) -> d
 
 def edge_distance(z: F32, jump: float = EDGE_JUMP) -> F32:
     """Distance (px) of every pixel to the nearest depth discontinuity (0.5 for pixels touching one)."""
-
-    zz = np.where(np.isfinite(z), z, np.float32(1e6))
-    edge = np.zeros(z.shape, dtype=bool)
-    dx = np.abs(np.diff(zz, axis=1)) > jump * np.minimum(zz[:, 1:], zz[:, :-1])
-    dy = np.abs(np.diff(zz, axis=0)) > jump * np.minimum(zz[1:, :], zz[:-1, :])
-    edge[:, 1:] |= dx
-    edge[:, :-1] |= dx
-    edge[1:, :] |= dy
-    edge[:-1, :] |= dy
-    if not edge.any():
+    img = np.empty(z.shape, np.uint8)
+    if not _edge_image(np.ascontiguousarray(z, dtype=np.float32), np.float32(jump), img):
         return np.full(z.shape, np.inf, dtype=np.float32)
-    dist = cv2.distanceTransform(np.where(edge, 0, 255).astype(np.uint8), cv2.DIST_L2, 5)
-    return (dist + 0.5).astype(np.float32)
+    dist = cv2.distanceTransform(img, cv2.DIST_L2, 5)
+    dist += np.float32(0.5)
+    return np.asarray(dist, dtype=np.float32)
+
+
+@njit(cache=True, nogil=True)
+def _edge_image(z: Any, jump: Any, out: Any) -> bool:  # pragma: no cover
+    """out = 0 on both pixels of every neighbour pair (row or column) whose z differs by more than
+    `jump` times the nearer one (no depth counts as 1e6 m), 255 elsewhere; whether any edge exists."""
+    h, w = z.shape
+    far = np.float32(1e6)
+    out[:] = 255
+    found = False
+    for v in range(h):
+        for u in range(w):
+            a = z[v, u]
+            if not np.isfinite(a):
+                a = far
+            if u + 1 < w:
+                b = z[v, u + 1]
+                if not np.isfinite(b):
+                    b = far
+                if abs(b - a) > jump * min(a, b):
+                    out[v, u] = 0
+                    out[v, u + 1] = 0
+                    found = True
+            if v + 1 < h:
+                b = z[v + 1, u]
+                if not np.isfinite(b):
+                    b = far
+                if abs(b - a) > jump * min(a, b):
+                    out[v, u] = 0
+                    out[v + 1, u] = 0
+                    found = True
+    return found
 
 
 @njit(cache=True, nogil=True)
@@ -183,14 +227,64 @@ def _geometry_maps(t_hit: Any, gids: Any, normals: Any, rays: Any, dirs: Any, ro
         albedo[i] = surface_albedo[g]
 
 
+@njit(cache=True, nogil=True)
+def _raster_geometry_maps(t_hit: Any, ids: Any, tri_normals: Any, surface_of: Any, xs: Any, ys: Any,
+                          origin: Any, rot: Any, surface_albedo: Any, z: Any, n_c: Any, inc: Any,
+                          cos_inc: Any, gid: Any, pts: Any, albedo: Any,
+                          want_inc: bool) -> None:  # pragma: no cover
+    """`_geometry_maps` of a rasterised pinhole view, from hit triangles and the per-triangle normal
+    table: each pixel's ray is built here with `fill_rays`' arithmetic, so every map holds the
+    same floats as from a ray array and per-pixel normals, without writing and reading them."""
+    w = xs.shape[0]
+    o0, o1, o2 = np.float32(origin[0]), np.float32(origin[1]), np.float32(origin[2])
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    one = np.float32(1.0)
+    for row in range(ys.shape[0]):
+        y = ys[row]
+        for col in range(w):
+            i = row * w + col
+            k = ids[i]
+            if k < 0:
+                z[i] = np.nan
+                inc[i] = np.nan
+                cos_inc[i] = 0.0
+                gid[i] = -1
+                albedo[i] = np.nan
+                for j in range(3):
+                    n_c[i, j] = 0.0
+                    pts[i, j] = np.nan
+                continue
+            t = t_hit[i]
+            g = surface_of[k]
+            gid[i] = g
+            z[i] = t
+            m0, m1, m2 = tri_normals[k, 0], tri_normals[k, 1], tri_normals[k, 2]
+            nc0 = m0 * r00 + m1 * r10 + m2 * r20
+            nc1 = m0 * r01 + m1 * r11 + m2 * r21
+            nc2 = m0 * r02 + m1 * r12 + m2 * r22
+            x = xs[col]
+            dot = nc0 * x + nc1 * y + nc2
+            if dot > 0:  # face the camera
+                nc0, nc1, nc2, dot = -nc0, -nc1, -nc2, -dot
+            n_c[i, 0], n_c[i, 1], n_c[i, 2] = nc0, nc1, nc2
+            c = np.float32(min(max(-dot / np.sqrt(x * x + y * y + 1.0), 0.0), 1.0))
+            cos_inc[i] = c
+            inc[i] = np.degrees(np.arccos(c)) if want_inc else np.nan
+            dx, dy, dz = world_direction(r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, one)
+            pts[i, 0] = o0 + dx * t
+            pts[i, 1] = o1 + dy * t
+            pts[i, 2] = o2 + dz * t
+            albedo[i] = surface_albedo[g]
+
+
 def render_geometry(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any],
                     rc: Any = None, edges: bool = True, inclination: bool = True) -> GeometryMaps:
     """Cast one ray per pixel centre and return the per-pixel truth of the view (`inclination`
     False: `inclination_deg` stays NaN, `cos_inc` is filled, as shading needs no more)."""
     rc = rc if rc is not None else scene.raycasting_scene()
     pose = np.asarray(cam_to_world, dtype=np.float64)
-    rays = camera_rays(intr, pose)
-    res = _cast(rc, intr, pose, rays)
     h, w = intr.height, intr.width
     z = np.empty((h, w), np.float32)
     n_c = np.empty((h, w, 3), np.float32)
@@ -199,13 +293,23 @@ def render_geometry(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any],
     gid = np.empty((h, w), np.int32)
     pts = np.empty((h, w, 3), np.float32)
     albedo = np.empty((h, w), np.float32)
-    surface_albedo = np.array([np.nan if s.board_face else s.albedo for s in scene.surfaces], np.float32)
-    _geometry_maps(res["t_hit"].reshape(-1), res["geometry_ids"].reshape(-1).astype(np.int64),
-                   res["primitive_normals"].reshape(-1, 3), rays.reshape(-1, 6),
-                   _pixel_rays(intr).reshape(-1, 3),
-                   np.ascontiguousarray(pose[:3, :3]), surface_albedo, z.reshape(-1), n_c.reshape(-1, 3),
-                   inc.reshape(-1), cos_inc.reshape(-1), gid.reshape(-1), pts.reshape(-1, 3),
-                   albedo.reshape(-1), inclination)
+    surface_albedo = _surface_albedo(scene)
+    rot = np.ascontiguousarray(pose[:3, :3])
+    if isinstance(rc, SceneRaster) and not intr.has_distortion:
+        t, ids, tri_normals = rc.cast_indexed(intr, pose)
+        xs, ys = pinhole_axes(intr)
+        _raster_geometry_maps(t, ids, tri_normals, rc.surface_of, xs, ys, np.ascontiguousarray(pose[:3, 3]),
+                              rot, surface_albedo, z.reshape(-1), n_c.reshape(-1, 3), inc.reshape(-1),
+                              cos_inc.reshape(-1), gid.reshape(-1), pts.reshape(-1, 3), albedo.reshape(-1),
+                              inclination)
+    else:
+        rays = camera_rays(intr, pose)
+        res = _cast(rc, intr, pose, rays)
+        _geometry_maps(res["t_hit"].reshape(-1), res["geometry_ids"].reshape(-1).astype(np.int64),
+                       res["primitive_normals"].reshape(-1, 3), rays.reshape(-1, 6),
+                       _pixel_rays(intr).reshape(-1, 3), rot, surface_albedo, z.reshape(-1),
+                       n_c.reshape(-1, 3), inc.reshape(-1), cos_inc.reshape(-1), gid.reshape(-1),
+                       pts.reshape(-1, 3), albedo.reshape(-1), inclination)
     for i, s in enumerate(scene.surfaces):
         if s.board_face:
             m = gid == i
@@ -215,9 +319,26 @@ def render_geometry(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any],
     return GeometryMaps(z, n_c, inc, albedo, gid, pts, edist, intr, pose, cos_inc)
 
 
-def _shade(albedo: NDArray[Any], tint: NDArray[Any], cos_inc: NDArray[Any]) -> F32:
-    """Linear radiance (0..1) of Lambertian surfaces lit by room light and a light near the camera."""
-    return np.asarray((albedo * (AMBIENT + DIFFUSE * cos_inc))[..., None] * tint * EXPOSURE, dtype=np.float32)
+def _surface_albedo(scene: Scene) -> F32:
+    """Albedo per surface (NaN for board faces: their print is looked up per hit point)."""
+    return np.array([np.nan if s.board_face else s.albedo for s in scene.surfaces], np.float32)
+
+
+@njit(cache=True, nogil=True)
+def _shade(albedo: Any, surface: Any, cos_inc: Any, tints: Any, out: Any) -> None:  # pragma: no cover
+    """Linear radiance (0..1) of Lambertian surfaces lit by room light and a light near the camera:
+    out = albedo (A + D cos) tint E per pixel, float32 (no hit, or NaN albedo: 0; tint of no hit:
+    the table's last row)."""
+    amb, dif, exp_ = np.float32(AMBIENT), np.float32(DIFFUSE), np.float32(EXPOSURE)
+    last = tints.shape[0] - 1
+    for i in range(albedo.shape[0]):
+        a = albedo[i]
+        if np.isnan(a):
+            a = np.float32(0.0)
+        k = surface[i] if surface[i] >= 0 else last
+        s = a * (amb + dif * cos_inc[i])
+        for c in range(3):
+            out[i, c] = s * tints[k, c] * exp_
 
 
 def render_color_linear(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any], rc: Any = None,
@@ -246,8 +367,8 @@ def render_color_linear(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[An
     tints = np.array([s.tint for s in scene.surfaces] + [(0.0, 0.0, 0.0)], dtype=np.float32)
     assert g.cos_inc is not None
     cos = g.cos_inc
-    alb = np.nan_to_num(g.albedo, nan=0.0)
-    img = _shade(alb, tints[g.surface], cos)
+    img = np.empty((intr.height, intr.width, 3), np.float32)
+    _shade(g.albedo.reshape(-1), g.surface.reshape(-1), cos.reshape(-1), tints, img.reshape(-1, 3))
     board_ids = [i for i, s in enumerate(scene.surfaces) if s.board_face]
     if board_ids and scene.board is not None:
         img = _board_print(scene, intr, g, board_ids, img)
@@ -359,8 +480,65 @@ def polygon_coverage(quads_cam: NDArray[np.float64], intr: Intrinsics,
 
 
 def encode_srgb(linear: F32) -> NDArray[np.uint8]:
-    """Camera response: gamma 1/2.2 to 8 bit (no noise)."""
-    return np.clip(255.0 * np.power(np.clip(linear, 0, 1), 1 / 2.2) + 0.5, 0, 255).astype(np.uint8)
+    """Camera response: gamma 1/2.2 to 8 bit (no noise): 255 x^(1/2.2) + 0.5 truncated, x clipped
+    to [0, 1], as numpy evaluates it in float32, read from a table (`_srgb_table`)."""
+    lin = np.ascontiguousarray(linear, dtype=np.float32)
+    out = np.empty(lin.shape, np.uint8)
+    lo, thr = _srgb_table()
+    _encode_srgb(lin.reshape(-1).view(np.uint32), lo, thr, out.reshape(-1))
+    return out
+
+
+def _srgb_reference(x: NDArray[np.float32]) -> NDArray[np.uint8]:
+    """The response by its formula (numpy, float32): what the table reproduces."""
+    return np.clip(255.0 * np.power(np.clip(x, 0, 1), 1 / 2.2) + 0.5, 0, 255).astype(np.uint8)
+
+
+_SRGB_SHIFT = 12  # float32 bits >> 12: buckets of 2^11 per octave, at most one step of the response each
+
+
+@lru_cache(maxsize=1)
+def _srgb_table() -> tuple[NDArray[np.uint8], NDArray[np.uint32]]:
+    """Per bucket of float32 bit patterns in [0, 1]: the response at its first value and the first
+    bit pattern where it steps up (the bucket's end if it does not), found by bisection of the
+    formula itself. The response rises by less than 0.06 counts per bucket, so one step at most."""
+    n = (int(np.float32(1.0).view(np.uint32)) >> _SRGB_SHIFT) + 1
+    first = np.arange(n, dtype=np.uint64) << _SRGB_SHIFT
+    last = first + (1 << _SRGB_SHIFT) - 1
+    def at(bits: NDArray[np.uint64]) -> NDArray[np.int64]:
+        return _srgb_reference(bits.astype(np.uint32).view(np.float32)).astype(np.int64)
+    lo_v, hi_v = at(first), at(last)
+    if np.any(hi_v - lo_v > 1):
+        raise AssertionError("sRGB table: more than one step in a bucket")
+    a, b = first.copy(), last + 1  # invariant: at(a) == lo, at(b) > lo (b = last + 1: no step)
+    steps = hi_v > lo_v
+    while True:
+        todo = steps & (b - a > 1)
+        if not todo.any():
+            break
+        mid = (a + b) // 2
+        up = at(mid) > lo_v
+        b = np.where(todo & up, mid, b)
+        a = np.where(todo & ~up, mid, a)
+    thr = np.where(steps, b, last + 1).astype(np.uint32)
+    return lo_v.astype(np.uint8), thr
+
+
+@njit(cache=True, nogil=True)
+def _encode_srgb(bits: Any, lo: Any, thr: Any, out: Any) -> None:  # pragma: no cover
+    """The table's response of float32 values given as their bits (negative, NaN: 0; above 1: 255's)."""
+    one = np.uint32(0x3F800000)
+    sign = np.uint32(0x80000000)
+    top = lo[lo.shape[0] - 1]
+    for i in range(bits.shape[0]):
+        b = bits[i]
+        if b >= sign:  # negative (and -0, negative NaN)
+            out[i] = 0
+        elif b >= one:  # 1 and above, inf; NaN
+            out[i] = top if b <= np.uint32(0x7F800000) else 0
+        else:
+            k = b >> _SRGB_SHIFT
+            out[i] = lo[k] + (b >= thr[k])
 
 
 class NoiseBank:

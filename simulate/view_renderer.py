@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from depthstation.core.camera_model import StreamInfo
@@ -27,9 +28,20 @@ PSF_SIGMA_PX = 0.0  # optical blur of the colour camera (Gaussian sigma, px); 0 
 
 def depth_to_z16(z_m: NDArray[Any], depth_units_m: float) -> NDArray[np.uint16]:
     """Metres (NaN = none) to z16 counts; 0 where no depth or beyond the 16-bit range."""
-    counts = np.rint(np.nan_to_num(z_m, nan=0.0) * np.float32(1.0 / depth_units_m))
-    counts[(counts < 0) | (counts > 65535)] = 0
-    return counts.astype(np.uint16)
+    z = np.asarray(z_m)
+    if z.dtype not in (np.float32, np.float64):
+        z = z.astype(np.float64)
+    out = np.empty(z.shape, np.uint16)
+    _z16(np.ascontiguousarray(z).reshape(-1), np.float32(1.0 / depth_units_m), out.reshape(-1))
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _z16(z: Any, scale: Any, out: Any) -> None:  # pragma: no cover
+    """out = rint(z * scale) (ties to even; float32 for float32 z), 0 for NaN and outside [0, 65535]."""
+    for i in range(z.shape[0]):
+        c = np.rint(z[i] * scale)
+        out[i] = np.uint16(c) if c >= 0 and c <= 65535 else 0
 
 
 class ViewRenderer:

@@ -191,7 +191,7 @@ def _unit_normal(nx: Any, ny: Any, nz: Any, out: Any, k: int) -> None:
 
 
 @numba.njit(inline="always")
-def _direction(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float, r20: float,
+def world_direction(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float, r20: float,
                r21: float, r22: float, x: Any, y: Any, z: Any) -> Any:
     """World direction of a camera-frame ray, float64 products and sums rounded once to float32."""
     return (np.float32(r00 * x + r01 * y + r02 * z), np.float32(r10 * x + r11 * y + r12 * z),
@@ -200,7 +200,8 @@ def _direction(r00: float, r01: float, r02: float, r10: float, r11: float, r12: 
 
 @numba.njit(inline="always")
 def _dir_at(dtab: Any, u: int, v: int, r02: float, r12: float, r22: float) -> Any:
-    """`_direction` of pixel (u, v) from per-column and per-row products (same operations, same order)."""
+    """`world_direction` of pixel (u, v) from per-column and per-row products (same operations,
+    same order)."""
     return (np.float32(dtab[0, u] + dtab[3, v] + r02), np.float32(dtab[1, u] + dtab[4, v] + r12),
             np.float32(dtab[2, u] + dtab[5, v] + r22))
 
@@ -213,7 +214,7 @@ def fill_rays(rays: Any, origin: Any, rot: Any, dirs: Any) -> None:
     r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
     r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
     for i in range(dirs.shape[0]):
-        dx, dy, dz = _direction(r00, r01, r02, r10, r11, r12, r20, r21, r22,
+        dx, dy, dz = world_direction(r00, r01, r02, r10, r11, r12, r20, r21, r22,
                                 dirs[i, 0], dirs[i, 1], dirs[i, 2])
         rays[i, 0] = origin[0]
         rays[i, 1] = origin[1]
@@ -731,7 +732,7 @@ class MeshRaster:
         normals (unit, float32, 0 on a miss) of the view `cam_to_world` (4x4) for the rays that
         `fill_rays(rays, pose[:3, 3], pose[:3, :3], pixel_rays(intr))` builds: what Open3D's
         `cast_rays` returns for them. Needs a pinhole (no lens distortion)."""
-        xs, ys = _pinhole_axes(intr)
+        xs, ys = pinhole_axes(intr)
         f = max(intr.fx, intr.fy)
         x_edge = max(abs(intr.ppx), abs(intr.width - 1 - intr.ppx)) / intr.fx
         y_edge = max(abs(intr.ppy), abs(intr.height - 1 - intr.ppy)) / intr.fy
@@ -760,7 +761,7 @@ class MeshRaster:
                       normals: NDArray[np.float32] | None) -> None:
         """Pixels whose ray meets two triangles at the same nearest depth (through a shared edge):
         which one ray casting reports depends on its tree, so those few rays are ray cast."""
-        xs, ys = _pinhole_axes(intr)  # pixel_rays(intr)[ties] without building all 307 k of them
+        xs, ys = pinhole_axes(intr)  # pixel_rays(intr)[ties] without building all 307 k of them
         dirs = np.ones((ties.size, 3), np.float32)
         dirs[:, 0] = xs[ties % intr.width]
         dirs[:, 1] = ys[ties // intr.width]
@@ -826,7 +827,7 @@ def _pinhole_axes_cached(intr: Intrinsics) -> tuple[NDArray[np.float32], NDArray
     return xs, ys
 
 
-def _pinhole_axes(intr: Intrinsics) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+def pinhole_axes(intr: Intrinsics) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Camera-frame x of each column and y of each row of `pixel_rays(intr)` (z = 1)."""
     if intr.has_distortion:
         raise ValueError("the rasteriser needs a pinhole: cast rays for a stream with lens distortion")

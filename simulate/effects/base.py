@@ -8,9 +8,10 @@ variance, so every effect states its physics once, in the space where it happens
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import cv2
 import numpy as np
@@ -19,6 +20,7 @@ from numpy.typing import NDArray
 from depthstation.core.errors import SimulationError
 
 Array = NDArray[Any]
+T = TypeVar("T")
 
 # D455 depth camera at 1280x720 (see simulate/presets.py): used only as defaults of PixelContext.
 _D455_FX = 640.0 / np.tan(np.radians(87.0 / 2.0))
@@ -127,7 +129,8 @@ class Effect:
             self.params[k] = float(val)
         self.units: dict[str, str] = {k: v[1] for k, v in self.PARAMS.items()}
         self._cache_ctx: PixelContext | None = None
-        self._cache: dict[str, Array] = {}
+        self._cache: dict[str, Any] = {}
+        self._cache_lock = threading.Lock()
         self.validate()
 
     def validate(self) -> None:
@@ -136,14 +139,22 @@ class Effect:
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.params})"
 
-    def cached(self, ctx: PixelContext, key: str, fn: Callable[[], Array]) -> Array:
-        """Per-context memo for static maps (a standpoint renders its geometry once, 150 frames)."""
-        if self._cache_ctx is not ctx:
-            self._cache_ctx = ctx
-            self._cache = {}
-        if key not in self._cache:
-            self._cache[key] = fn()
-        return self._cache[key]
+    def cached(self, ctx: PixelContext, key: str, fn: Callable[[], T]) -> T:
+        """Per-context memo for static maps (a standpoint renders its geometry once, 150 frames).
+
+        Thread-safe: renderers on several threads share a model's effects, each with its own
+        context; a value is only ever returned to a caller of the context it was made for."""
+        with self._cache_lock:
+            if self._cache_ctx is not ctx:
+                self._cache_ctx = ctx
+                self._cache = {}
+            memo = self._cache
+            if key in memo:
+                return memo[key]
+        value = fn()
+        with self._cache_lock:
+            memo[key] = value
+        return value
 
     def bias_m(self, ctx: PixelContext) -> Array:
         """Expected z-depth bias (m, + = measured too far) of this effect alone."""

@@ -2,15 +2,32 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
 from depthstation.simulate.effects.base import Array, Effect, PixelContext
 
 
-def _logistic(x: Array) -> Array:
-    return np.asarray(1.0 / (1.0 + np.exp(-np.clip(x, -60, 60))))
+def _one_minus_logistic(x: Any, x0: float, width: float) -> Array:
+    """1 - 1 / (1 + exp(-u)) of u = (x - x0) / width clipped to +-60, in one float64 array."""
+    x = np.asarray(x, dtype=np.float64)
+    t = np.subtract(x, x0, out=np.empty(x.shape))
+    np.divide(t, width, out=t)
+    np.clip(t, -60, 60, out=t)
+    np.negative(t, out=t)
+    np.exp(t, out=t)
+    t += 1.0
+    np.divide(1.0, t, out=t)
+    np.subtract(1.0, t, out=t)
+    return t
+
+
+def _times(a: Array, b: Array) -> Array:
+    """a * b, into a where the product has a's shape (a is a fresh float64 array)."""
+    if a.ndim and a.shape == np.broadcast_shapes(a.shape, np.shape(b)):
+        return np.multiply(a, b, out=a)
+    return np.asarray(a * b)
 
 
 class Dropout(Effect):
@@ -48,16 +65,24 @@ class Dropout(Effect):
             raise ValueError("widths must be positive")
 
     def valid_probability(self, ctx: PixelContext) -> Array:
+        # the same products as keep = keep * (1 - logistic(...)) ..., in place (a per-pose cost of
+        # every simulated frame of a walk)
         p = self.params
         z = np.asarray(ctx.z_m, dtype=np.float64)
         inc = np.asarray(ctx.inclination_deg, dtype=np.float64)
         alb = np.asarray(ctx.albedo, dtype=np.float64)
-        keep = (ctx.disparity_px() <= p["max_disparity_px"]).astype(np.float64)
-        keep = keep * (1 - _logistic((z - p["range_z50_m"]) / p["range_width_m"]))
-        keep = keep * (1 - _logistic((inc - p["grazing_deg50"]) / p["grazing_width_deg"]))
-        keep = keep * (1 - p["dark_probability"] * (1 - np.clip(alb, 0, 1)))
-        keep = keep * (1 - p["base_probability"])
-        return np.broadcast_to(keep, ctx.shape()).copy()
+        keep = np.asarray((ctx.disparity_px() <= p["max_disparity_px"]).astype(np.float64))
+        keep = _times(keep, _one_minus_logistic(z, p["range_z50_m"], p["range_width_m"]))
+        keep = _times(keep, _one_minus_logistic(inc, p["grazing_deg50"], p["grazing_width_deg"]))
+        dark = np.clip(alb, 0, 1, out=np.empty(alb.shape))
+        np.subtract(1, dark, out=dark)
+        np.multiply(p["dark_probability"], dark, out=dark)
+        np.subtract(1, dark, out=dark)
+        keep = _times(keep, dark)
+        if p["base_probability"] != 0:
+            keep = keep * (1 - p["base_probability"])
+        shape = ctx.shape()
+        return keep if keep.shape == shape else np.broadcast_to(keep, shape).copy()
 
     def apply(self, ctx: PixelContext, z_m: Array, rng: np.random.Generator) -> Array:
         keep = self.cached(ctx, "keep", lambda: np.broadcast_to(
