@@ -152,9 +152,9 @@ def edge_distance(z: F32, jump: float = EDGE_JUMP) -> F32:
     img = np.empty(z.shape, np.uint8)
     if not _edge_image(np.ascontiguousarray(z, dtype=np.float32), np.float32(jump), img):
         return np.full(z.shape, np.inf, dtype=np.float32)
-    dist = cv2.distanceTransform(img, cv2.DIST_L2, 5)
+    dist = np.asarray(cv2.distanceTransform(img, cv2.DIST_L2, 5), dtype=np.float32)
     dist += np.float32(0.5)
-    return np.asarray(dist, dtype=np.float32)
+    return dist
 
 
 @njit(cache=True, nogil=True)
@@ -503,13 +503,14 @@ def _srgb_table() -> tuple[NDArray[np.uint8], NDArray[np.uint32]]:
     bit pattern where it steps up (the bucket's end if it does not), found by bisection of the
     formula itself. The response rises by less than 0.06 counts per bucket, so one step at most."""
     n = (int(np.float32(1.0).view(np.uint32)) >> _SRGB_SHIFT) + 1
-    first = np.arange(n, dtype=np.uint64) << _SRGB_SHIFT
+    first = np.arange(n, dtype=np.int64) << _SRGB_SHIFT
     last = first + (1 << _SRGB_SHIFT) - 1
-    def at(bits: NDArray[np.uint64]) -> NDArray[np.int64]:
+
+    def at(bits: NDArray[np.int64]) -> NDArray[np.int64]:
         return _srgb_reference(bits.astype(np.uint32).view(np.float32)).astype(np.int64)
     lo_v, hi_v = at(first), at(last)
     if np.any(hi_v - lo_v > 1):
-        raise AssertionError("sRGB table: more than one step in a bucket")
+        raise RuntimeError("sRGB table: more than one step of the response in a bucket")
     a, b = first.copy(), last + 1  # invariant: at(a) == lo, at(b) > lo (b = last + 1: no step)
     steps = hi_v > lo_v
     while True:
