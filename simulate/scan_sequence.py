@@ -78,7 +78,7 @@ def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: Sens
     # rendered by `threads` renderers side by side (the kernels release the GIL); every frame
     # depends only on its pose, index and the seed, so the sequence is the same for any count
     n_threads = max(1, threads if threads is not None else min(2, len(os.sched_getaffinity(0))))
-    renderers = [ViewRenderer(sc, mdl, info, seed=seed, color=color, rc=SceneRaster(sc))
+    renderers = [ViewRenderer(sc, mdl, info, seed=seed, color=color, rc=SceneRaster(sc), vectors=False)
                  for _ in range(n_threads)]
 
     def render(i: int) -> FrameSet:

@@ -191,22 +191,22 @@ def _edge_image(z: Any, jump: Any, out: Any) -> bool:  # pragma: no cover
 
 @njit(cache=True, nogil=True)
 def _geometry_maps(t_hit: Any, gids: Any, normals: Any, rays: Any, dirs: Any, rot: Any,
-                   surface_albedo: Any, z: Any, n_c: Any, inc: Any, cos_inc: Any, gid: Any, pts: Any,
-                   albedo: Any, want_inc: bool) -> None:  # pragma: no cover
-    """Per pixel: z-depth, the normal in the camera frame turned to face the camera, inclination
-    (degrees, when `want_inc`; its arccos is most of the pass) and its cosine, surface index,
-    world hit point and the surface's albedo (NaN/-1, cosine 0 on a miss)."""
+                   surface_albedo: Any, z: Any, n_c: Any, cos_inc: Any, gid: Any, pts: Any,
+                   albedo: Any, vectors: bool) -> None:  # pragma: no cover
+    """Per pixel: z-depth, cosine of the inclination, surface index and the surface's albedo, and
+    (`vectors`) the normal in the camera frame turned to face the camera and the world hit point
+    (NaN/-1, cosine 0 on a miss)."""
     for i in range(t_hit.shape[0]):
         t = t_hit[i]
         if not np.isfinite(t):
             z[i] = np.nan
-            inc[i] = np.nan
             cos_inc[i] = 0.0
             gid[i] = -1
             albedo[i] = np.nan
-            for k in range(3):
-                n_c[i, k] = 0.0
-                pts[i, k] = np.nan
+            if vectors:
+                for k in range(3):
+                    n_c[i, k] = 0.0
+                    pts[i, k] = np.nan
             continue
         g = gids[i]
         gid[i] = g
@@ -218,20 +218,18 @@ def _geometry_maps(t_hit: Any, gids: Any, normals: Any, rays: Any, dirs: Any, ro
         dot = nc0 * x + nc1 * y + nc2
         if dot > 0:  # face the camera
             nc0, nc1, nc2, dot = -nc0, -nc1, -nc2, -dot
-        n_c[i, 0], n_c[i, 1], n_c[i, 2] = nc0, nc1, nc2
-        c = np.float32(min(max(-dot / np.sqrt(x * x + y * y + 1.0), 0.0), 1.0))
-        cos_inc[i] = c
-        inc[i] = np.degrees(np.arccos(c)) if want_inc else np.nan  # float32: the maps are float32
-        for k in range(3):
-            pts[i, k] = rays[i, k] + rays[i, 3 + k] * t
+        cos_inc[i] = np.float32(min(max(-dot / np.sqrt(x * x + y * y + 1.0), 0.0), 1.0))
         albedo[i] = surface_albedo[g]
+        if vectors:
+            n_c[i, 0], n_c[i, 1], n_c[i, 2] = nc0, nc1, nc2
+            for k in range(3):
+                pts[i, k] = rays[i, k] + rays[i, 3 + k] * t
 
 
 @njit(cache=True, nogil=True)
 def _raster_geometry_maps(t_hit: Any, ids: Any, tri_normals: Any, surface_of: Any, xs: Any, ys: Any,
-                          origin: Any, rot: Any, surface_albedo: Any, z: Any, n_c: Any, inc: Any,
-                          cos_inc: Any, gid: Any, pts: Any, albedo: Any,
-                          want_inc: bool) -> None:  # pragma: no cover
+                          origin: Any, rot: Any, surface_albedo: Any, z: Any, n_c: Any, cos_inc: Any,
+                          gid: Any, pts: Any, albedo: Any, vectors: bool) -> None:  # pragma: no cover
     """`_geometry_maps` of a rasterised pinhole view, from hit triangles and the per-triangle normal
     table: each pixel's ray is built here with `fill_rays`' arithmetic, so every map holds the
     same floats as from a ray array and per-pixel normals, without writing and reading them."""
@@ -248,13 +246,13 @@ def _raster_geometry_maps(t_hit: Any, ids: Any, tri_normals: Any, surface_of: An
             k = ids[i]
             if k < 0:
                 z[i] = np.nan
-                inc[i] = np.nan
                 cos_inc[i] = 0.0
                 gid[i] = -1
                 albedo[i] = np.nan
-                for j in range(3):
-                    n_c[i, j] = 0.0
-                    pts[i, j] = np.nan
+                if vectors:
+                    for j in range(3):
+                        n_c[i, j] = 0.0
+                        pts[i, j] = np.nan
                 continue
             t = t_hit[i]
             g = surface_of[k]
@@ -268,48 +266,60 @@ def _raster_geometry_maps(t_hit: Any, ids: Any, tri_normals: Any, surface_of: An
             dot = nc0 * x + nc1 * y + nc2
             if dot > 0:  # face the camera
                 nc0, nc1, nc2, dot = -nc0, -nc1, -nc2, -dot
-            n_c[i, 0], n_c[i, 1], n_c[i, 2] = nc0, nc1, nc2
-            c = np.float32(min(max(-dot / np.sqrt(x * x + y * y + 1.0), 0.0), 1.0))
-            cos_inc[i] = c
-            inc[i] = np.degrees(np.arccos(c)) if want_inc else np.nan
-            dx, dy, dz = world_direction(r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, one)
-            pts[i, 0] = o0 + dx * t
-            pts[i, 1] = o1 + dy * t
-            pts[i, 2] = o2 + dz * t
+            cos_inc[i] = np.float32(min(max(-dot / np.sqrt(x * x + y * y + 1.0), 0.0), 1.0))
             albedo[i] = surface_albedo[g]
+            if vectors:
+                n_c[i, 0], n_c[i, 1], n_c[i, 2] = nc0, nc1, nc2
+                dx, dy, dz = world_direction(r00, r01, r02, r10, r11, r12, r20, r21, r22, x, y, one)
+                pts[i, 0] = o0 + dx * t
+                pts[i, 1] = o1 + dy * t
+                pts[i, 2] = o2 + dz * t
 
 
 def render_geometry(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any],
-                    rc: Any = None, edges: bool = True, inclination: bool = True) -> GeometryMaps:
-    """Cast one ray per pixel centre and return the per-pixel truth of the view (`inclination`
-    False: `inclination_deg` stays NaN, `cos_inc` is filled, as shading needs no more)."""
+                    rc: Any = None, edges: bool = True, inclination: bool = True,
+                    vectors: bool = True) -> GeometryMaps:
+    """Cast one ray per pixel centre and return the per-pixel truth of the view.
+
+    For shading, which needs no more than `cos_inc`, surface and albedo: `inclination` False leaves
+    `inclination_deg` NaN, `vectors` False leaves `normal` and `points_world` NaN (read-only, no
+    memory), unless board faces need their hit points for the print."""
     rc = rc if rc is not None else scene.raycasting_scene()
     pose = np.asarray(cam_to_world, dtype=np.float64)
     h, w = intr.height, intr.width
+    vectors = vectors or any(s.board_face for s in scene.surfaces)
     z = np.empty((h, w), np.float32)
-    n_c = np.empty((h, w, 3), np.float32)
-    inc = np.empty((h, w), np.float32)
     cos_inc = np.empty((h, w), np.float32)
     gid = np.empty((h, w), np.int32)
-    pts = np.empty((h, w, 3), np.float32)
     albedo = np.empty((h, w), np.float32)
+    if vectors:
+        n_c = np.empty((h, w, 3), np.float32)
+        pts = np.empty((h, w, 3), np.float32)
+        flat_nc, flat_pts = n_c.reshape(-1, 3), pts.reshape(-1, 3)
+    else:
+        n_c = pts = np.broadcast_to(np.float32(np.nan), (h, w, 3))
+        flat_nc = flat_pts = np.zeros((0, 3), np.float32)  # the kernels leave them alone
     surface_albedo = _surface_albedo(scene)
     rot = np.ascontiguousarray(pose[:3, :3])
     if isinstance(rc, SceneRaster) and not intr.has_distortion:
         t, ids, tri_normals = rc.cast_indexed(intr, pose)
         xs, ys = pinhole_axes(intr)
         _raster_geometry_maps(t, ids, tri_normals, rc.surface_of, xs, ys, np.ascontiguousarray(pose[:3, 3]),
-                              rot, surface_albedo, z.reshape(-1), n_c.reshape(-1, 3), inc.reshape(-1),
-                              cos_inc.reshape(-1), gid.reshape(-1), pts.reshape(-1, 3), albedo.reshape(-1),
-                              inclination)
+                              rot, surface_albedo, z.reshape(-1), flat_nc, cos_inc.reshape(-1),
+                              gid.reshape(-1), flat_pts, albedo.reshape(-1), vectors)
     else:
         rays = camera_rays(intr, pose)
         res = _cast(rc, intr, pose, rays)
         _geometry_maps(res["t_hit"].reshape(-1), res["geometry_ids"].reshape(-1).astype(np.int64),
                        res["primitive_normals"].reshape(-1, 3), rays.reshape(-1, 6),
                        _pixel_rays(intr).reshape(-1, 3), rot, surface_albedo, z.reshape(-1),
-                       n_c.reshape(-1, 3), inc.reshape(-1), cos_inc.reshape(-1), gid.reshape(-1),
-                       pts.reshape(-1, 3), albedo.reshape(-1), inclination)
+                       flat_nc, cos_inc.reshape(-1), gid.reshape(-1), flat_pts, albedo.reshape(-1), vectors)
+    if inclination:  # float32 degrees of the float32 cosine (numpy's vectorised arccos)
+        inc = np.arccos(cos_inc)
+        np.degrees(inc, out=inc)
+        inc[gid < 0] = np.nan
+    else:
+        inc = np.full((h, w), np.nan, np.float32)
     for i, s in enumerate(scene.surfaces):
         if s.board_face:
             m = gid == i
@@ -363,7 +373,7 @@ def render_color_linear(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[An
         map_v = (d[..., 1] * intr.fy + intr.ppy).astype(np.float32)
         return np.asarray(cv2.remap(ideal, map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
                           dtype=np.float32)
-    g = render_geometry(scene, intr, cam_to_world, rc, edges=False, inclination=False)
+    g = render_geometry(scene, intr, cam_to_world, rc, edges=False, inclination=False, vectors=False)
     tints = np.array([s.tint for s in scene.surfaces] + [(0.0, 0.0, 0.0)], dtype=np.float32)
     assert g.cos_inc is not None
     cos = g.cos_inc

@@ -54,7 +54,8 @@ class ViewRenderer:
 
     def __init__(self, scene: Scene, model: SensorModel, info: StreamInfo, *, seed: int = 0,
                  color: bool = True, infrared: bool = False, rc: Any = None,
-                 color_noise_dn: float = COLOR_NOISE_DN, psf_sigma_px: float = PSF_SIGMA_PX) -> None:
+                 color_noise_dn: float = COLOR_NOISE_DN, psf_sigma_px: float = PSF_SIGMA_PX,
+                 vectors: bool = True) -> None:
         self.scene = scene
         self.model = model
         self.info = info
@@ -63,6 +64,7 @@ class ViewRenderer:
         self.want_ir = infrared
         self.rc = rc if rc is not None else scene.raycasting_scene()
         self.psf_sigma_px = psf_sigma_px
+        self.vectors = vectors  # False: the geometry's normal and points_world maps are not filled
         self.geometry: GeometryMaps | None = None
         self.color_base: NDArray[np.uint8] | None = None
         self.ir_base: NDArray[np.float32] | None = None
@@ -81,7 +83,8 @@ class ViewRenderer:
         if self._pose is not None and np.array_equal(pose, self._pose):
             return
         self._pose = pose.copy()
-        self.geometry = render_geometry(self.scene, self.info.depth_intrinsics, pose, self.rc)
+        self.geometry = render_geometry(self.scene, self.info.depth_intrinsics, pose, self.rc,
+                                        vectors=self.vectors)
         self._ctx = None
         if self.want_color:
             assert self.info.color_intrinsics is not None

@@ -140,6 +140,12 @@ def test_model_sample_matches_model_signature(fused: bool) -> None:
     resid = np.where(np.isfinite(zs), zs - z - model.bias_m(ctx), np.nan)
     var = model.variance_m2(ctx).mean(axis=0)
     n = np.isfinite(resid).sum(axis=0)
-    assert np.all(np.abs(np.nanmean(resid, axis=0)) <= 5 * np.sqrt(var / n) + 2e-5)
+    # the window noise is shared by w rows of a column: its share of the column mean's variance is
+    # w times that of independent draws (the triangular correlation sums to w)
+    win = model.effect("window_noise")
+    assert win is not None
+    var_win = win.variance_m2(ctx).mean(axis=0)
+    var_mean = (var - var_win + var_win * win.params["window_px"]) / n
+    assert np.all(np.abs(np.nanmean(resid, axis=0)) <= 5 * np.sqrt(var_mean) + 2e-5)
     # first-order sum of variances; the effects' interaction (1/d nonlinearity) stays within 5 %
     np.testing.assert_allclose(np.nanvar(resid, axis=0), var, rtol=0.05 + 5 * np.sqrt(2 / n.min()))
