@@ -3,8 +3,8 @@
 Mathematically the same model as applying the effects one by one (shifts add in disparity; the
 sum of independent zero-mean Gaussian disparity noises is one Gaussian with the summed variance;
 dropout is independent of the values), but one pass over the image instead of ten: what makes a
-150-frame 1280x720 standpoint take seconds. Random numbers come from numpy's Generator (normals
-through `simulate.gaussian`'s ziggurat), so the result does not depend on threads.
+150-frame 1280x720 standpoint take seconds. Random numbers come from numpy's Generator, so the
+result does not depend on threads.
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ from depthstation.simulate.effects.depth_scale import DepthScale
 from depthstation.simulate.effects.dropout import Dropout
 from depthstation.simulate.effects.flying_pixels import FlyingPixels
 from depthstation.simulate.effects.quantization import Quantization
-from depthstation.simulate.gaussian import standard_normal
 
 FUSABLE = (DisparityShift, DisparityJitter, DepthScale, Quantization, Dropout, FlyingPixels)
 
@@ -113,7 +112,7 @@ class FusedSampler:
 
     def sample(self, rng: np.random.Generator) -> NDArray[np.float32]:
         """One measured z map (float32, NaN = no depth)."""
-        noise = standard_normal(rng, self.d0.size)
+        noise = rng.standard_normal(self.d0.size, dtype=np.float32)
         draw = rng.random(self.d0.size, dtype=np.float32)
         out = np.empty(self.d0.size, dtype=np.float32)
         d0 = self.d0

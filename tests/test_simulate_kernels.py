@@ -133,30 +133,3 @@ def test_rasterised_geometry_equals_ray_casting(frame: int) -> None:
               "edge_distance_px"):
         assert np.array_equal(getattr(a, k), getattr(b, k), equal_nan=True), k
 
-
-def test_ziggurat_draws_are_standard_normal() -> None:
-    # 2 M draws: moments, the KS distance and the tail beyond the base layer against the normal
-    # law, each within about 4 standard errors of the sample
-    from scipy import stats
-
-    from depthstation.simulate.gaussian import R, standard_normal
-    n = 2_000_000
-    z32 = standard_normal(np.random.default_rng(11), n)
-    assert z32.dtype == np.float32 and z32.shape == (n,)
-    z = z32.astype(np.float64)
-    assert abs(z.mean()) < 4 / np.sqrt(n)
-    assert abs(z.var() - 1) < 4 * np.sqrt(2 / n)
-    assert abs((z ** 4).mean() - 3) < 4 * np.sqrt(96 / n)
-    assert stats.kstest(z, "norm").statistic < 1.95 / np.sqrt(n)  # 0.1 % level
-    for t in (1.0, 2.0, 3.0, R, 4.0):
-        p = 2 * stats.norm.sf(t)
-        assert abs((np.abs(z) > t).sum() - p * n) < 4 * np.sqrt(p * n) + 1, t
-
-
-def test_ziggurat_depends_on_the_generator_only() -> None:
-    from depthstation.simulate.gaussian import standard_normal
-    a = standard_normal(np.random.default_rng([3, 9]), (48, 64))
-    b = standard_normal(np.random.default_rng([3, 9]), (48, 64))
-    c = standard_normal(np.random.default_rng([3, 10]), (48, 64))
-    assert a.dtype == np.float32 and a.shape == (48, 64)
-    assert np.array_equal(a, b) and not np.array_equal(a, c)

@@ -18,7 +18,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.core.errors import SimulationError
-from depthstation.simulate.gaussian import standard_normal
 
 Array = NDArray[Any]
 T = TypeVar("T")
@@ -228,13 +227,13 @@ def box_correlated_field(shape: tuple[int, ...], window: float, rng: np.random.G
     if len(shape) == 0:
         return np.asarray(rng.standard_normal(dtype=np.float32))
     if w == 1:
-        return standard_normal(rng, shape)
+        return rng.standard_normal(shape, dtype=np.float32)
     if len(shape) == 1:
-        white = standard_normal(rng, shape[0] + w - 1)
+        white = rng.standard_normal(shape[0] + w - 1, dtype=np.float32)
         c = np.concatenate([[0.0], np.cumsum(white, dtype=np.float64)])
         return ((c[w:] - c[:-w]) / np.sqrt(w)).astype(np.float32)
     rows, cols = int(np.prod(shape[:-1])), int(shape[-1])
-    white = standard_normal(rng, (rows + w - 1, cols + w - 1))
+    white = rng.standard_normal((rows + w - 1, cols + w - 1), dtype=np.float32)
     out = cv2.boxFilter(white, -1, (w, w), normalize=True, borderType=cv2.BORDER_CONSTANT)
     h = w // 2
     out = out[h:h + rows, h:h + cols] * np.float32(w)
