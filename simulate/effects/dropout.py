@@ -5,29 +5,45 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import numpy as np
+from numba import njit
 
 from depthstation.simulate.effects.base import Array, Effect, PixelContext
 
 
-def _one_minus_logistic(x: Any, x0: float, width: float) -> Array:
-    """1 - 1 / (1 + exp(-u)) of u = (x - x0) / width clipped to +-60, in one float64 array."""
-    x = np.asarray(x, dtype=np.float64)
-    t = np.subtract(x, x0, out=np.empty(x.shape))
-    np.divide(t, width, out=t)
-    np.clip(t, -60, 60, out=t)
-    np.negative(t, out=t)
-    np.exp(t, out=t)
-    t += 1.0
-    np.divide(1.0, t, out=t)
-    np.subtract(1.0, t, out=t)
-    return t
+@njit(inline="always")
+def _minus_u(x: float, x0: float, w: float) -> float:  # pragma: no cover - compiled
+    t = (x - x0) / w
+    if t < -60.0:
+        t = -60.0
+    elif t > 60.0:
+        t = 60.0
+    return -t
 
 
-def _times(a: Array, b: Array) -> Array:
-    """a * b, into a where the product has a's shape (a is a fresh float64 array)."""
-    if a.ndim and a.shape == np.broadcast_shapes(a.shape, np.shape(b)):
-        return np.multiply(a, b, out=a)
-    return np.asarray(a * b)
+@njit(cache=True, nogil=True)
+def _exponents(z: Any, inc: Any, z50: float, zw: float, g50: float, gw: float, e1: Any,
+               e2: Any) -> None:  # pragma: no cover - compiled
+    """-u of u = (x - x50) / width clipped to +-60, for the range (z) and grazing (inc) roll-offs."""
+    for i in range(e1.shape[0]):
+        e1[i] = _minus_u(float(z[i]), z50, zw)
+        e2[i] = _minus_u(float(inc[i]), g50, gw)
+
+
+@njit(cache=True, nogil=True)
+def _keep(z: Any, alb: Any, fb: float, max_d: float, dark_p: float, e1: Any, e2: Any,
+          out: Any) -> None:  # pragma: no cover - compiled
+    """keep = [fB / z <= max_d] (1 - 1 / (1 + e1)) (1 - 1 / (1 + e2)) (1 - p_dark (1 - clip(albedo)))
+    with e = exp(-u), multiplied in that order."""
+    for i in range(out.shape[0]):
+        k = 1.0 if fb / float(z[i]) <= max_d else 0.0
+        k = k * (1.0 - 1.0 / (e1[i] + 1.0))
+        k = k * (1.0 - 1.0 / (e2[i] + 1.0))
+        a = float(alb[i])
+        if a < 0.0:
+            a = 0.0
+        elif a > 1.0:
+            a = 1.0
+        out[i] = k * (1.0 - dark_p * (1.0 - a))
 
 
 class Dropout(Effect):
@@ -65,24 +81,26 @@ class Dropout(Effect):
             raise ValueError("widths must be positive")
 
     def valid_probability(self, ctx: PixelContext) -> Array:
-        # the same products as keep = keep * (1 - logistic(...)) ..., in place (a per-pose cost of
-        # every simulated frame of a walk)
+        # keep = [d <= max_d] * (1 - logistic(range)) * (1 - logistic(grazing)) * (1 - p_dark (1 - albedo))
+        # * (1 - p_base), logistic(u) = 1 / (1 + exp(-u)), u clipped to +-60, in float64. Compiled
+        # passes with numpy's vectorised exp between them: a per-pose cost of every simulated frame.
         p = self.params
-        z = np.asarray(ctx.z_m, dtype=np.float64)
-        inc = np.asarray(ctx.inclination_deg, dtype=np.float64)
-        alb = np.asarray(ctx.albedo, dtype=np.float64)
-        keep = np.asarray((ctx.disparity_px() <= p["max_disparity_px"]).astype(np.float64))
-        keep = _times(keep, _one_minus_logistic(z, p["range_z50_m"], p["range_width_m"]))
-        keep = _times(keep, _one_minus_logistic(inc, p["grazing_deg50"], p["grazing_width_deg"]))
-        dark = np.clip(alb, 0, 1, out=np.empty(alb.shape))
-        np.subtract(1, dark, out=dark)
-        np.multiply(p["dark_probability"], dark, out=dark)
-        np.subtract(1, dark, out=dark)
-        keep = _times(keep, dark)
+        z, inc, alb = np.broadcast_arrays(*map(np.asarray, (ctx.z_m, ctx.inclination_deg, ctx.albedo)))
+        # float32 or float64 maps are read as they are (float64 arithmetic either way)
+        flat = [np.ascontiguousarray(x if x.dtype.kind == "f" else x.astype(np.float64)).reshape(-1)
+                for x in (z, inc, alb)]
+        e1, e2, keep = np.empty(flat[0].size), np.empty(flat[0].size), np.empty(flat[0].size)
+        _exponents(flat[0], flat[1], p["range_z50_m"], p["range_width_m"], p["grazing_deg50"],
+                   p["grazing_width_deg"], e1, e2)
+        np.exp(e1, out=e1)
+        np.exp(e2, out=e2)
+        _keep(flat[0], flat[2], float(ctx.focal_baseline), p["max_disparity_px"], p["dark_probability"],
+              e1, e2, keep)
+        out = keep.reshape(z.shape)
         if p["base_probability"] != 0:
-            keep = keep * (1 - p["base_probability"])
+            out = out * (1 - p["base_probability"])
         shape = ctx.shape()
-        return keep if keep.shape == shape else np.broadcast_to(keep, shape).copy()
+        return out if out.shape == shape else np.broadcast_to(out, shape).copy()
 
     def apply(self, ctx: PixelContext, z_m: Array, rng: np.random.Generator) -> Array:
         keep = self.cached(ctx, "keep", lambda: np.broadcast_to(
