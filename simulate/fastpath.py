@@ -33,11 +33,16 @@ FUSABLE = (DisparityShift, DisparityJitter, DepthScale, Quantization, Dropout, F
 
 
 @njit(cache=True, nogil=True)
-def _fused(d0: Any, sigma: Any, noise: Any, fb: float, step: float, scale: float, unit: float,
-           keep: Any, draw: Any, out: Any) -> None:  # pragma: no cover - compiled
+def _fused(d0: Any, field: Any, fsig: Any, sigma: Any, noise: Any, fb: float, step: float, scale: float,
+           unit: float, keep: Any, draw: Any, out: Any) -> None:  # pragma: no cover - compiled
+    """`field` (empty: none) times `fsig` is added where there is depth (d0 > 0), else d0 = -1."""
     nan = np.float32(np.nan)
+    with_field = field.shape[0] > 0
     for i in range(d0.size):
-        d = d0[i] + sigma[i] * noise[i]
+        b = d0[i]
+        if with_field:
+            b = b + field[i] * fsig if b > 0 else np.float32(-1.0)
+        d = b + sigma[i] * noise[i]
         if not d > 0 or draw[i] >= keep[i]:
             out[i] = nan
             continue
@@ -116,7 +121,13 @@ class FusedSampler:
         draw = rng.random(self.d0.size, dtype=np.float32)
         out = np.empty(self.d0.size, dtype=np.float32)
         d0 = self.d0
-        if self.correlated or self.common:
+        field, fsig = _NO_FIELD, np.float32(0.0)
+        if len(self.correlated) == 1 and not self.common and self.correlated[0][1].ndim == 0:
+            # the usual model (one window noise of one RMS): the field is added in the pass
+            e, sig = self.correlated[0]
+            field = np.ascontiguousarray(e.field(self.shape, rng, self.ctx), dtype=np.float32).reshape(-1)
+            fsig = np.float32(sig)
+        elif self.correlated or self.common:
             d0 = d0.copy()
             grid = d0.reshape(self.shape)
             for e, sig in self.correlated:
@@ -124,11 +135,15 @@ class FusedSampler:
             for sig in self.common:
                 grid += sig * np.float32(rng.standard_normal())
             d0[self.no_depth] = -1.0   # no depth stays no depth
-        _fused(d0, self.sigma, noise, self.fb, self.step, self.scale, self.unit, self.keep, draw, out)
+        _fused(d0, field, fsig, self.sigma, noise, self.fb, self.step, self.scale, self.unit, self.keep, draw,
+               out)
         z = out.reshape(self.shape)
         if self.flying is not None and self.flying_table is not None:
             z = self.flying.displace(self.flying_table, z, rng)
         return z
+
+
+_NO_FIELD = np.zeros(0, np.float32)
 
 
 def _full(value: Any, shape: tuple[int, ...], n: int) -> NDArray[np.float32]:
