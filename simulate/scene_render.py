@@ -406,29 +406,39 @@ def _board_print(scene: Scene, intr: Intrinsics, g: GeometryMaps, board_ids: lis
         return img
     cov_dark = polygon_coverage(_rect_quads(dark, world_to_cam), intr) if len(dark) else 0.0 * cov_plate
     cov_dark = np.minimum(cov_dark, cov_plate)
+    on_face = np.isin(g.surface, board_ids)
+    # the print only changes the plate's box: outside it the image stays as shaded (the mix below
+    # is exactly `img` where neither the plate's area nor a face hit touches a pixel)
+    act = (cov_plate > 0) | on_face
+    rows, cols = np.flatnonzero(act.any(axis=1)), np.flatnonzero(act.any(axis=0))
+    box = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
     # shading of the face depends on the ray only (room light + light at the camera), at the centre
-    x = (np.arange(intr.width) - intr.ppx) / intr.fx
-    y = (np.arange(intr.height) - intr.ppy) / intr.fy
+    x = ((np.arange(intr.width) - intr.ppx) / intr.fx)[box[1]]
+    y = ((np.arange(intr.height) - intr.ppy) / intr.fy)[box[0]]
     r = pose[:3, :3]
     dz = y[:, None] * r[2, 1] + (x[None, :] * r[2, 0] + r[2, 2])
     cos_face = np.abs(dz) / np.sqrt(x[None, :] ** 2 + y[:, None] ** 2 + 1.0)
     k = EXPOSURE * (AMBIENT + DIFFUSE * cos_face)
-    albedo = WHITE_ALBEDO * (cov_plate - cov_dark) + BLACK_ALBEDO * cov_dark
+    cp, cd = cov_plate[box], cov_dark[box]
+    albedo = WHITE_ALBEDO * (cp - cd) + BLACK_ALBEDO * cd
     tint = np.asarray(scene.surfaces[board_ids[0]].tint, dtype=np.float64)
     face = (albedo * k)[..., None] * tint
     # what lies beyond the plate's outline: the centre colour of a neighbour that misses the face
-    on_face = np.isin(g.surface, board_ids)
     bg = img.copy()
-    todo = on_face & (cov_plate < 1.0)
+    # pixels of the outline (few): each takes the first neighbour off the face, in this order
+    # (indices wrap at the image border, as np.roll's would)
+    tv, tu = np.nonzero(on_face & (cov_plate < 1.0))
+    hgt, wid = on_face.shape
     for dv, du in ((0, 1), (0, -1), (1, 0), (-1, 0), (1, 1), (-1, -1), (1, -1), (-1, 1)):
-        if not todo.any():
+        if not tv.size:
             break
-        src_off = ~np.roll(on_face, (dv, du), axis=(0, 1))
-        take = todo & src_off
-        bg[take] = np.roll(img, (dv, du), axis=(0, 1))[take]
-        todo &= ~take
-    out = face + (1.0 - cov_plate)[..., None] * bg
-    return out.astype(np.float32)
+        sv, su = (tv - dv) % hgt, (tu - du) % wid
+        take = ~on_face[sv, su]
+        bg[tv[take], tu[take]] = img[sv[take], su[take]]
+        tv, tu = tv[~take], tu[~take]
+    out = np.array(img, dtype=np.float32)
+    out[box] = face + (1.0 - cp)[..., None] * bg[box]
+    return out
 
 
 def dark_rectangles(scene: Scene) -> NDArray[np.float64]:

@@ -133,3 +133,32 @@ def test_rasterised_geometry_equals_ray_casting(frame: int) -> None:
               "edge_distance_px"):
         assert np.array_equal(getattr(a, k), getattr(b, k), equal_nan=True), k
 
+
+
+@pytest.mark.parametrize("standpoint", [0, 7, 13])
+def test_board_views_rasterised_equal_ray_casting(standpoint: int) -> None:
+    # the renderers' default for boards: every geometry map and the colour image (the print's
+    # exact coverage included) as with Open3D's ray casting
+    from depthstation.core.protocol import load_protocol
+    from depthstation.simulate.checkerboard_session import stream_info_for
+    from depthstation.simulate.poses import standpoint_pose
+    from depthstation.simulate.scene import board_scene
+    from depthstation.simulate.scene_render import render_color_linear
+
+    proto = load_protocol("checkerboard-d455")
+    info = stream_info_for(proto, load_model("d455"))
+    intr, ci = info.depth_intrinsics.scaled(640, 360), info.color_intrinsics
+    assert ci is not None
+    ci = ci.scaled(640, 360)
+    scene = board_scene(proto.board)
+    sp = proto.plan.standpoints()[standpoint]
+    pose = standpoint_pose(proto.board, sp.distance_m, sp.inclination_deg, sp.side)
+    raster, cast = SceneRaster(scene), scene.raycasting_scene()
+    a, b = render_geometry(scene, intr, pose, raster), render_geometry(scene, intr, pose, cast)
+    assert np.isin(a.surface, [i for i, s in enumerate(scene.surfaces) if s.board_face]).mean() > 0.01
+    for k in ("z_m", "normal", "inclination_deg", "cos_inc", "albedo", "surface", "points_world",
+              "edge_distance_px"):
+        assert np.array_equal(getattr(a, k), getattr(b, k), equal_nan=True), k
+    cpose = pose @ np.linalg.inv(info.depth_to_color.matrix)
+    assert np.array_equal(render_color_linear(scene, ci, cpose, raster),
+                          render_color_linear(scene, ci, cpose, cast))
