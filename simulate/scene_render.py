@@ -189,6 +189,32 @@ def _edge_image(z: Any, jump: Any, out: Any) -> bool:  # pragma: no cover
     return found
 
 
+@njit(inline="always")
+def _miss(i: int, z: Any, cos_inc: Any, gid: Any, albedo: Any, n_c: Any, pts: Any,
+          vectors: bool) -> None:  # pragma: no cover - compiled
+    z[i] = np.nan
+    cos_inc[i] = 0.0
+    gid[i] = -1
+    albedo[i] = np.nan
+    if vectors:
+        for k in range(3):
+            n_c[i, k] = 0.0
+            pts[i, k] = np.nan
+
+
+@njit(inline="always")
+def _facing(m0: Any, m1: Any, m2: Any, rot: Any, x: Any, y: Any) -> Any:  # pragma: no cover - compiled
+    """The world normal (m0, m1, m2) in the camera frame, turned to face the camera, and the
+    cosine of its angle with the camera-frame ray (x, y, 1), clipped to [0, 1] (float32)."""
+    nc0 = m0 * rot[0, 0] + m1 * rot[1, 0] + m2 * rot[2, 0]
+    nc1 = m0 * rot[0, 1] + m1 * rot[1, 1] + m2 * rot[2, 1]
+    nc2 = m0 * rot[0, 2] + m1 * rot[1, 2] + m2 * rot[2, 2]
+    dot = nc0 * x + nc1 * y + nc2
+    if dot > 0:  # face the camera
+        nc0, nc1, nc2, dot = -nc0, -nc1, -nc2, -dot
+    return nc0, nc1, nc2, np.float32(min(max(-dot / np.sqrt(x * x + y * y + 1.0), 0.0), 1.0))
+
+
 @njit(cache=True, nogil=True)
 def _geometry_maps(t_hit: Any, gids: Any, normals: Any, rays: Any, dirs: Any, rot: Any,
                    surface_albedo: Any, z: Any, n_c: Any, cos_inc: Any, gid: Any, pts: Any,
@@ -199,26 +225,13 @@ def _geometry_maps(t_hit: Any, gids: Any, normals: Any, rays: Any, dirs: Any, ro
     for i in range(t_hit.shape[0]):
         t = t_hit[i]
         if not np.isfinite(t):
-            z[i] = np.nan
-            cos_inc[i] = 0.0
-            gid[i] = -1
-            albedo[i] = np.nan
-            if vectors:
-                for k in range(3):
-                    n_c[i, k] = 0.0
-                    pts[i, k] = np.nan
+            _miss(i, z, cos_inc, gid, albedo, n_c, pts, vectors)
             continue
         g = gids[i]
         gid[i] = g
         z[i] = t
-        nc0 = normals[i, 0] * rot[0, 0] + normals[i, 1] * rot[1, 0] + normals[i, 2] * rot[2, 0]
-        nc1 = normals[i, 0] * rot[0, 1] + normals[i, 1] * rot[1, 1] + normals[i, 2] * rot[2, 1]
-        nc2 = normals[i, 0] * rot[0, 2] + normals[i, 1] * rot[1, 2] + normals[i, 2] * rot[2, 2]
-        x, y = dirs[i, 0], dirs[i, 1]
-        dot = nc0 * x + nc1 * y + nc2
-        if dot > 0:  # face the camera
-            nc0, nc1, nc2, dot = -nc0, -nc1, -nc2, -dot
-        cos_inc[i] = np.float32(min(max(-dot / np.sqrt(x * x + y * y + 1.0), 0.0), 1.0))
+        nc0, nc1, nc2, cos_inc[i] = _facing(normals[i, 0], normals[i, 1], normals[i, 2], rot,
+                                            dirs[i, 0], dirs[i, 1])
         albedo[i] = surface_albedo[g]
         if vectors:
             n_c[i, 0], n_c[i, 1], n_c[i, 2] = nc0, nc1, nc2
@@ -245,28 +258,15 @@ def _raster_geometry_maps(t_hit: Any, ids: Any, tri_normals: Any, surface_of: An
             i = row * w + col
             k = ids[i]
             if k < 0:
-                z[i] = np.nan
-                cos_inc[i] = 0.0
-                gid[i] = -1
-                albedo[i] = np.nan
-                if vectors:
-                    for j in range(3):
-                        n_c[i, j] = 0.0
-                        pts[i, j] = np.nan
+                _miss(i, z, cos_inc, gid, albedo, n_c, pts, vectors)
                 continue
             t = t_hit[i]
             g = surface_of[k]
             gid[i] = g
             z[i] = t
-            m0, m1, m2 = tri_normals[k, 0], tri_normals[k, 1], tri_normals[k, 2]
-            nc0 = m0 * r00 + m1 * r10 + m2 * r20
-            nc1 = m0 * r01 + m1 * r11 + m2 * r21
-            nc2 = m0 * r02 + m1 * r12 + m2 * r22
             x = xs[col]
-            dot = nc0 * x + nc1 * y + nc2
-            if dot > 0:  # face the camera
-                nc0, nc1, nc2, dot = -nc0, -nc1, -nc2, -dot
-            cos_inc[i] = np.float32(min(max(-dot / np.sqrt(x * x + y * y + 1.0), 0.0), 1.0))
+            nc0, nc1, nc2, cos_inc[i] = _facing(tri_normals[k, 0], tri_normals[k, 1], tri_normals[k, 2], rot,
+                                                x, y)
             albedo[i] = surface_albedo[g]
             if vectors:
                 n_c[i, 0], n_c[i, 1], n_c[i, 2] = nc0, nc1, nc2
