@@ -110,21 +110,12 @@ class SceneRaster:
                                     [len(t) for t in tris]).astype(np.uint32)
         self._rc: Any = None
 
-    def cast(self, intr: Intrinsics, cam_to_world: NDArray[Any], rays: F32) -> dict[str, NDArray[Any]]:
-        """t_hit, geometry_ids and primitive_normals of `rays` (= camera_rays(intr, cam_to_world))."""
-        if intr.has_distortion:
-            if self._rc is None:
-                self._rc = self.scene.raycasting_scene()
-            return _cast(self._rc, intr, cam_to_world, rays)
-        n = intr.width * intr.height
-        t = np.empty(n, np.float32)
-        ids = np.empty(n, np.int32)
-        normals = np.empty((n, 3), np.float32)
-        self.raster.render(intr, cam_to_world, t, ids, normals)
-        gid = np.where(ids >= 0, self.surface_of[np.maximum(ids, 0)], np.uint32(0xFFFFFFFF))
-        shape = (intr.height, intr.width)
-        return {"t_hit": t.reshape(shape), "geometry_ids": gid.reshape(shape),
-                "primitive_normals": normals.reshape((*shape, 3))}
+    def raycasting_scene(self) -> Any:
+        """Open3D's scene of the same surfaces, built when first needed (views with lens distortion,
+        whose rays are not a pinhole grid)."""
+        if self._rc is None:
+            self._rc = self.scene.raycasting_scene()
+        return self._rc
 
     def cast_indexed(self, intr: Intrinsics,
                      cam_to_world: NDArray[Any]) -> tuple[F32, NDArray[np.int32], F32]:
@@ -137,9 +128,10 @@ class SceneRaster:
         return t, ids, self.raster.normal_table()
 
 
-def _cast(rc: Any, intr: Intrinsics, cam_to_world: NDArray[Any], rays: F32) -> dict[str, NDArray[Any]]:
+def _cast(rc: Any, rays: F32) -> dict[str, NDArray[Any]]:
+    """t_hit, geometry_ids and primitive_normals of `rays` by Open3D's ray casting."""
     if isinstance(rc, SceneRaster):
-        return rc.cast(intr, cam_to_world, rays)
+        rc = rc.raycasting_scene()
     import open3d
 
     o3d: Any = open3d
@@ -279,12 +271,13 @@ def _raster_geometry_maps(t_hit: Any, ids: Any, tri_normals: Any, surface_of: An
 def render_geometry(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any],
                     rc: Any = None, edges: bool = True, inclination: bool = True,
                     vectors: bool = True) -> GeometryMaps:
-    """Cast one ray per pixel centre and return the per-pixel truth of the view.
+    """Cast one ray per pixel centre and return the per-pixel truth of the view (`rc` None: the
+    scene rasterised, `SceneRaster`; an Open3D `RaycastingScene` casts the rays itself).
 
     For shading, which needs no more than `cos_inc`, surface and albedo: `inclination` False leaves
     `inclination_deg` NaN, `vectors` False leaves `normal` and `points_world` NaN (read-only, no
     memory), unless board faces need their hit points for the print."""
-    rc = rc if rc is not None else scene.raycasting_scene()
+    rc = rc if rc is not None else SceneRaster(scene)
     pose = np.asarray(cam_to_world, dtype=np.float64)
     h, w = intr.height, intr.width
     vectors = vectors or any(s.board_face for s in scene.surfaces)
@@ -309,7 +302,7 @@ def render_geometry(scene: Scene, intr: Intrinsics, cam_to_world: NDArray[Any],
                               gid.reshape(-1), flat_pts, albedo.reshape(-1), vectors)
     else:
         rays = camera_rays(intr, pose)
-        res = _cast(rc, intr, pose, rays)
+        res = _cast(rc, rays)
         _geometry_maps(res["t_hit"].reshape(-1), res["geometry_ids"].reshape(-1).astype(np.int64),
                        res["primitive_normals"].reshape(-1, 3), rays.reshape(-1, 6),
                        _pixel_rays(intr).reshape(-1, 3), rot, surface_albedo, z.reshape(-1),

@@ -162,3 +162,20 @@ def test_board_views_rasterised_equal_ray_casting(standpoint: int) -> None:
     cpose = pose @ np.linalg.inv(info.depth_to_color.matrix)
     assert np.array_equal(render_color_linear(scene, ci, cpose, raster),
                           render_color_linear(scene, ci, cpose, cast))
+
+
+def test_distorted_views_fall_back_to_ray_casting() -> None:
+    # no pinhole grid to rasterise: the default renderer casts the rays with Open3D's scene
+    from dataclasses import replace
+
+    model = load_model("d455")
+    scene = load_scene("room")
+    intr = replace(model.camera.stream_info(320, 240, 30.0).depth_intrinsics, model="brown_conrady",
+                   coeffs=(0.05, -0.01, 0.0, 0.0, 0.0))
+    assert intr.has_distortion
+    _, poses = scan_trajectory("walk", scene, 30.0, 1)
+    a = render_geometry(scene, intr, poses[0])
+    b = render_geometry(scene, intr, poses[0], scene.raycasting_scene())
+    assert np.isfinite(a.z_m).mean() > 0.5
+    for k in ("z_m", "normal", "surface", "points_world", "cos_inc"):
+        assert np.array_equal(getattr(a, k), getattr(b, k), equal_nan=True), k

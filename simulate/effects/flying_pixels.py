@@ -51,8 +51,9 @@ class FlyingPixels(Effect):
             idx = np.flatnonzero(p > 1e-4)
             return idx, p[idx]
         reach = 0.5 + width * float(np.log(pe / 1e-4)) + 1.0  # beyond it p < 1e-4 (margin of 1 px)
-        cand = np.flatnonzero(np.broadcast_to(e, shape).ravel() < reach)
-        p = self.probability_of_distance(np.broadcast_to(e, shape).ravel()[cand])
+        flat = np.broadcast_to(e, shape).ravel()
+        cand = np.flatnonzero(flat < reach)
+        p = self.probability_of_distance(flat[cand])
         keep = p > 1e-4
         return cand[keep], p[keep]
 
