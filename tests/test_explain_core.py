@@ -14,9 +14,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+from depthstation.core.run_warnings import collecting
 from depthstation.evaluate.explain.attribute import attribute
 from depthstation.evaluate.explain.basis import module_candidates
 from depthstation.evaluate.explain.locate import holm, locate
+from depthstation.evaluate.explain.run import warn_unpaired
 from depthstation.evaluate.explain.samples import Samples, concat
 
 W, H, FX, B = 160, 90, 124.8, 0.095
@@ -80,6 +82,40 @@ def test_null_selects_no_missing_physics_and_finds_no_mismatch() -> None:
     res = attribute(real, sim, module_candidates(present), present)
     assert not [c for c in res.selected if c.role == "missing_physics"]
     assert not locate(real, sim).summary()["significant"]
+
+
+def _without(s: Samples, name: str) -> Samples:
+    """The table as a side that never saw standpoint `name` numbers it: the later ones move up."""
+    drop = s.names.index(name)
+    keep = s.subset(s.standpoint != drop)
+    keep.standpoint = keep.standpoint - (keep.standpoint > drop)
+    keep.names = [n for n in s.names if n != name]
+    return keep
+
+
+def test_a_standpoint_one_side_lost_shifts_no_pairs() -> None:
+    """The simulation lost standpoint_02 (1.7 m; its board not found): each side numbers only its
+    own standpoints, so pairing by index would set real 1.7 m against simulated 2.4 m and call the
+    noise and bias different everywhere. Paired by name, the null stays null, and the sides lose
+    nothing else."""
+    real, sim = session(3), _without(session(4), "standpoint_02")
+    loc = locate(real, sim)
+    assert not loc.summary()["significant"], loc.summary()["regions"]
+    per_sp = {t.label: t for t in loc.family("standpoint", "noise")}
+    assert set(per_sp) == set(real.names) - {"standpoint_02"}
+    # each pair is the same board: the per-standpoint noise agrees within its own standard error
+    assert all(abs(t.diff) < 4 * t.se for t in per_sp.values())
+    present = {"disparity_noise": {"sigma_px": SIGMA_PX}}
+    res = attribute(real, sim, module_candidates(present), present)
+    assert not [c for c in res.selected if c.role == "missing_physics"]
+
+
+def test_unpaired_standpoint_is_a_warning() -> None:
+    real, sim = session(3), _without(session(4), "standpoint_05")
+    with collecting() as got:
+        warn_unpaired(real, sim, "simulation")
+    assert [(w.where, w.code) for w in got] == [("standpoint_05", "explain-unpaired-standpoint")]
+    assert "left out of every" in got[0].message
 
 
 def test_noise_calibration_is_calibration() -> None:

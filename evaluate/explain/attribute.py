@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from scipy.special import chdtrc, fdtrc
 
 from depthstation.evaluate.explain.basis import Candidate
-from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples
+from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples, align_standpoints
 from depthstation.evaluate.explain.structure import Structure, decompose, frame_common
 
 BIC_THRESHOLD = -10.0      # "very strong" evidence (Kass & Raftery)
@@ -160,7 +160,7 @@ def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, 
     """
     tp = _tile_px(real) if tile_px is None else tile_px
     br, bs = frame_blocks(real, blocks), frame_blocks(sim, blocks)
-    sim_sp = _align_standpoints(real, sim)
+    sim_sp = align_standpoints(real, sim)
     kr = _tile_keys(real, tp, br)
     ks = _tile_keys(sim, tp, bs)
     ks[:, 0] = sim_sp
@@ -284,7 +284,7 @@ def variance_table(real: Samples, sim: Samples, candidates: Sequence[Candidate],
     there). The frame-common part is removed first: it has its own table (`frame_table`)."""
     tp = 2 * (_tile_px(real) if tile_px is None else tile_px)
     st_r, st_s = structures if structures is not None else (decompose(real), decompose(sim))
-    sim_sp = _align_standpoints(real, sim)
+    sim_sp = align_standpoints(real, sim)
     zero_r, zero_s = np.zeros(len(real), dtype=np.int64), np.zeros(len(sim), dtype=np.int64)
     kr = _tile_keys(real, tp, zero_r)
     ks = _tile_keys(sim, tp, zero_s)
@@ -392,13 +392,6 @@ def frame_table(real: Samples, sim: Samples, candidates: Sequence[Candidate],
     floor = float(np.median(va)) * 1e-2 + 1e-30 if len(va) else 1e-30
     X = {c.name: np.asarray(k2, dtype=float).reshape(-1, 1) for c in candidates if c.table == "frame"}
     return Table("variance", ya, 1.0 / np.maximum(va, floor), X, spa, spa.copy(), spa, name="frame")
-
-
-def _align_standpoints(real: Samples, sim: Samples) -> IntArray:
-    """Sim standpoint indices expressed in the real side's numbering (-1 where the real lacks it)."""
-    idx = {n: i for i, n in enumerate(real.names)}
-    remap = np.array([idx.get(n, -1) for n in sim.names] or [-1], dtype=np.int64)
-    return remap[sim.standpoint]
 
 
 def _design(t: Table, names: Sequence[str]) -> FloatArray:

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import stdtr
 
-from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples
+from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples, standpoint_map
 from depthstation.evaluate.explain.structure import Structure, decompose, frame_common
 
 ALPHA = 0.05
@@ -240,7 +240,10 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
     rv = real.err_m if real_values is None else real_values
     sv = sim.err_m if sim_values is None else sim_values
     rs = _stand_stats(*_frame_table(rv, groups.real, real))
-    ss = _stand_stats(*_frame_table(sv, groups.sim, sim))
+    # the sim side's standpoints in the real side's numbering: pairs are the same standpoint by name
+    to_real = standpoint_map(real, sim)
+    ss = {(g, int(to_real[sp])): v for (g, sp), v in _stand_stats(*_frame_table(sv, groups.sim, sim)).items()
+          if to_real[sp] >= 0}
     # the real reference plane carries one pose error per standpoint that no frame statistic sees;
     # its size comes from the simulation, where the estimated and the true plane are both known
     ref = _stand_stats(*_frame_table(sim.ref_err_m, groups.sim, sim)) if kind == "bias" else {}

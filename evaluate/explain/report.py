@@ -16,7 +16,7 @@ from depthstation.evaluate.explain.figures import (
     term_residual_figure,
 )
 from depthstation.evaluate.explain.locate import residual_grid
-from depthstation.evaluate.explain.samples import FloatArray, Samples
+from depthstation.evaluate.explain.samples import FloatArray, Samples, unpaired_standpoints
 from depthstation.evaluate.explain.structure import decompose, frame_common
 from depthstation.simulate.effects import PixelContext
 from depthstation.simulate.effects.generic import AXIS_INFO, axis_value
@@ -46,6 +46,7 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
         "calibrated": calibrated,
         "near_ties": [{"selected": c.effect, **t} for c in ex.attribution.selected for t in c.near_ties],
         "standpoints": list(ex.real.samples.names),
+        "standpoints_left_out": _left_out(ex),
         "samples": {"real": len(ex.real.samples), "sim": len(ex.sim.samples)},
         "fit_rows": {"bias": ex.attribution.bias_rows, "variance": ex.attribution.variance_rows,
                      "frame": len(ex.attribution.tables["frame"]) if "frame" in ex.attribution.tables else 0},
@@ -54,6 +55,17 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
         "remaining_after": ex.remaining,
         "tests": [t.to_dict() for t in ex.before.tests],
     }
+
+
+def _left_out(ex: Explanation) -> dict[str, list[str]]:
+    """Standpoints only one side has, per comparison: no test covers them (names, never indices)."""
+    sides = [("simulation", ex.sim)] + ([("re-simulation", ex.resim)] if ex.resim is not None else [])
+    out: dict[str, list[str]] = {}
+    for label, side in sides:
+        only_real, only_sim = unpaired_standpoints(ex.real.samples, side.samples)
+        out[f"real_not_in_{label.replace('-', '')}"] = only_real
+        out[f"{label.replace('-', '')}_not_in_real"] = only_sim
+    return out
 
 
 def figures(ex: Explanation, out: Path) -> list[str]:
@@ -223,6 +235,11 @@ def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
     else:
         lines.append("No significant difference between simulation and real data (Holm, alpha "
                      f"{m['alpha']}).")
+    left = {k: v for k, v in data.get("standpoints_left_out", {}).items() if v}
+    if left:
+        lines += ["", "**Not compared:** " + "; ".join(
+            f"{', '.join(v)} ({k.replace('_', ' ')}: no board pixels there)" for k, v in left.items())
+            + ". No test covers these standpoints."]
     lines += ["", "## Where it differs", "", "| family | quantity | group | real - sim | SE | p (Holm) |",
               "|---|---|---|---|---|---|"]
     for r in m["regions"][:20]:

@@ -22,8 +22,9 @@ from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.core.results import result_folder
+from depthstation.core.run_warnings import warn
 from depthstation.evaluate.checkerboard.chunks import StandpointOptions, run_standpoints
-from depthstation.evaluate.checkerboard.run import prepare_checkerboard
+from depthstation.evaluate.checkerboard.run import prepare_checkerboard, say_warnings
 from depthstation.evaluate.checkerboard.study import evaluate_frames
 from depthstation.evaluate.explain.attribute import Attribution, attribute
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
@@ -32,7 +33,7 @@ from depthstation.evaluate.explain.library import library
 from depthstation.evaluate.explain.locate import FAMILY_AXES, LocateResult, locate
 from depthstation.evaluate.explain.report import write_outputs
 from depthstation.evaluate.explain.rerun_log import log_explanation
-from depthstation.evaluate.explain.samples import Samples, board_edge_px, concat, thin
+from depthstation.evaluate.explain.samples import Samples, board_edge_px, concat, thin, unpaired_standpoints
 from depthstation.evaluate.explain.structure import decompose
 from depthstation.simulate.effects import PixelContext
 from depthstation.simulate.effects.base import CorrelatedJitter
@@ -159,6 +160,7 @@ def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, ba
 
     with ChunkRunner(workers, cluster) as runner:
         results = run_standpoints(job.recordings, job.board, job.options, runner, progress=progress)
+    say_warnings(results)   # a standpoint with no usable frame is named here, and absent from the tests
     return _side(results, info, info.baseline_m or baseline_m)
 
 
@@ -192,6 +194,18 @@ def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0
                                        collect_samples=True, sample_stride=_stride(info),
                                        reference=REFERENCE))
     return _side(results, info, info.baseline_m or model.camera.baseline_m, t0, true_poses=real.poses)
+
+
+def warn_unpaired(real: Samples, sim: Samples, what: str) -> None:
+    """A standpoint one side lacks (no board pixels: the board not found in its frames) is left out of
+    every test; the user must know that the verdict does not cover it."""
+    only_real, only_sim = unpaired_standpoints(real, sim)
+    for name in only_real:
+        warn(f"the {what} of this standpoint gave no board pixels (board not found in its rendered "
+             "frames); it is left out of every real-vs-simulated test", name, "explain-unpaired-standpoint")
+    for name in only_sim:
+        warn(f"only the {what} gave board pixels here (none in the real frames); it is left out of every "
+             "real-vs-simulated test", name, "explain-unpaired-standpoint")
 
 
 def present_effects(model: SensorModel) -> dict[str, dict[str, float]]:
@@ -260,6 +274,7 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     """Locate, attribute, discover, build the improved model and (optionally) check it by simulating
     again."""
     present = present_effects(model)
+    warn_unpaired(real.samples, sim.samples, "simulation")
     if tick:
         tick("locate")
     structures = (decompose(real.samples), decompose(sim.samples))
@@ -277,6 +292,7 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     resim = after = None
     if resimulate:
         resim = simulate_like(real, board, new_model, seed=seed + 1, tick=tick)
+        warn_unpaired(real.samples, resim.samples, "re-simulation")
         if tick:
             tick("locate after")
         after = locate(real.samples, resim.samples)

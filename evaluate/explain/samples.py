@@ -152,6 +152,27 @@ def concat(parts: Sequence[Samples]) -> Samples:
                    baseline_m=first.baseline_m, px_scale=first.px_scale)
 
 
+def align_standpoints(real: Samples, sim: Samples) -> IntArray:
+    """Per sim sample its standpoint's index in the real side's `names` (-1 where real lacks it).
+
+    Why: each side numbers only the standpoints that gave board pixels, so when one side loses a
+    standpoint (the board not found in its frames) the same index names different standpoints on
+    the two sides. Every comparison pairs standpoints by name through this map.
+    """
+    return standpoint_map(real, sim)[sim.standpoint]
+
+
+def standpoint_map(real: Samples, sim: Samples) -> IntArray:
+    """Per index of `sim.names` the index of the same standpoint in `real.names` (-1: none)."""
+    idx = {n: i for i, n in enumerate(real.names)}
+    return np.array([idx.get(n, -1) for n in sim.names] or [-1], dtype=np.int64)
+
+
+def unpaired_standpoints(real: Samples, sim: Samples) -> tuple[list[str], list[str]]:
+    """(standpoints only the real side has, only the simulated side has): left out of every test."""
+    return ([n for n in real.names if n not in sim.names], [n for n in sim.names if n not in real.names])
+
+
 def thin(s: Samples, max_per_frame: int) -> Samples:
     """Keep a fixed sub-lattice of pixels so each frame has at most `max_per_frame` samples.
 
