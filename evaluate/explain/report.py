@@ -235,11 +235,14 @@ def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
     else:
         lines.append("No significant difference between simulation and real data (Holm, alpha "
                      f"{m['alpha']}).")
-    left = {k: v for k, v in data.get("standpoints_left_out", {}).items() if v}
+    said = {"real_not_in_simulation": "the simulation found no board in",
+            "simulation_not_in_real": "the real frames show no board in",
+            "real_not_in_resimulation": "the re-simulation found no board in",
+            "resimulation_not_in_real": "the real frames show no board in"}
+    left = [f"{said[k]} {', '.join(v)}" for k, v in data.get("standpoints_left_out", {}).items() if v]
     if left:
-        lines += ["", "**Not compared:** " + "; ".join(
-            f"{', '.join(v)} ({k.replace('_', ' ')}: no board pixels there)" for k, v in left.items())
-            + ". No test covers these standpoints."]
+        lines += ["", f"**Not compared:** {'; '.join(dict.fromkeys(left))}. No test covers these "
+                  "standpoints."]
     lines += ["", "## Where it differs", "", "| family | quantity | group | real - sim | SE | p (Holm) |",
               "|---|---|---|---|---|---|"]
     for r in m["regions"][:20]:
