@@ -99,6 +99,45 @@ def test_merged_chunks_in_two_processes_equal_one_pass(mesh: object, seq, tmp_pa
     np.testing.assert_allclose(two.grid.se_m, one.grid.se_m, rtol=1e-7, atol=1e-12)
 
 
+class _DeviceNumbered:
+    """The sequence as a RealSense recording numbers it: the device's frame counter, which starts
+    anywhere and skips frames (here 169, 170, 172, 173, 175, ...), not 0, 1, 2, ..."""
+
+    def __init__(self, seq) -> None:  # type: ignore[no-untyped-def]
+        self.seq, self.info, self.name = seq, seq.info, "device-numbered"
+
+    @property
+    def frame_count(self) -> int:
+        return len(self.seq.depth)
+
+    def number(self, pos: int) -> int:
+        return 169 + pos + pos // 2
+
+    def frames(self, limit=None, start=0):  # type: ignore[no-untyped-def]
+        for fs in self.seq.frames(limit=limit, start=start):
+            yield dataclasses.replace(fs, index=self.number(fs.index))
+
+
+@pytest.mark.parametrize("every,max_frames", [(1, 10), (3, 5), (2, None)])
+def test_frames_are_chosen_by_position_not_by_device_number(mesh: object, seq, every: int,  # type: ignore[no-untyped-def]
+                                                            max_frames: int | None) -> None:
+    """--frames, --every and the indices a result reports count frames along the sequence: with
+    device numbers from 169, selecting by number read no frame at all for --frames 10 (169 >= 10)
+    and every other frame for --every 2 (by the counter's parity)."""
+    config = StudyConfig(distance_bin_m=0.05, inclination_bin_deg=1.0, every=every, max_frames=max_frames,
+                         nthreads=1)
+    caster = MeshCaster(mesh, seq.info.depth_intrinsics, 1)
+    plain = evaluate_chunk(caster, seq, _traj(seq), config)
+    numbered = evaluate_chunk(caster, _DeviceNumbered(seq), _traj(seq), config)
+    expect = list(range(0, len(seq.depth) if max_frames is None else max_frames * every, every))
+    assert plain.used == expect and numbered.used == expect
+    np.testing.assert_array_equal(numbered.grid.count, plain.grid.count)
+    np.testing.assert_array_equal(numbered.grid.mean, plain.grid.mean)
+    # a chunk that starts inside the sequence keeps counting from its start
+    part = evaluate_chunk(caster, _DeviceNumbered(seq), _traj(seq), config, start=6, limit=6)
+    assert part.used == [p for p in expect if 6 <= p < 12]
+
+
 def test_frame_moments_of_the_pass_equal_those_of_per_frame_grids(mesh: object, seq, tmp_path) -> None:  # type: ignore[no-untyped-def]
     """The fused pass takes each frame's cell means from its sorted pixels; core.grid builds the
     same moments from the frame's own grid (Grid.add_frame): two codes, one answer."""

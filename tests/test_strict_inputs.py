@@ -90,6 +90,21 @@ def test_board_without_square_length(png_set: Path, tmp_path: Path, run: Callabl
     assert not (tmp_path / "o").exists()
 
 
+def test_one_standpoint_name_from_two_inputs(png_set: Path, tmp_path: Path, run: Callable[..., Ran]) -> None:
+    # two copies of a session hold the same standpoint names: evaluated together, their results
+    # (and explain's pairs) would merge or replace each other by name without a word
+    twin = tmp_path / "twin"
+    twin.mkdir()
+    (twin / "pose03").mkdir()
+    for f in sorted((png_set / "pose03").iterdir()):
+        (twin / "pose03" / f.name).symlink_to(f.resolve())
+    (twin / "camera.json").write_text((png_set / "camera.json").read_text())
+    r = run("evaluate", "checkerboard", str(png_set), str(twin), "--board", str(png_set / "board.json"),
+            "--out", str(tmp_path / "o"), "--frames", "1")
+    one_line_error(r, "pose03", "also comes from", "separate runs")
+    assert not (tmp_path / "o").exists()
+
+
 @pytest.mark.parametrize(("change", "drop", "words"), [
     ({"color.fx": 0}, (), ("camera.json", "color", "fx")),
     ({"depth_units_m": 0}, (), ("camera.json", "depth_units_m")),

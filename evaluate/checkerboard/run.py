@@ -99,6 +99,15 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
     recs = open_inputs(inputs, opt.topics)
     if not recs:
         raise InputError(inputs[0] if inputs else None, "no standpoints found")
+    # results, samples and explain's pairs are keyed by standpoint name: two inputs with one name
+    # would be merged into one standpoint (or one would replace the other) without a word
+    seen: dict[str, Path] = {}
+    for r in recs:
+        if r.name in seen:
+            raise InputError(r.path, f"standpoint name '{r.name}' also comes from {seen[r.name]}: two "
+                                     "inputs hold the same standpoint (two sessions of one protocol?); "
+                                     "evaluate them in separate runs")
+        seen[r.name] = r.path
     return CheckerboardJob(list(inputs), source, brd, recs, opt)
 
 

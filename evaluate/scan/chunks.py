@@ -223,18 +223,23 @@ def split_last(chunks: list[ScanChunk]) -> list[ScanChunk]:
 
 @dataclass
 class _ChunkFrames:
-    """The frame sets of one chunk, taken from the one pass over the open sequence (a FrameSource)."""
+    """The frame sets of one chunk, taken from the one pass over the open sequence (a FrameSource):
+    the sequence's frames [offset, offset + len(items)), addressed by their positions in it."""
 
     name: str
     info: StreamInfo
     items: list[FrameSet]
+    offset: int = 0
 
     @property
     def frame_count(self) -> int:
-        return len(self.items)
+        return self.offset + len(self.items)
 
     def frames(self, limit: int | None = None, start: int = 0) -> Iterator[FrameSet]:
-        return iter(self.items if limit is None else self.items[:limit])
+        if start < self.offset:
+            raise ValueError(f"frames before {self.offset} are not in this chunk")
+        items = self.items[start - self.offset:]
+        return iter(items if limit is None else items[:limit])
 
 
 def _threads(config: StudyConfig, chunks: int) -> int:
@@ -271,8 +276,8 @@ def _run_here(source: FrameSource, mesh: str | Path, chunks: list[ScanChunk], co
         except Empty:
             cells = ChunkCells.for_grid(config.empty_grid())
         try:
-            return evaluate_chunk(r, _ChunkFrames(source.name, source.info, items), c.trajectory, c.config,
-                                  0, None, on_frame, reuse=cells)
+            return evaluate_chunk(r, _ChunkFrames(source.name, source.info, items, c.start), c.trajectory,
+                                  c.config, c.start, None, on_frame, reuse=cells)
         finally:
             renderers.put(r)
 

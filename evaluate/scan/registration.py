@@ -195,8 +195,8 @@ def depth_band_frames(source: FrameSource, trajectory: Trajectory, *,
     x = ((u - intr.ppx) / intr.fx).ravel()
     y = ((v - intr.ppy) / intr.fy).ravel()
     parts = []
-    for fs in source.frames():
-        if fs.index % every or fs.depth is None:
+    for pos, fs in enumerate(source.frames()):  # by position: device frame numbers have gaps
+        if pos % every or fs.depth is None:
             continue
         pose = trajectory.match(fs.timestamp_ns * 1e-9, tolerance_s)
         if pose is None:

@@ -105,7 +105,8 @@ FrameCallback = Callable[[int, NDArray[np.int64]], None]  # (frame index, its pi
 def evaluate_chunk(caster: FrameRenderer, source: FrameSource, trajectory: Trajectory, config: StudyConfig,
                    start: int = 0, limit: int | None = None,
                    on_frame: FrameCallback | None = None, reuse: ChunkCells | None = None) -> ChunkResult:
-    """Frames [start, start+limit) of the source, posed by `trajectory` (camera-to-reference).
+    """Frames [start, start+limit) of the source (positions in the sequence, 0-based), posed by
+    `trajectory` (camera-to-reference); `used`, `no_pose`, `no_depth` hold positions.
 
     `reuse`: zeroed accumulators to add into; the result's grid and moments are theirs (merge it,
     then `reuse.clear_moments()`, before they serve another chunk)."""
@@ -116,30 +117,33 @@ def evaluate_chunk(caster: FrameRenderer, source: FrameSource, trajectory: Traje
     cells = acc.cells
     frame_cells = CellAccumulator.for_grid(res.grid) if config.per_frame_dir is not None else None
     moments = acc.moments  # frames as clusters: the honest SE of a cell mean
-    for fs in source.frames(limit=limit, start=start):
-        if fs.index % config.every:
+    # frames are counted by their position in the sequence (0-based), never by `fs.index`: a
+    # RealSense recording numbers its frames from the device's counter (any start, with gaps), so
+    # --frames, --every, the figure frame and the indices in summary.json would miss their frames
+    for pos, fs in enumerate(source.frames(limit=limit, start=start), start):
+        if pos % config.every:
             continue
-        if config.max_frames is not None and fs.index >= config.max_frames * config.every:
+        if config.max_frames is not None and pos >= config.max_frames * config.every:
             break
         if fs.depth is None:
-            res.no_depth.append(fs.index)
+            res.no_depth.append(pos)
             continue
         if fs.depth.shape != (intr.height, intr.width):
-            raise EvaluationError(f"frame {fs.index}: depth {fs.depth.shape} does not match the "
-                                  f"intrinsics {intr.width}x{intr.height}")
+            raise EvaluationError(f"frame {pos} (device number {fs.index}): depth {fs.depth.shape} does not "
+                                  f"match the intrinsics {intr.width}x{intr.height}")
         pose = trajectory.match(fs.timestamp_ns * 1e-9, config.tolerance_s)
         if pose is None:
-            res.no_pose.append(fs.index)
+            res.no_pose.append(pos)
             continue
         before = res.stats.copy()
         caster.bin_frame(pose, fs.depth, units, cells, res.stats, frame_cells, moments)
-        res.used.append(fs.index)
+        res.used.append(pos)
         if frame_cells is not None and config.per_frame_dir is not None:
-            path = Path(config.per_frame_dir) / f"frame_{fs.index:06d}.npz"
+            path = Path(config.per_frame_dir) / f"frame_{pos:06d}.npz"
             frame_cells.to_grid().save(path, compressed=True)
             frame_cells.reset()
         if on_frame is not None:
-            on_frame(fs.index, res.stats - before)
+            on_frame(pos, res.stats - before)
     res.grid = cells.to_grid() if reuse is None else cells.take_grid(reuse.grid)
     res.grid.moments = moments
     return res
