@@ -150,3 +150,40 @@ def test_rosbag2_directory_and_missing_depth(db3: tuple[Path, list], tmp_path: P
     _copy_to_rosbag2_dir(path, nodepth, drop="Depth_0/image")
     with pytest.raises(InputError, match="no depth"):
         open_recording(nodepth)
+
+
+def test_a_colour_frame_two_depth_frames_share_reaches_both_without_holding_the_file() -> None:
+    """Colour at 15 fps beside depth at 30 fps (or a dropped colour frame): two depth frames pair
+    with one colour frame. Both get it, and each frame set leaves as soon as its images are read;
+    taking the image away at the first depth frame left the second without colour and kept every
+    later frame in memory to the end of the file."""
+    from depthstation.core.capture.realsense_bag import assemble
+
+    n = 12
+    depth_t = [1000 * k for k in range(n)]
+    colour_t = [1000 * k + 5 for k in range(0, n, 2)]
+    pairing = {("depth", t): {"color": colour_t[k // 2]} for k, t in enumerate(depth_t)}
+    order = sorted([("depth", t) for t in depth_t] + [("color", t) for t in colour_t], key=lambda m: m[1])
+    read: list[int] = []
+    loaded: list[tuple[str, int]] = []
+
+    def messages():  # type: ignore[no-untyped-def]
+        for i, (kind, t) in enumerate(order):
+            read.append(i)
+            yield kind, t, lambda kind=kind, t=t: (loaded.append((kind, t)), np.full(2, t))[1]
+
+    out = []
+    for t, parts in assemble(messages(), pairing, depth_t[2:]):   # from the third frame, as `start=2`
+        out.append((t, int(parts["color"][0]), len(read)))
+        parts["color"][:] = -1          # a user changing its frame set in place changes no other
+    assert [t for t, _, _ in out] == depth_t[2:]
+    assert [c for _, c, _ in out] == [colour_t[k // 2] for k in range(2, n)]
+    # each frame set leaves once its own messages are read: no frame waits for later ones
+    last_needed = {t: max(order.index(("depth", t)), order.index(("color", colour_t[k // 2])))
+                   for k, t in enumerate(depth_t)}
+    assert all(seen == last_needed[t] + 1 for t, _, seen in out)
+    # the colour frame only the skipped first two depth frames wanted is not even decoded; the
+    # others once each
+    assert ("color", colour_t[0]) not in loaded
+    expect = [("depth", t) for t in depth_t[2:]] + [("color", t) for t in colour_t[1:]]
+    assert sorted(loaded) == sorted(expect)

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import contextlib
 import re
-from collections.abc import Iterator
+from collections import Counter, deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -102,45 +103,27 @@ class RealsenseRecording(Recording):
     def _iter(self, start: int) -> Iterator[FrameSet]:
         depth = self._streams["depth"]
         pairing = self._pairing()
-        wanted = {(k, t) for d in pairing.values() for k, t in d.items()}
         by_bag_t = {f["bag_t"]: f for f in depth.frames}
         depth_order = [f["bag_t"] for f in depth.frames][start:]
         if not depth_order:
             return
-        first = depth_order[0]
-        images: dict[tuple[str, int], NDArray[Any]] = {}
-        pending: list[int] = []
         image_topics = {s.prefix: k for k, s in self._streams.items()}
         with self._reader() as reader:
             conns = [c for c in reader.connections if _image_topic(c.topic) in image_topics]
-            for conn, bag_t, raw in reader.messages(connections=conns):
-                kind = image_topics[_image_topic(conn.topic)]
-                if kind == "depth":
-                    if bag_t < first or bag_t not in by_bag_t:
-                        continue
-                    pending.append(bag_t)
-                elif (kind, bag_t) not in wanted:
-                    continue
-                images[(kind, bag_t)] = _decode_image(reader.deserialize(raw, conn.msgtype), conn.msgtype)
-                while pending and all(
-                    (k, t) in images for k, t in pairing.get(("depth", pending[0]), {}).items()
-                ):
-                    yield self._frameset(pending.pop(0), images, pairing, by_bag_t)
-        while pending:
-            yield self._frameset(pending.pop(0), images, pairing, by_bag_t)
 
-    def _frameset(
-        self,
-        bag_t: int,
-        images: dict[tuple[str, int], NDArray[Any]],
-        pairing: dict[tuple[str, int], dict[str, int]],
-        by_bag_t: dict[int, dict[str, Any]],
-    ) -> FrameSet:
+            def messages() -> Iterator[tuple[str, int, Any]]:
+                for conn, bag_t, raw in reader.messages(connections=conns):
+                    yield (image_topics[_image_topic(conn.topic)], bag_t,
+                           lambda raw=raw, conn=conn: _decode_image(reader.deserialize(raw, conn.msgtype),
+                                                                    conn.msgtype))
+
+            for bag_t, parts in assemble(messages(), pairing, depth_order):
+                yield self._frameset(bag_t, parts, by_bag_t)
+
+    def _frameset(self, bag_t: int, parts: dict[str, NDArray[Any]],
+                  by_bag_t: dict[int, dict[str, Any]]) -> FrameSet:
         f = by_bag_t[bag_t]
-        parts = pairing.get(("depth", bag_t), {})
-        color = images.pop(("color", parts["color"]), None) if "color" in parts else None
-        infra = images.pop(("infrared", parts["infrared"]), None) if "infrared" in parts else None
-        d = images.pop(("depth", bag_t))
+        color, infra, d = parts.get("color"), parts.get("infrared"), parts["depth"]
         if d.dtype != np.uint16:
             raise InputError(self.path, f"depth frame {f['number']} is not 16 bit")
         if infra is not None and infra.ndim == 3:
@@ -156,6 +139,47 @@ class RealsenseRecording(Recording):
             infrared=None if infra is None else infra.astype(np.uint8, copy=False),
             metadata=meta,
         )
+
+
+def assemble(messages: Iterable[tuple[str, int, Callable[[], Any]]],
+             pairing: dict[tuple[str, int], dict[str, int]],
+             depth_order: Sequence[int]) -> Iterator[tuple[int, dict[str, Any]]]:
+    """Depth frames of `depth_order` (bag times), in that order, each with the images `pairing`
+    gives it, from the file's messages (kind, bag time, loader) in file order.
+
+    A colour or infrared frame that two depth frames share (a slower colour stream, a dropped frame)
+    is kept until its last depth frame has it: taken away by the first, it left the second without
+    colour and held every later frame in memory until the end of the file. Only images some depth
+    frame wants are loaded.
+    """
+    wanted = set(depth_order)
+    uses: Counter[tuple[str, int]] = Counter(
+        key for t in depth_order for key in pairing.get(("depth", t), {}).items())
+    first = depth_order[0] if len(depth_order) else 0
+    images: dict[tuple[str, int], Any] = {}
+    pending: deque[int] = deque()
+
+    def take(t: int) -> tuple[int, dict[str, Any]]:
+        parts: dict[str, Any] = {"depth": images.pop(("depth", t))}
+        for key in pairing.get(("depth", t), {}).items():
+            uses[key] -= 1
+            img: Any = images.pop(key, None) if uses[key] <= 0 else images.get(key)
+            # a frame set may be changed in place by its user: the later ones get their own copy
+            parts[key[0]] = img.copy() if uses[key] > 0 and img is not None else img
+        return t, parts
+
+    for kind, t, load in messages:
+        if kind == "depth":
+            if t < first or t not in wanted:
+                continue
+            pending.append(t)
+        elif uses[(kind, t)] <= 0:
+            continue
+        images[(kind, t)] = load()
+        while pending and all(key in images for key in pairing.get(("depth", pending[0]), {}).items()):
+            yield take(pending.popleft())
+    while pending:
+        yield take(pending.popleft())
 
 
 def _image_topic(topic: str) -> str:
