@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from depthstation.core.run_warnings import collecting
-from depthstation.evaluate.explain.attribute import attribute
+from depthstation.evaluate.explain.attribute import attribute, frame_blocks
 from depthstation.evaluate.explain.basis import module_candidates
 from depthstation.evaluate.explain.locate import holm, locate
 from depthstation.evaluate.explain.run import warn_unpaired
@@ -108,6 +108,20 @@ def test_a_standpoint_one_side_lost_shifts_no_pairs() -> None:
     present = {"disparity_noise": {"sigma_px": SIGMA_PX}}
     res = attribute(real, sim, module_candidates(present), present)
     assert not [c for c in res.selected if c.role == "missing_physics"]
+
+
+def test_a_frame_one_side_lost_moves_no_frame_to_another_block() -> None:
+    """The simulation renders the real frames' own indices; one simulated frame whose board was
+    not found must not shift the later frames into other blocks on that side only."""
+    real = session(3)
+    sim = session(4)
+    sim = sim.subset(~((sim.standpoint == 0) & (sim.frame == 1)))
+    br, bs = frame_blocks(real, 3), frame_blocks(sim, 3, like=real)
+    block_of = {(int(a), int(f)): int(b) for a, f, b in zip(real.standpoint, real.frame, br, strict=True)}
+    assert all(block_of[(int(a), int(f))] == b for a, f, b in zip(sim.standpoint, sim.frame, bs, strict=True))
+    # on its own, the short side would have put frames 2 and 4 of standpoint 0 one block earlier
+    own = frame_blocks(sim, 3)
+    assert (own != bs).any()
 
 
 def test_unpaired_standpoint_is_a_warning() -> None:

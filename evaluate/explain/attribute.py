@@ -21,7 +21,13 @@ from numpy.typing import NDArray
 from scipy.special import chdtrc, fdtrc
 
 from depthstation.evaluate.explain.basis import Candidate
-from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples, align_standpoints
+from depthstation.evaluate.explain.samples import (
+    FloatArray,
+    IntArray,
+    Samples,
+    align_standpoints,
+    frame_positions,
+)
 from depthstation.evaluate.explain.structure import Structure, decompose, frame_common
 
 BIC_THRESHOLD = -10.0      # "very strong" evidence (Kass & Raftery)
@@ -87,15 +93,12 @@ class CandidateFit:
         return d
 
 
-def frame_blocks(s: Samples, blocks: int) -> IntArray:
-    """Block index of every sample: the frames of each standpoint in time order cut into `blocks`."""
-    out = np.zeros(len(s), dtype=np.int64)
-    for sp in np.unique(s.standpoint):
-        m = s.standpoint == sp
-        frames, inv = np.unique(s.frame[m], return_inverse=True)
-        nb = max(1, min(blocks, len(frames)))
-        out[m] = inv * nb // len(frames)
-    return out
+def frame_blocks(s: Samples, blocks: int, like: Samples | None = None) -> IntArray:
+    """Block index of every sample: the frames of each standpoint in time order cut into `blocks`
+    (the frames of `like`, the real side, when given: both sides' blocks hold the same frames)."""
+    pos, count = frame_positions(s, like)
+    nb = np.maximum(1, np.minimum(blocks, count))
+    return np.asarray(pos * nb // count, dtype=np.int64)
 
 
 def _tile_keys(s: Samples, tile_px: float, block: IntArray) -> NDArray[np.int64]:
@@ -159,7 +162,7 @@ def bias_table(real: Samples, sim: Samples, candidates: Sequence[Candidate], *, 
     frame): neighbours inside one window are one sample, not w^2 (effective sample size).
     """
     tp = _tile_px(real) if tile_px is None else tile_px
-    br, bs = frame_blocks(real, blocks), frame_blocks(sim, blocks)
+    br, bs = frame_blocks(real, blocks), frame_blocks(sim, blocks, like=real)
     sim_sp = align_standpoints(real, sim)
     kr = _tile_keys(real, tp, br)
     ks = _tile_keys(sim, tp, bs)

@@ -27,7 +27,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import stdtr
 
-from depthstation.evaluate.explain.samples import FloatArray, IntArray, Samples, standpoint_map
+from depthstation.evaluate.explain.samples import (
+    FloatArray,
+    IntArray,
+    Samples,
+    frame_positions,
+    standpoint_map,
+)
 from depthstation.evaluate.explain.structure import Structure, decompose, frame_common
 
 ALPHA = 0.05
@@ -336,14 +342,11 @@ def _quantile_edges(x: FloatArray, bins: int) -> FloatArray | None:
     return edges if len(edges) > 2 else None
 
 
-def _frame_rank(s: Samples) -> FloatArray:
-    """Position of each sample's frame within its standpoint, 0 (first) .. 1 (last)."""
-    out = np.zeros(len(s))
-    for sp in np.unique(s.standpoint):
-        m = s.standpoint == sp
-        frames, inv = np.unique(s.frame[m], return_inverse=True)
-        out[m] = inv.ravel() / max(len(frames) - 1, 1)
-    return out
+def _frame_rank(s: Samples, like: Samples | None = None) -> FloatArray:
+    """Position of each sample's frame within its standpoint, 0 (first) .. 1 (last) (among the
+    frames of `like`, the real side, when given)."""
+    pos, count = frame_positions(s, like)
+    return np.asarray(pos / np.maximum(count - 1, 1), dtype=np.float64)
 
 
 # the families of locate and the axes of explain's vocabulary each one looks along
@@ -411,7 +414,7 @@ def default_groups(real: Samples, sim: Samples, distance_step_m: float = 0.25,
                        "inclination_deg", ("inclination",)))
     out.append(Groups("albedo", (real.albedo >= 0.5).astype(np.int64), (sim.albedo >= 0.5).astype(np.int64),
                       ["black", "white"], [{"albedo": "black"}, {"albedo": "white"}], ("albedo",)))
-    fr_r, fr_s = _frame_rank(real), _frame_rank(sim)
+    fr_r, fr_s = _frame_rank(real), _frame_rank(sim, like=real)
     if np.ptp(fr_r) > 0:
         out.append(_binned("frame", fr_r, fr_s, np.array([0.0, 0.2, 0.4, 0.6, 0.8, 1.0 + 1e-9]), "of frames",
                            "frame_rank", ("frame",)))

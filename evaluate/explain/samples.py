@@ -168,6 +168,27 @@ def standpoint_map(real: Samples, sim: Samples) -> IntArray:
     return np.array([idx.get(n, -1) for n in sim.names] or [-1], dtype=np.int64)
 
 
+def frame_positions(s: Samples, like: Samples | None = None) -> tuple[IntArray, IntArray]:
+    """Per sample: the position of its frame among its standpoint's frames, and how many there are.
+
+    With `like` (the real side), the frames of each standpoint are `like`'s (matched by name): the
+    simulation renders the real frames' own indices, but a simulated frame that lost its board would
+    otherwise move every later frame one place earlier on that side only.
+    """
+    ref = s if like is None else like
+    sp = s.standpoint if like is None else align_standpoints(like, s)
+    pos = np.zeros(len(s), dtype=np.int64)
+    count = np.ones(len(s), dtype=np.int64)
+    for k in np.unique(sp):
+        m = sp == k
+        frames = np.unique(ref.frame[ref.standpoint == k]) if k >= 0 else np.zeros(0, dtype=np.int64)
+        if frames.size == 0:   # a standpoint the reference lacks: its own frames
+            frames = np.unique(s.frame[m])
+        pos[m] = np.clip(np.searchsorted(frames, s.frame[m]), 0, frames.size - 1)
+        count[m] = frames.size
+    return pos, count
+
+
 def unpaired_standpoints(real: Samples, sim: Samples) -> tuple[list[str], list[str]]:
     """(standpoints only the real side has, only the simulated side has): left out of every test."""
     return ([n for n in real.names if n not in sim.names], [n for n in sim.names if n not in real.names])
