@@ -37,6 +37,7 @@ from depthstation.evaluate.explain.samples import (
 from depthstation.evaluate.explain.structure import Structure, decompose, frame_common
 
 ALPHA = 0.05
+ALBEDO_GROUPS = ("black", "white")   # group 0: albedo < 0.5
 MIN_SAMPLES = 30
 
 
@@ -413,7 +414,7 @@ def default_groups(real: Samples, sim: Samples, distance_step_m: float = 0.25,
     out.append(_binned("inclination", real.inclination_deg, sim.inclination_deg, ie, "deg",
                        "inclination_deg", ("inclination",)))
     out.append(Groups("albedo", (real.albedo >= 0.5).astype(np.int64), (sim.albedo >= 0.5).astype(np.int64),
-                      ["black", "white"], [{"albedo": "black"}, {"albedo": "white"}], ("albedo",)))
+                      list(ALBEDO_GROUPS), [{"albedo": g} for g in ALBEDO_GROUPS], ("albedo",)))
     fr_r, fr_s = _frame_rank(real), _frame_rank(sim, like=real)
     if np.ptp(fr_r) > 0:
         out.append(_binned("frame", fr_r, fr_s, np.array([0.0, 0.2, 0.4, 0.6, 0.8, 1.0 + 1e-9]), "of frames",

@@ -15,7 +15,7 @@ from depthstation.evaluate.explain.figures import (
     term_field_figure,
     term_residual_figure,
 )
-from depthstation.evaluate.explain.locate import residual_grid
+from depthstation.evaluate.explain.locate import ALBEDO_GROUPS, residual_grid
 from depthstation.evaluate.explain.samples import FloatArray, Samples, unpaired_standpoints
 from depthstation.evaluate.explain.structure import decompose, frame_common
 from depthstation.simulate.effects import PixelContext
@@ -90,13 +90,13 @@ def figures(ex: Explanation, out: Path) -> list[str]:
         fig, ax = plt.subplots(figsize=(6, 4))
         for label, loc in sides:
             ts = loc.family(fam)
-            x = np.arange(len(ts)) if fam == "albedo" else np.array(
+            x = np.array([ALBEDO_GROUPS.index(t.label) for t in ts]) if fam == "albedo" else np.array(
                 [(t.coords[f"{key}_min"] + t.coords[f"{key}_max"]) / 2 for t in ts
                  for key in [next(k[:-4] for k in t.coords if k.endswith("_min"))]])
             ax.errorbar(x, [t.diff * 1000 for t in ts], yerr=[2 * t.se * 1000 for t in ts], marker="o",
                         capsize=3, label=label)
             if fam == "albedo":
-                ax.set_xticks(x, [t.label for t in ts])
+                ax.set_xticks(range(len(ALBEDO_GROUPS)), ALBEDO_GROUPS)
         ax.axhline(0, color="k", lw=0.5)
         ax.set_xlabel(xlabel)
         ax.set_ylabel("mean error real - sim (mm), bars 2 SE")

@@ -37,6 +37,8 @@ def log_explanation(ex: Explanation, target: RerunTarget) -> None:
                     send_heatmap(rec, f"residual/{kind}/{label}", m * scale, de, ie,
                                  quantity=f"real - sim ({kind}), {label} the refit", unit=unit)
             for fam in ("column", "standpoint", "albedo", "time"):
-                for k, t in enumerate(loc.family(fam)):
-                    rec.set_time("group", sequence=k)
+                # one position per group label over both sides: a group one side lacks moves no other
+                groups = list(dict.fromkeys(t.label for _, lc in sides for t in lc.family(fam)))
+                for t in loc.family(fam):
+                    rec.set_time("group", sequence=groups.index(t.label))
                     rec.log(f"{fam}/{label}", rr.Scalars(t.diff * 1000))
