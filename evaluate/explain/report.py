@@ -291,6 +291,9 @@ def _discovered_md(data: dict[str, Any], figs: list[str]) -> list[str]:
     if not found:
         lines.append(f"Nothing found: no generic term of the library ({disc.get('library_size', 0)} terms) "
                      "passes the guards on what the catalogue leaves.")
+    elif not data["mismatch"]["significant"]:
+        lines += ["**Caution:** no region differs significantly (Holm), so what follows rests on the "
+                  "pooled fit alone. Confirm it on another session before trusting it.", ""]
     for k, d in enumerate(found):
         det = disc["terms"][k] if k < len(disc.get("terms", [])) else {}
         coefs = ", ".join(f"{n} = {c['value']:.4g} +- {c['stderr']:.2g} {c['unit']}"

@@ -288,6 +288,12 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     attr = attribute(real.samples, sim.samples, [*cands, *lib], present, noise_var=noise_variance(model),
                      corr_var=correlated_variance(model), structures=structures)
     disc = discover(attr, cands, lib, present, real.samples) if lib else None
+    if disc is not None and disc.terms and not before.significant:
+        found = "; ".join(f"{t.quantity} along {'/'.join(t.axes)} (Wald p {t.wald_p:.2g})"
+                          for t in disc.terms)
+        warn(f"discovered {found}, although no region differs significantly (Holm): the term rests on "
+             "the pooled fit alone; confirm it on another session before trusting it", None,
+             "explain-discovery-unlocated")
     new_model = improved_model(model, attr, disc, cands)
     resim = after = None
     if resimulate:
