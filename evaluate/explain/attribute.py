@@ -27,6 +27,7 @@ from depthstation.evaluate.explain.samples import (
     Samples,
     align_standpoints,
     frame_positions,
+    standpoint_map,
 )
 from depthstation.evaluate.explain.structure import Structure, decompose, frame_common
 
@@ -378,11 +379,10 @@ def frame_table(real: Samples, sim: Samples, candidates: Sequence[Candidate],
     """
     st_r, st_s = structures if structures is not None else (decompose(real), decompose(sim))
     fr, fs = frame_common(real, st_r), frame_common(sim, st_s)
-    sim_idx = {n: i for i, n in enumerate(sim.names)}
+    to_sim = standpoint_map(sim, real)
     y, v, sp, k2 = [], [], [], []
     for i, g in enumerate(fr.standpoint):
-        j = sim_idx.get(real.names[g])
-        hit = np.flatnonzero(fs.standpoint == j) if j is not None else np.zeros(0, dtype=np.int64)
+        hit = np.flatnonzero(fs.standpoint == to_sim[g])   # none where sim lacks it (-1)
         if not hit.size:
             continue
         kk = fr.k_m[i] ** 2

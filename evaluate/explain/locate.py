@@ -31,6 +31,7 @@ from depthstation.evaluate.explain.samples import (
     FloatArray,
     IntArray,
     Samples,
+    align_standpoints,
     frame_positions,
     standpoint_map,
 )
@@ -203,11 +204,11 @@ def _frame_planes(s: Samples) -> dict[int, tuple[FloatArray, FloatArray, int]]:
 def heterogeneity(real: Samples, sim: Samples) -> Heterogeneity:
     """Between-standpoint variance of the real-minus-sim disparity planes (moments, after covariates)."""
     pr, ps = _frame_planes(real), _frame_planes(sim)
-    sim_idx = {n: i for i, n in enumerate(sim.names)}
+    to_sim = standpoint_map(sim, real)
     rows = []
-    for i, name in enumerate(real.names):
-        j = sim_idx.get(name)
-        if i in pr and j is not None and j in ps:
+    for i in range(len(real.names)):
+        j = int(to_sim[i])
+        if i in pr and j >= 0 and j in ps:
             m = real.standpoint == i
             temp = real.temperature_c[m]
             rows.append((pr[i][0] - ps[j][0], pr[i][1] / pr[i][2] + ps[j][1] / ps[j][2],
@@ -364,14 +365,7 @@ def default_groups(real: Samples, sim: Samples, distance_step_m: float = 0.25,
                    inclination_step_deg: float = 10.0, column_bins: int = 8) -> list[Groups]:
     """The partitions explain tests: standpoints, the grid, and every axis the grid hides."""
     out: list[Groups] = []
-    sp_r = real.standpoint.copy()
-    sim_idx = {n: i for i, n in enumerate(sim.names)}
-    remap = np.array([sim_idx.get(n, -1) for n in real.names] or [-1])
-    inv = np.full(max(len(sim.names), 1), -1)
-    for i, j in enumerate(remap):
-        if j >= 0:
-            inv[j] = i
-    out.append(Groups("standpoint", sp_r, inv[sim.standpoint], list(real.names),
+    out.append(Groups("standpoint", real.standpoint.copy(), align_standpoints(real, sim), list(real.names),
                       [{"standpoint": n} for n in real.names]))
     # distance x inclination cells
     dmax = float(np.nanmax(np.r_[real.z_ref_m, sim.z_ref_m])) + distance_step_m
@@ -438,11 +432,10 @@ def _frame_common_tests(real: Samples, sim: Samples, st_r: Structure, st_s: Stru
     difference, so real noise of any size or correlation sets it), reported in m^2 at the
     standpoint's mean K."""
     fr, fs = frame_common(real, st_r), frame_common(sim, st_s)
-    sim_idx = {n: i for i, n in enumerate(sim.names)}
+    to_sim = standpoint_map(sim, real)
     rows = []
     for i, sp in enumerate(fr.standpoint):
-        j = sim_idx.get(real.names[sp])
-        hit = np.flatnonzero(fs.standpoint == j) if j is not None else np.zeros(0, dtype=np.int64)
+        hit = np.flatnonzero(fs.standpoint == to_sim[sp])   # none where sim lacks it (-1)
         if not hit.size:
             continue
         k = hit[0]
