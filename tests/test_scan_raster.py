@@ -157,6 +157,28 @@ def test_rays_through_shared_edges_take_ray_castings_triangle() -> None:
     assert np.array_equal(ids, ref["ids"])
 
 
+def test_a_mesh_with_every_face_twice_ties_everywhere_and_still_equals_ray_casting() -> None:
+    """Duplicated faces (an export that wrote a layer twice) tie at every pixel they cover: more
+    equal depths than the rasteriser notes per pass, so it renders again with room for all."""
+    from depthstation.core import raster as raster_mod
+
+    intr = Intrinsics(128, 96, 90.0, 90.0, 63.5, 47.5)
+    gx, gy = np.meshgrid(np.linspace(-2.0, 2.0, 41), np.linspace(-1.5, 1.5, 31))
+    pts = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, 2.0) + 0.1 * gx.ravel()]
+    w = gx.shape[1]
+    k = np.arange(gx.size).reshape(gx.shape)[:-1, :-1].ravel()
+    once = np.vstack([np.c_[k, k + 1, k + w + 1], np.c_[k, k + w + 1, k + w]])
+    tris = np.vstack([once, once])
+    raster = MeshRaster(pts, tris)
+    n = intr.width * intr.height
+    t, ids = np.empty(n, np.float32), np.empty(n, np.int32)
+    raster.render(intr, np.eye(4), t, ids)
+    assert raster.stats[3] > raster_mod.TIE_ROOM  # every covered pixel tied, beyond one pass's room
+    ref = _cast(pts, tris, intr, np.eye(4))
+    assert np.array_equal(ids, ref["ids"])
+    assert np.array_equal(t, ref["t"])
+
+
 def test_lens_distortion_falls_back_to_ray_casting() -> None:
     room = Room()
     mesh = room.mesh(segments=64)

@@ -43,6 +43,7 @@ from depthstation.core.camera_model import Intrinsics, pixel_rays
 from depthstation.core.lazy_open3d import open3d
 
 CLUSTER_SIZE = 64
+TIE_ROOM = 4096  # equal-depth hits a frame may note before it is rendered again with more room
 SMALL_BOX = 6  # triangles whose box holds at most this many pixel centres skip the edge walk
 _X86 = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
 
@@ -290,10 +291,22 @@ def clip_polygon(pu: Any, pv: Any, n: int, axis: int, bound: float, keep_above: 
 
 
 @numba.njit(inline="always")
+def _note_tie(ties: Any, tie_t: Any, i: int, t: Any) -> None:
+    """Record that a hit at pixel i equalled its nearest depth so far (ties[0] counts them, also
+    beyond the capacity, so that the caller can render again with room for all). A rare branch,
+    instead of a flag per pixel read and written by every test."""
+    n = ties[0] + 1
+    ties[0] = n
+    if n < ties.shape[0]:
+        ties[n] = i
+        tie_t[n] = t
+
+
+@numba.njit(inline="always")
 def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: int, height: int,
                     lvx: Any, ia: int, ib: int, ic: int, ox32: Any, oy32: Any, oz32: Any, ident: int,
                     dtab: Any, r02: float, r12: float, r22: float, mode: int, fma: bool, zbuf: Any,
-                    tid: Any, tie: Any, nrm: Any, sc: Any) -> tuple[int, int]:
+                    tid: Any, ties: Any, tie_t: Any, nrm: Any, sc: Any) -> tuple[int, int]:
     """Test every pixel centre within m of the projected polygon (pu, pv)[:npoly] (all pixels
     when `full`) against the triangle in the reference arithmetic; keep the nearest hit.
     Returns (1 if the triangle was set up, pixel tests)."""
@@ -403,7 +416,8 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
             better = hit & ((t < z) | (ident < k))
             zbuf[i] = t if better else z
             tid[i] = ident if better else k
-            tie[i] = (hit & (t == z)) | (tie[i] & ~(hit & (t < z)))
+            if hit & (t == z):
+                _note_tie(ties, tie_t, i, t)
             won |= better
     if won:
         _unit_normal(nx, ny, nz, nrm, ident)
@@ -419,7 +433,7 @@ def _render_kernel(mode: int) -> Any:
     def _render(lvx: Any, cl_vstart: Any, ltri: Any, perm: Any, unit_n: Any, plane_d: Any, cl_start: Any,
                 cl_lo: Any, cl_hi: Any, xs: Any, ys: Any, origin: Any, rot: Any, fx: float, fy: float,
                 ppx: float, ppy: float, margin_k: float, margin_px: float, zbuf: Any, tid: Any,
-                tie: Any, nrm: Any, work: Any, dtab: Any, stats: Any) -> None:
+                ties: Any, tie_t: Any, nrm: Any, work: Any, dtab: Any, stats: Any) -> None:
         """Rasterise the clustered mesh into zbuf (float32 t, inf = miss) and tid (triangle id, -1).
 
         lvx: float32 vertices of each cluster (cluster cl owns lvx[cl_vstart[cl]:cl_vstart[cl + 1]]);
@@ -428,7 +442,8 @@ def _render_kernel(mode: int) -> Any:
         the rounding bound); the rays of pixel (u, v) start at origin (rounded to float32) with
         direction rot @ (xs[u], ys[v], 1) (`fill_rays`), xs and ys the pinhole's pixel-centre
         coordinates (fx, fy, ppx, ppy); rot: camera to world. nrm[id]: the unit normal of every
-        triangle that won a pixel; tie[i]: two triangles hit pixel i at the same, nearest depth.
+        triangle that won a pixel; ties[1:ties[0] + 1], tie_t: the pixels where a hit equalled the
+        nearest depth so far, and that depth (a tie if it is still the nearest at the end).
         stats += (clusters kept, triangles set up, pixel tests).
         """
         width = xs.shape[0]
@@ -437,7 +452,7 @@ def _render_kernel(mode: int) -> Any:
         for i in range(n_pix):
             zbuf[i] = np.inf
             tid[i] = -1
-            tie[i] = False
+        ties[0] = 0
         ox32, oy32, oz32 = np.float32(origin[0]), np.float32(origin[1]), np.float32(origin[2])
         ox, oy, oz = float(ox32), float(oy32), float(oz32)
         r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
@@ -561,7 +576,8 @@ def _render_kernel(mode: int) -> Any:
                                     better = hit & ((t < z) | (ident < k))
                                     zbuf[i] = t if better else z
                                     tid[i] = ident if better else k
-                                    tie[i] = (hit & (t == z)) | (tie[i] & ~(hit & (t < z)))
+                                    if hit & (t == z):
+                                        _note_tie(ties, tie_t, i, t)
                                     won |= better
                             tests += (u1 - u0 + 1) * (v1 - v0 + 1)
                             if won:
@@ -587,7 +603,7 @@ def _render_kernel(mode: int) -> Any:
                             npoly += 1
                 up, n = _raster_polygon(pu, pv, npoly, m, full, width, height, lvx, vs + a, vs + b, vs + c,
                                         ox32, oy32, oz32, perm[s], dtab, r02, r12, r22, mode, fma, zbuf,
-                                        tid, tie, nrm, sc)
+                                        tid, ties, tie_t, nrm, sc)
                 setups += up
                 tests += n
         stats[0] += kept
@@ -707,7 +723,8 @@ class MeshRaster:
     def _buffers(self) -> None:
         """The per-instance scratch (one instance per thread; the mesh arrays are shared)."""
         self.stats = np.zeros(4, np.int64)
-        self._tie = np.zeros(0, np.bool_)
+        self._ties_at = np.zeros(1 + TIE_ROOM, np.int64)
+        self._ties_t = np.zeros(1 + TIE_ROOM, np.float32)
         self._nrm = np.zeros((max(self.n_triangles, 1), 3), np.float32)
         nmax = int(np.diff(self.cl_vstart).max()) if self.n_triangles else 0
         self._work = np.zeros((16, max(nmax, 16)))
@@ -741,17 +758,26 @@ class MeshRaster:
         margin_px = 1e-3 * self.margin_scale
         pose = np.asarray(cam_to_world, dtype=np.float64)
         t_flat, ids_flat = t_hit.reshape(-1), ids.reshape(-1)
-        if self._tie.shape[0] != t_flat.shape[0]:
-            self._tie = np.zeros(t_flat.shape[0], np.bool_)
-        _render_kernel(arithmetic())(
-            self.lvx, self.cl_vstart, self.ltri, self.perm, self.unit_n, self.plane_d, self.cl_start,
-            self.cl_lo, self.cl_hi, xs, ys, np.ascontiguousarray(pose[:3, 3]),
-            np.ascontiguousarray(pose[:3, :3]),
-            float(intr.fx), float(intr.fy), float(intr.ppx), float(intr.ppy), margin_k, margin_px,
-            t_flat, ids_flat, self._tie, self._nrm, self._work, self._dtab(intr), self.stats)
+        while True:
+            counts = np.zeros(4, np.int64)
+            _render_kernel(arithmetic())(
+                self.lvx, self.cl_vstart, self.ltri, self.perm, self.unit_n, self.plane_d, self.cl_start,
+                self.cl_lo, self.cl_hi, xs, ys, np.ascontiguousarray(pose[:3, 3]),
+                np.ascontiguousarray(pose[:3, :3]),
+                float(intr.fx), float(intr.fy), float(intr.ppx), float(intr.ppy), margin_k, margin_px,
+                t_flat, ids_flat, self._ties_at, self._ties_t, self._nrm, self._work, self._dtab(intr),
+                counts)
+            noted = int(self._ties_at[0])
+            if noted < self._ties_at.shape[0]:
+                break
+            # more equal depths than room (e.g. a mesh with duplicated faces): again, with room
+            self._ties_at = np.zeros(2 * noted + 1, np.int64)
+            self._ties_t = np.zeros(2 * noted + 1, np.float32)
+        self.stats += counts
         if normals is not None:
             _gather_normals(ids_flat, self._nrm, normals.reshape(-1, 3))
-        ties = np.flatnonzero(self._tie)
+        at = self._ties_at[1:noted + 1]
+        ties = np.unique(at[t_flat[at] == self._ties_t[1:noted + 1]])
         if ties.size:
             self._resolve_ties(ties, intr, pose, t_flat, ids_flat,
                                None if normals is None else normals.reshape(-1, 3))
