@@ -17,7 +17,7 @@ import pytest
 from depthstation.core.run_warnings import collecting
 from depthstation.evaluate.explain.attribute import attribute, frame_blocks
 from depthstation.evaluate.explain.basis import module_candidates
-from depthstation.evaluate.explain.locate import holm, locate
+from depthstation.evaluate.explain.locate import compare_groups, default_groups, holm, locate
 from depthstation.evaluate.explain.run import warn_unpaired
 from depthstation.evaluate.explain.samples import Samples, concat
 
@@ -122,6 +122,28 @@ def test_a_frame_one_side_lost_moves_no_frame_to_another_block() -> None:
     # on its own, the short side would have put frames 2 and 4 of standpoint 0 one block earlier
     own = frame_blocks(sim, 3)
     assert (own != bs).any()
+
+
+def test_a_standpoint_only_the_simulation_has_sets_no_reference_variance() -> None:
+    """The simulation kept standpoint_05, the real side lost it, and its estimated reference plane
+    is far off (30x the others'). A bias test pairs only the standpoints both sides have, so its
+    standard error is the same as if the simulation had never seen standpoint_05; before, that
+    standpoint's reference error set the variance floor of every group it fell in (4-8x the SE)."""
+    real = _without(session(3), "standpoint_05")
+    sim_all = session(4)
+    plane_off = np.array([1.0, -1.0, 2.0, -1.0, 30.0, 1.0]) * 1e-4  # m at 1 m, growing like z^2
+    sim_all.ref_err_m = plane_off[sim_all.standpoint] * sim_all.z_ref_m ** 2
+    sim_paired = _without(sim_all, "standpoint_05")
+    for family in ("albedo", "column", "tile"):
+        with_extra = next(g for g in default_groups(real, sim_all) if g.family == family)
+        without = next(g for g in default_groups(real, sim_paired) if g.family == family)
+        a = compare_groups(real, sim_all, with_extra, "bias")
+        b = compare_groups(real, sim_paired, without, "bias")
+        assert [t.label for t in a] == [t.label for t in b] and a
+        for x, y in zip(a, b, strict=True):
+            assert x.diff == pytest.approx(y.diff, abs=1e-15)
+            assert x.se == pytest.approx(y.se, rel=1e-12)
+            assert x.dof == pytest.approx(y.dof, rel=1e-12)
 
 
 def test_unpaired_standpoint_is_a_warning() -> None:

@@ -253,14 +253,22 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
     ss = {(g, int(to_real[sp])): v for (g, sp), v in _stand_stats(*_frame_table(sv, groups.sim, sim)).items()
           if to_real[sp] >= 0}
     # the real reference plane carries one pose error per standpoint that no frame statistic sees;
-    # its size comes from the simulation, where the estimated and the true plane are both known
-    ref = _stand_stats(*_frame_table(sim.ref_err_m, groups.sim, sim)) if kind == "bias" else {}
+    # its size comes from the simulation, where the estimated and the true plane are both known.
+    # Only the standpoints a test pairs count: one the real side lacks would set the size (and its
+    # degrees of freedom) of every group it falls in
+    ref = ({(g, int(to_real[sp])): v for (g, sp), v in _stand_stats(*_frame_table(sim.ref_err_m, groups.sim,
+                                                                                 sim)).items()
+            if to_real[sp] >= 0} if kind == "bias" else {})
+    sp_r = to_real[sim.standpoint] if len(sim) else np.zeros(0, np.int64)
+    paired = (sp_r >= 0) & (groups.sim >= 0)
     # pose errors grow like z^2 (reference_pose_noise): scale one pooled constant to each group
-    c_ref = float(np.mean(sim.ref_err_m ** 2 / sim.z_ref_m ** 4)) if kind == "bias" and len(sim) else 0.0
-    z4 = np.bincount(np.maximum(groups.sim, 0), weights=np.where(groups.sim >= 0, sim.z_ref_m ** 4, 0.0),
-                     minlength=len(groups.labels))
-    n4 = np.bincount(np.maximum(groups.sim, 0), weights=(groups.sim >= 0).astype(float),
-                     minlength=len(groups.labels))
+    c_ref = (float(np.mean(sim.ref_err_m[paired] ** 2 / sim.z_ref_m[paired] ** 4))
+             if kind == "bias" and paired.any() else 0.0)
+    nsp = max(len(real.names), 1)
+    cell = np.where(paired, groups.sim * nsp + np.maximum(sp_r, 0), 0)
+    ncell = len(groups.labels) * nsp
+    z4 = np.bincount(cell, weights=np.where(paired, sim.z_ref_m ** 4, 0.0), minlength=ncell)
+    n4 = np.bincount(cell, weights=paired.astype(float), minlength=ncell)
     het_v: dict[tuple[int, int], float] = {}
     if kind == "bias" and het is not None and np.any(het.tau2 > 0):
         X = _plane_design(real) * real.k_m_per_px[:, None]
@@ -281,9 +289,10 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
         a_s = np.array([s[1] / s[2] for _, _, s in pairs]) * w ** 2
         df_r = np.array([r[2] - 1 for _, r, _ in pairs], dtype=np.float64)
         df_s = np.array([s[2] - 1 for _, _, s in pairs], dtype=np.float64)
-        ref_var = [ref[k][0] ** 2 for k in ref if k[0] == g]
+        ref_var = [ref[k][0] ** 2 for k, _, _ in pairs if k in ref]
         # one draw per standpoint is a poor variance estimate: floor it by the pixel-level mean
-        ref_floor = c_ref * float(z4[g] / max(n4[g], 1.0))
+        cells = [g * nsp + k[1] for k, _, _ in pairs]
+        ref_floor = c_ref * float(z4[cells].sum() / max(n4[cells].sum(), 1.0))
         v_ref = max(float(np.mean(ref_var)) if ref_var else 0.0, ref_floor)
         v_het = np.array([het_v.get(k, 0.0) for k, _, _ in pairs])
         a_ref = w ** 2 * np.maximum(v_ref, v_het)
