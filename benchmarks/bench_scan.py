@@ -10,7 +10,12 @@ Goals (issue 17): whole study <= 0.5 x Open3D's casting alone, >= 15 x faster th
 neighbours, memory < 4 GiB. Wall times depend on what else runs on the machine; the CPU seconds
 (this process and its workers) and the ratios between runs of the same invocation do much less.
 
-Run by hand:  .venv/bin/python benchmarks/bench_scan.py [--frames 1334] [--distinct 32]
+Run by hand:  .venv/bin/python benchmarks/bench_scan.py [--frames 1334] [--distinct 32] [--cycles 3]
+
+`--cycles N` then measures N more times, back to back, Open3D's casting alone, the study in one
+process and the nearest-neighbour baseline, and prints each cycle's two ratios and their medians:
+on a shared box the state moves within minutes (the study's per-pixel pass by up to 60 %), so a
+ratio of runs minutes apart says less than one of runs seconds apart.
 Frames cycle over `--distinct` rendered depth images and poses (rendering 1334 frames would cost
 as much as the study); the per-frame work of the study is the same as for distinct frames.
 """
@@ -194,6 +199,8 @@ def main() -> None:
     ap.add_argument("--kdtree-frames", type=int, default=20)
     ap.add_argument("--kdtree-points", type=int, default=2_000_000)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--cycles", type=int, default=0,
+                    help="then N back-to-back cycles: casting alone, 1-process study, nearest neighbour")
     ap.add_argument("--skip", default="",
                     help="comma list of runs to skip: alone,compare,raster,raster-w1,raycast,kdtree")
     args = ap.parse_args()
@@ -282,8 +289,31 @@ def main() -> None:
                   f"~{kd * args.frames:.0f} s); in CPU {kd_cpu * 1000:.0f} vs "
                   f"{per_frame_cpu * 1000:.1f} ms/frame "
                   f"-> {kd_cpu / per_frame_cpu:.1f}x")
+    if args.cycles > 0:
+        run_cycles(args, mesh, mesh_path, seq)
     load = os.getloadavg()
     print(f"load average at the end {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")
+
+
+def run_cycles(args: Any, mesh: Any, mesh_path: Path, seq: Any) -> None:
+    """Casting alone, the 1-process study and the nearest-neighbour baseline, back to back, N times:
+    the ratios within each cycle and their medians."""
+    from depthstation.evaluate.scan.raycast import MeshCaster
+
+    caster = MeshCaster(mesh, seq.info.depth_intrinsics, 0)
+    vs_cast, vs_kd = [], []
+    for k in range(args.cycles):
+        cw, _ = time_renderer(caster, seq.poses, args.render_frames)
+        s = time_study(seq, mesh_path, 1, "raster", chunk=64)
+        kd, _, _ = time_kdtree(seq, mesh, args.kdtree_frames, args.kdtree_points)
+        vs_cast.append(s["wall"] / (cw * args.frames))
+        vs_kd.append(kd / (s["wall"] / args.frames))
+        print(f"cycle {k + 1}: casting alone {cw * 1000:.1f} ms/frame, study {s['wall']:.1f} s "
+              f"(CPU {s['cpu']:.1f} s) = {vs_cast[-1]:.2f}x casting alone; nearest neighbour "
+              f"{kd * 1000:.0f} ms/frame = {vs_kd[-1]:.1f}x the study", flush=True)
+    print(f"over {args.cycles} cycles: study / casting alone median {np.median(vs_cast):.2f}x "
+          f"(range {min(vs_cast):.2f}-{max(vs_cast):.2f}); nearest neighbour / study median "
+          f"{np.median(vs_kd):.1f}x (range {min(vs_kd):.1f}-{max(vs_kd):.1f})")
 
 
 if __name__ == "__main__":
