@@ -453,6 +453,23 @@ def _vertex(fa: Any, k: int, q: int) -> tuple[float, float, float]:
     return fa[3 * k * c + q], fa[(3 * k + 1) * c + q], fa[(3 * k + 2) * c + q]
 
 
+@numba.njit(inline="always")
+def _project(tv: Any, bv: int, q: int, k: int, ox: float, oy: float, oz: float, r00: float, r01: float,
+             r02: float, r10: float, r11: float, r12: float, r20: float, r21: float, r22: float, fx: float,
+             fy: float, ppx: float, ppy: float) -> tuple[float, float, float, float, float, float]:
+    """Vertex k of slot q of a cluster's vertex block: camera frame (x, y, z), an upper bound of
+    its distance (|dx| + |dy| + |dz|) and its projection (u, v)."""
+    c = CLUSTER_SIZE
+    dx = float(tv[bv + 3 * k * c + q]) - ox
+    dy = float(tv[bv + (3 * k + 1) * c + q]) - oy
+    dz = float(tv[bv + (3 * k + 2) * c + q]) - oz
+    x = r00 * dx + r10 * dy + r20 * dz
+    y = r01 * dx + r11 * dy + r21 * dz
+    z = r02 * dx + r12 * dy + r22 * dz
+    w = 1.0 / z
+    return x, y, z, abs(dx) + abs(dy) + abs(dz), fx * x * w + ppx, fy * y * w + ppy
+
+
 @numba.njit(**_KERNEL_OPTIONS)
 def _bounds(tv: Any, tp: Any, cl: int, n: int, ox: float, oy: float, oz: float, r00: float, r01: float,
             r02: float, r10: float, r11: float, r12: float, r20: float, r21: float, r22: float, fx: float,
@@ -471,36 +488,12 @@ def _bounds(tv: Any, tp: Any, cl: int, n: int, ox: float, oy: float, oz: float, 
     bv = cl * (9 * c)
     bp = cl * (4 * c)
     for q in range(n):
-        dx = float(tv[bv + q]) - ox
-        dy = float(tv[bv + c + q]) - oy
-        dz = float(tv[bv + 2 * c + q]) - oz
-        xa = r00 * dx + r10 * dy + r20 * dz
-        ya = r01 * dx + r11 * dy + r21 * dz
-        za = r02 * dx + r12 * dy + r22 * dz
-        la = abs(dx) + abs(dy) + abs(dz)
-        w = 1.0 / za
-        ua = fx * xa * w + ppx
-        va = fy * ya * w + ppy
-        dx = float(tv[bv + 3 * c + q]) - ox
-        dy = float(tv[bv + 4 * c + q]) - oy
-        dz = float(tv[bv + 5 * c + q]) - oz
-        xb = r00 * dx + r10 * dy + r20 * dz
-        yb = r01 * dx + r11 * dy + r21 * dz
-        zb = r02 * dx + r12 * dy + r22 * dz
-        lb = abs(dx) + abs(dy) + abs(dz)
-        w = 1.0 / zb
-        ub = fx * xb * w + ppx
-        vb = fy * yb * w + ppy
-        dx = float(tv[bv + 6 * c + q]) - ox
-        dy = float(tv[bv + 7 * c + q]) - oy
-        dz = float(tv[bv + 8 * c + q]) - oz
-        xc = r00 * dx + r10 * dy + r20 * dz
-        yc = r01 * dx + r11 * dy + r21 * dz
-        zc = r02 * dx + r12 * dy + r22 * dz
-        lc = abs(dx) + abs(dy) + abs(dz)
-        w = 1.0 / zc
-        uc = fx * xc * w + ppx
-        vc = fy * yc * w + ppy
+        xa, ya, za, la, ua, va = _project(tv, bv, q, 0, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
+                                          r22, fx, fy, ppx, ppy)
+        xb, yb, zb, lb, ub, vb = _project(tv, bv, q, 1, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
+                                          r22, fx, fy, ppx, ppy)
+        xc, yc, zc, lc, uc, vc = _project(tv, bv, q, 2, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
+                                          r22, fx, fy, ppx, ppy)
         # rounding bound: Embree's accepted rays lie within m pixels of the exact triangle
         dist = max(la, max(lb, lc))
         h = abs(tp[bp + q] * ox + tp[bp + c + q] * oy + tp[bp + 2 * c + q] * oz - tp[bp + 3 * c + q])
