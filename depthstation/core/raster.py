@@ -439,18 +439,24 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
 
 
 # cluster slots: rows of the per-cluster blocks (`_prepare`) and of the per-cluster scratch (`_bounds`)
-_F_X, _F_U, _F_V, _F_M, _F_DIST = 0, 9, 12, 15, 16  # x, y, z of vertex k at rows 3k..3k+2
-_F_ROWS = 17
-_I_STATUS, _I_BOX = 0, 1  # status, then u0, u1, v0, v1
+_F_U, _F_V, _F_M, _F_DIST = 9, 12, 15, 16  # fa: x, y, z of vertex k at rows 3k..3k+2; u, v of the
+_F_ROWS = 17                                # three vertices; the rounding bound; the vertex distance
+_I_BOX = 1  # ia: the status at row 0, then u0, u1, v0, v1
 _I_ROWS = 5
 SKIP, SMALL, TRIANGLE, GENERAL = 0, 1, 2, 3  # what a triangle needs (`_bounds`)
 
 
 @numba.njit(inline="always")
+def _row3(fa: Any, row: int, q: int) -> tuple[float, float, float]:
+    """Rows row..row+2 of slot q in a cluster's scratch (`_bounds`)."""
+    c = CLUSTER_SIZE
+    return fa[row * c + q], fa[(row + 1) * c + q], fa[(row + 2) * c + q]
+
+
+@numba.njit(inline="always")
 def _vertex(fa: Any, k: int, q: int) -> tuple[float, float, float]:
     """Camera-frame vertex k (0-2) of slot q in a cluster's scratch (`_bounds`)."""
-    c = CLUSTER_SIZE
-    return fa[3 * k * c + q], fa[(3 * k + 1) * c + q], fa[(3 * k + 2) * c + q]
+    return _row3(fa, 3 * k, q)
 
 
 @numba.njit(inline="always")
@@ -519,10 +525,10 @@ def _bounds(tv: Any, tp: Any, cl: int, n: int, ox: float, oy: float, oz: float, 
         st = SMALL if simple & small else st
         st = SKIP if behind | (simple & empty) else st
         ia[q] = st
-        ia[c + q] = int(u0)
-        ia[2 * c + q] = int(u1)
-        ia[3 * c + q] = int(v0)
-        ia[4 * c + q] = int(v1)
+        ia[_I_BOX * c + q] = int(u0)
+        ia[(_I_BOX + 1) * c + q] = int(u1)
+        ia[(_I_BOX + 2) * c + q] = int(v0)
+        ia[(_I_BOX + 3) * c + q] = int(v1)
         fa[q] = xa
         fa[c + q] = ya
         fa[2 * c + q] = za
@@ -532,14 +538,14 @@ def _bounds(tv: Any, tp: Any, cl: int, n: int, ox: float, oy: float, oz: float, 
         fa[6 * c + q] = xc
         fa[7 * c + q] = yc
         fa[8 * c + q] = zc
-        fa[9 * c + q] = ua
-        fa[10 * c + q] = ub
-        fa[11 * c + q] = uc
-        fa[12 * c + q] = va
-        fa[13 * c + q] = vb
-        fa[14 * c + q] = vc
-        fa[15 * c + q] = m
-        fa[16 * c + q] = dist
+        fa[_F_U * c + q] = ua
+        fa[(_F_U + 1) * c + q] = ub
+        fa[(_F_U + 2) * c + q] = uc
+        fa[_F_V * c + q] = va
+        fa[(_F_V + 1) * c + q] = vb
+        fa[(_F_V + 2) * c + q] = vc
+        fa[_F_M * c + q] = m
+        fa[_F_DIST * c + q] = dist
 
 
 @cache
@@ -632,14 +638,15 @@ def _render_kernel(mode: int) -> Any:
                 st = ia[q]
                 if st == SKIP:
                     continue
-                u0, u1, v0, v1 = ia[c + q], ia[2 * c + q], ia[3 * c + q], ia[4 * c + q]
-                m = fa[15 * c + q]
+                b = _I_BOX * c + q
+                u0, u1, v0, v1 = ia[b], ia[b + c], ia[b + 2 * c], ia[b + 3 * c]
+                m = fa[_F_M * c + q]
                 full = False
                 small = st == SMALL
                 npoly = 3
                 clipped = False
                 if st == GENERAL:
-                    dist = fa[16 * c + q]
+                    dist = fa[_F_DIST * c + q]
                     if m > 0.02:  # near the triangle's plane: bound by the distances to its edge lines
                         dmin = np.inf
                         for k in range(3):
@@ -659,10 +666,12 @@ def _render_kernel(mode: int) -> Any:
                     za, zb, zc = fa[2 * c + q], fa[5 * c + q], fa[8 * c + q]
                     if za >= zclip and zb >= zclip and zc >= zclip:
                         if not full:
-                            umin = min(fa[9 * c + q], min(fa[10 * c + q], fa[11 * c + q]))
-                            umax = max(fa[9 * c + q], max(fa[10 * c + q], fa[11 * c + q]))
-                            vmin = min(fa[12 * c + q], min(fa[13 * c + q], fa[14 * c + q]))
-                            vmax = max(fa[12 * c + q], max(fa[13 * c + q], fa[14 * c + q]))
+                            ua, ub, uc = _row3(fa, _F_U, q)
+                            va, vb, vc = _row3(fa, _F_V, q)
+                            umin = min(ua, min(ub, uc))
+                            umax = max(ua, max(ub, uc))
+                            vmin = min(va, min(vb, vc))
+                            vmax = max(va, max(vb, vc))
                             u0 = max(0, int(np.ceil(max(umin, -1e15) - m)))
                             u1 = min(width - 1, int(np.floor(min(umax, 1e15) + m)))
                             v0 = max(0, int(np.ceil(max(vmin, -1e15) - m)))
@@ -711,8 +720,8 @@ def _render_kernel(mode: int) -> Any:
                         _unit_normal(nx, ny, nz, nrm, ident)
                     continue
                 if not clipped:
-                    pu[0], pu[1], pu[2] = fa[9 * c + q], fa[10 * c + q], fa[11 * c + q]
-                    pv[0], pv[1], pv[2] = fa[12 * c + q], fa[13 * c + q], fa[14 * c + q]
+                    pu[0], pu[1], pu[2] = _row3(fa, _F_U, q)
+                    pv[0], pv[1], pv[2] = _row3(fa, _F_V, q)
                 up, n = _raster_polygon(pu, pv, npoly, m, full, width, height, tv, bv, q, ox32, oy32,
                                         oz32, ident, dtab, r02, r12, r22, mode, fma, zbuf, tid, ties, tie_t,
                                         nrm, sc)
