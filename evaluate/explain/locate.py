@@ -250,15 +250,20 @@ def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
     rs = _stand_stats(*_frame_table(rv, groups.real, real))
     # the sim side's standpoints in the real side's numbering: pairs are the same standpoint by name
     to_real = standpoint_map(real, sim)
-    ss = {(g, int(to_real[sp])): v for (g, sp), v in _stand_stats(*_frame_table(sv, groups.sim, sim)).items()
-          if to_real[sp] >= 0}
+
+    def sim_stats(values: FloatArray) -> dict[tuple[int, int], tuple[float, float, int, float]]:
+        """Per (group, standpoint) frame statistics of the sim side, keyed by the real side's
+        standpoint; standpoints the real side lacks are left out."""
+        return {(g, int(to_real[sp])): v for (g, sp), v in _stand_stats(*_frame_table(values, groups.sim,
+                                                                                      sim)).items()
+                if to_real[sp] >= 0}
+
+    ss = sim_stats(sv)
     # the real reference plane carries one pose error per standpoint that no frame statistic sees;
     # its size comes from the simulation, where the estimated and the true plane are both known.
     # Only the standpoints a test pairs count: one the real side lacks would set the size (and its
     # degrees of freedom) of every group it falls in
-    ref = ({(g, int(to_real[sp])): v for (g, sp), v in _stand_stats(*_frame_table(sim.ref_err_m, groups.sim,
-                                                                                 sim)).items()
-            if to_real[sp] >= 0} if kind == "bias" else {})
+    ref = sim_stats(sim.ref_err_m) if kind == "bias" else {}
     sp_r = to_real[sim.standpoint] if len(sim) else np.zeros(0, np.int64)
     paired = (sp_r >= 0) & (groups.sim >= 0)
     # pose errors grow like z^2 (reference_pose_noise): scale one pooled constant to each group
