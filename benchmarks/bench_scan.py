@@ -23,7 +23,9 @@ as much as the study); the per-frame work of the study is the same as for distin
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -219,6 +221,7 @@ def main() -> None:
     _, mesh = build_mesh(args.subdivide, args.segments)
     seq = make_workload(args.frames, args.distinct, args.width, args.height)
     tmp = Path(tempfile.mkdtemp(prefix="bench_scan_"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)  # the 28 MB mesh file goes with the run
     mesh_path = tmp / "mesh.ply"
     o3d.io.write_triangle_mesh(str(mesh_path), mesh)
     px = args.width * args.height

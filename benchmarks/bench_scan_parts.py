@@ -13,7 +13,9 @@ Run by hand (the base: any checkout of the package, e.g. `git archive <commit> |
 from __future__ import annotations
 
 import argparse
+import atexit
 import importlib.util
+import shutil
 import sys
 import tempfile
 import time
@@ -138,7 +140,9 @@ def main() -> None:
 
     pkg = args.base / "depthstation"
     _, mesh = bench_scan.build_mesh(8, 100_000)
-    mesh_path = Path(tempfile.mkdtemp(prefix="bench_parts_")) / "mesh.ply"
+    tmp = Path(tempfile.mkdtemp(prefix="bench_parts_"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)  # the 28 MB mesh file goes with the run
+    mesh_path = tmp / "mesh.ply"
     open3d().io.write_triangle_mesh(str(mesh_path), mesh)
     seq = make_sequence(frames=args.distinct, width=640, height=480, depth_units_m=0.001, seed=1)
     intr = seq.info.depth_intrinsics
