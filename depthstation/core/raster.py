@@ -317,6 +317,23 @@ def _note_tie(ties: Any, tie_t: Any, i: int, t: Any) -> None:
 
 
 @numba.njit(inline="always")
+def _keep(i: int, ux: Any, uy: Any, uz: Any, wx: Any, wy: Any, wz: Any, qx: Any, qy: Any, qz: Any, nx: Any,
+          ny: Any, nz: Any, t2: Any, dx: Any, dy: Any, dz: Any, ident: int, zbuf: Any, tid: Any, ties: Any,
+          tie_t: Any, mode: int, fma: bool) -> bool:
+    """Pixel i's reference test against the set-up triangle `ident`; the nearer hit (the lower id
+    at equal depth) is kept, an equal depth noted (`_note_tie`). Returns whether this one won."""
+    z = zbuf[i]
+    k = tid[i]
+    hit, t = _test(ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy, dz, z, mode, fma)
+    better = hit & ((t < z) | (ident < k))
+    zbuf[i] = t if better else z
+    tid[i] = ident if better else k
+    if hit & (t == z):
+        _note_tie(ties, tie_t, i, t)
+    return better
+
+
+@numba.njit(inline="always")
 def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: int, height: int,
                     tv: Any, bv: int, q: int, ox32: Any, oy32: Any, oz32: Any, ident: int,
                     dtab: Any, r02: float, r12: float, r22: float, mode: int, fma: bool, zbuf: Any,
@@ -424,15 +441,8 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
             else:
                 i = cc * width + line
                 dx, dy, dz = _dir_at(dtab, line, cc, r02, r12, r22)
-            z = zbuf[i]
-            k = tid[i]
-            hit, t = _test(ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy, dz, z, mode, fma)
-            better = hit & ((t < z) | (ident < k))
-            zbuf[i] = t if better else z
-            tid[i] = ident if better else k
-            if hit & (t == z):
-                _note_tie(ties, tie_t, i, t)
-            won |= better
+            won |= _keep(i, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy, dz, ident, zbuf, tid,
+                         ties, tie_t, mode, fma)
     if won:
         _unit_normal(nx, ny, nz, nrm, ident)
     return 1, tests
@@ -705,16 +715,8 @@ def _render_kernel(mode: int) -> Any:
                         for u in range(u0, u1 + 1):
                             i = v * width + u
                             dx, dy, dz = _dir_at(dtab, u, v, r02, r12, r22)
-                            z = zbuf[i]
-                            k = tid[i]
-                            hit, t = _test(ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy, dz, z,
-                                           mode, fma)
-                            better = hit & ((t < z) | (ident < k))
-                            zbuf[i] = t if better else z
-                            tid[i] = ident if better else k
-                            if hit & (t == z):
-                                _note_tie(ties, tie_t, i, t)
-                            won |= better
+                            won |= _keep(i, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy, dz,
+                                         ident, zbuf, tid, ties, tie_t, mode, fma)
                     tests += (u1 - u0 + 1) * (v1 - v0 + 1)
                     if won:
                         _unit_normal(nx, ny, nz, nrm, ident)
