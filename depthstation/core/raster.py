@@ -214,11 +214,25 @@ def world_direction(r00: float, r01: float, r02: float, r10: float, r11: float, 
 
 
 @numba.njit(inline="always")
-def _dir_at(dtab: Any, u: int, v: int, r02: float, r12: float, r22: float) -> Any:
-    """`world_direction` of pixel (u, v) from per-column and per-row products (same operations,
-    same order)."""
-    return (np.float32(dtab[0, u] + dtab[3, v] + r02), np.float32(dtab[1, u] + dtab[4, v] + r12),
-            np.float32(dtab[2, u] + dtab[5, v] + r22))
+def _dir_sum(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float, r02: float, r12: float,
+             r22: float) -> Any:
+    """`world_direction` from a column's products (a) and a row's (b): same operations, same order."""
+    return np.float32(a0 + b0 + r02), np.float32(a1 + b1 + r12), np.float32(a2 + b2 + r22)
+
+
+@numba.njit(inline="always")
+def _col(dtab: Any, u: Any) -> tuple[float, float, float]:
+    """Column u's products of the ray directions (`_render`'s dtab rows 0-2); u taken as unsigned,
+    so no negative-index wraparound is computed per pixel."""
+    u = np.uint64(u)
+    return dtab[0, u], dtab[1, u], dtab[2, u]
+
+
+@numba.njit(inline="always")
+def _row(dtab: Any, v: Any) -> tuple[float, float, float]:
+    """Row v's products of the ray directions (`_render`'s dtab rows 3-5), v unsigned."""
+    v = np.uint64(v)
+    return dtab[3, v], dtab[4, v], dtab[5, v]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -317,11 +331,12 @@ def _note_tie(ties: Any, tie_t: Any, i: int, t: Any) -> None:
 
 
 @numba.njit(inline="always")
-def _keep(i: int, ux: Any, uy: Any, uz: Any, wx: Any, wy: Any, wz: Any, qx: Any, qy: Any, qz: Any, nx: Any,
+def _keep(i: Any, ux: Any, uy: Any, uz: Any, wx: Any, wy: Any, wz: Any, qx: Any, qy: Any, qz: Any, nx: Any,
           ny: Any, nz: Any, t2: Any, dx: Any, dy: Any, dz: Any, ident: int, zbuf: Any, tid: Any, ties: Any,
           tie_t: Any, mode: int, fma: bool) -> bool:
     """Pixel i's reference test against the set-up triangle `ident`; the nearer hit (the lower id
     at equal depth) is kept, an equal depth noted (`_note_tie`). Returns whether this one won."""
+    i = np.uint64(i)  # never negative: no wraparound per access
     z = zbuf[i]
     k = tid[i]
     hit, t = _test(ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy, dz, z, mode, fma)
@@ -412,37 +427,42 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
         else:
             for p in range(nl):
                 span_hi[p] = -1.0 if b * (l0 + p) + c < 0.0 else span_hi[p]
-    first = nl
-    for p in range(nl):  # the first line with a pixel centre
-        if span_lo[p] <= span_hi[p] and np.ceil(span_lo[p]) <= np.floor(span_hi[p]):
-            first = p
-            break
-    if first == nl:
+    # the lines with a pixel centre, in order, listed without a branch per line: whether a line of
+    # a thin triangle holds one is a coin flip, and a mispredicted branch costs more than the list
+    for p in range(nl):
+        span_lo[p] = np.ceil(span_lo[p])
+        span_hi[p] = np.floor(span_hi[p])
+    lines = dtab[8]
+    nh = 0
+    for p in range(nl):
+        lines[nh] = p
+        nh += span_lo[p] <= span_hi[p]
+    if nh == 0:
         return 0, 0
     # the reference arithmetic (float32), once per triangle and frame
     ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup_at(tv, bv, q, ox32, oy32, oz32, fma)
     won = False
     tests = 0
-    for p in range(first, nl):
-        lo = span_lo[p]
-        hi = span_hi[p]
-        if lo > hi:
-            continue
-        ra = int(np.ceil(lo))
-        rb = int(np.floor(hi))
-        if ra > rb:
-            continue
+    for h in range(nh):
+        p = int(lines[h])
+        ra = int(span_lo[p])
+        rb = int(span_hi[p])
         line = l0 + p
         tests += rb - ra + 1
-        for cc in range(ra, rb + 1):
-            if by_rows:
-                i = line * width + cc
-                dx, dy, dz = _dir_at(dtab, cc, line, r02, r12, r22)
-            else:
-                i = cc * width + line
-                dx, dy, dz = _dir_at(dtab, line, cc, r02, r12, r22)
-            won |= _keep(i, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy, dz, ident, zbuf, tid,
-                         ties, tie_t, mode, fma)
+        if by_rows:  # the line's products once, the pixels' from their columns
+            b0, b1, b2 = _row(dtab, line)
+            for cc in range(ra, rb + 1):
+                a0, a1, a2 = _col(dtab, cc)
+                dx, dy, dz = _dir_sum(a0, a1, a2, b0, b1, b2, r02, r12, r22)
+                won |= _keep(line * width + cc, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy,
+                             dz, ident, zbuf, tid, ties, tie_t, mode, fma)
+        else:
+            a0, a1, a2 = _col(dtab, line)
+            for cc in range(ra, rb + 1):
+                b0, b1, b2 = _row(dtab, cc)
+                dx, dy, dz = _dir_sum(a0, a1, a2, b0, b1, b2, r02, r12, r22)
+                won |= _keep(cc * width + line, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy,
+                             dz, ident, zbuf, tid, ties, tie_t, mode, fma)
     if won:
         _unit_normal(nx, ny, nz, nrm, ident)
     return 1, tests
@@ -611,7 +631,7 @@ def _render_kernel(mode: int) -> Any:
             planes_w[p, 0] = r00 * a + r01 * b + r02 * cc
             planes_w[p, 1] = r10 * a + r11 * b + r12 * cc
             planes_w[p, 2] = r20 * a + r21 * b + r22 * cc
-        # per-column and per-row products of the ray directions (see _dir_at)
+        # per-column and per-row products of the ray directions (see _dir_sum)
         for u in range(width):
             dtab[0, u] = r00 * xs[u]
             dtab[1, u] = r10 * xs[u]
@@ -712,9 +732,11 @@ def _render_kernel(mode: int) -> Any:
                     setups += 1
                     won = False
                     for v in range(v0, v1 + 1):
+                        b0, b1, b2 = _row(dtab, v)
                         for u in range(u0, u1 + 1):
                             i = v * width + u
-                            dx, dy, dz = _dir_at(dtab, u, v, r02, r12, r22)
+                            a0, a1, a2 = _col(dtab, u)
+                            dx, dy, dz = _dir_sum(a0, a1, a2, b0, b1, b2, r02, r12, r22)
                             won |= _keep(i, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy, dz,
                                          ident, zbuf, tid, ties, tie_t, mode, fma)
                     tests += (u1 - u0 + 1) * (v1 - v0 + 1)
@@ -843,7 +865,7 @@ class MeshRaster:
         self._work = np.zeros((16, 16))
         self._fa = np.zeros(_F_ROWS * CLUSTER_SIZE)  # a cluster's scratch (`_bounds`)
         self._ia = np.zeros(_I_ROWS * CLUSTER_SIZE, np.int64)
-        self._tab = np.zeros((8, 0))
+        self._tab = np.zeros((9, 0))
 
     def sibling(self) -> MeshRaster:
         """The same prepared mesh (shared, read only) with its own buffers: for another thread."""
@@ -925,10 +947,11 @@ class MeshRaster:
         return self._nrm
 
     def _dtab(self, intr: Intrinsics) -> NDArray[np.float64]:
-        """Per-column and per-row ray products (rows 0-5) and a polygon's line spans (6, 7)."""
+        """Per-column and per-row ray products (rows 0-5), a polygon's line spans (6, 7) and its lines
+        with a pixel centre (8)."""
         n = max(intr.width, intr.height)
         if self._tab.shape[1] < n:
-            self._tab = np.zeros((8, n))
+            self._tab = np.zeros((9, n))
         return self._tab
 
 
