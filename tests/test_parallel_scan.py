@@ -106,3 +106,29 @@ def test_scan_chunks_carry_no_pixels(scan_case: dict[str, Any]) -> None:
                                    replace(scan_case["config"]), chunk_frames=4)
     assert [(c.start, c.limit) for c in chunks] == [(0, 4), (4, 4), (8, 2)]
     assert len(pickle.dumps(chunks[0])) < 10 * 1024  # 60x80 depth alone would be 9.6 kB per frame
+
+
+def test_the_last_two_chunks_taper_to_short_pieces_that_cover_their_frames_once() -> None:
+    """The tail of a study is cut so that cores finish together: halving pieces of the last two
+    chunks' frames, contiguous, in order, none longer than the chunk, the last ones 8 frames or less."""
+    from depthstation.evaluate.scan.chunks import TAPER_FRAMES, split_last
+    from depthstation.evaluate.scan.study import StudyConfig
+    from depthstation.evaluate.scan.trajectory import Trajectory
+
+    traj = Trajectory(np.array([0.0]), np.eye(4)[None])
+    for frames, size in ((1334, 64), (128, 64), (65, 64), (64, 64), (3, 64), (1, 64), (200, 16)):
+        whole = [ScanChunk("seq", "mesh", traj, StudyConfig(), s, min(size, frames - s))
+                 for s in range(0, frames, size)]
+        cut = split_last(whole)
+        starts = [c.start for c in cut]
+        limits = [c.limit or 0 for c in cut]
+        assert starts == [0, *np.cumsum(limits)[:-1].tolist()], (frames, limits)
+        assert sum(limits) == frames
+        assert max(limits) <= size
+        head = max(len(whole) - 2, 0)
+        assert cut[:head] == whole[:head]  # only the tail is cut
+        if frames >= 2:
+            assert limits[-1] <= TAPER_FRAMES and limits[-2:] == sorted(limits[-2:], reverse=True)
+    tail = [ScanChunk("s", "m", traj, StudyConfig(), 1216, 64),
+            ScanChunk("s", "m", traj, StudyConfig(), 1280, 54)]
+    assert [c.limit for c in split_last(tail)] == [59, 30, 15, 7, 7]
