@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import sys
 from pathlib import Path
 
@@ -68,7 +69,12 @@ def _say_warnings(found: list[RunWarning]) -> None:
 
 def main() -> None:
     """Entry point: one-line errors on stderr, exit 2 for bad input, 1 for other failures, 3 for
-    warnings under --strict; every warning of the run is printed at the end, one line each."""
+    warnings under --strict; every warning of the run is printed at the end, one line each.
+
+    The objects the imports made (modules, functions: ~94 k, alive until the exit) are frozen out
+    of the cyclic garbage collector: its last pass at the interpreter's exit no longer walks them
+    (0.57-0.67 s -> 0.22-0.30 s after `evaluate checkerboard`), nor do the passes during the run."""
+    gc.freeze()
     code = run_cli(sys.argv[1:])
     if code:
         sys.exit(code)
