@@ -207,3 +207,30 @@ def test_normal_std_matches_monte_carlo_of_pnp() -> None:
     assert measured == pytest.approx(predicted, rel=0.15)  # 400 samples: ~7% on a std
     assert np.mean(noise) == pytest.approx(sigma, rel=0.05)
     assert normal_std_deg(pose, obj, HD, sigma, frames=100) == pytest.approx(predicted / 10, rel=1e-6)
+
+
+def test_colour_tests_give_scipy_stats_p_values_without_importing_it() -> None:
+    """Welch's and the paired t-test of black against white squares, written on scipy.special:
+    the p-values of scipy.stats.ttest_ind(equal_var=False) and ttest_rel, edge cases included."""
+    import warnings
+
+    from scipy import stats
+
+    from depthstation.evaluate.checkerboard.study import colour_tests
+
+    rng = np.random.default_rng(3)
+    cases = []
+    for _ in range(60):
+        n = int(rng.integers(3, 40))
+        b = rng.normal(0.1, rng.uniform(1e-4, 0.01), n)
+        cases.append((b, b * rng.uniform(0.5, 1.5) + rng.normal(rng.uniform(-0.01, 0.01), 0.005, n)))
+    cases += [(np.array([1.0, 1, 1]), np.array([1.0, 2, 3])),  # one side constant
+              (np.array([1.0, 2, 3]), np.array([2.0, 3, 4])),  # a constant difference: paired p = 0
+              (np.array([1.0, 2, 3]), np.array([1.0, 2, 3]))]  # identical: no difference to test
+    for b, w in cases:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            want = (stats.ttest_ind(b, w, equal_var=False).pvalue, stats.ttest_rel(b, w).pvalue)
+        got = colour_tests(list(b), list(w))
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=0, equal_nan=True)
+    assert all(np.isnan(colour_tests([0.1, 0.1, 0.1], [0.2, 0.2, 0.2])))  # no spread on either side
