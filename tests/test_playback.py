@@ -11,7 +11,7 @@ from depthstation.acquire.playback_camera import PlaybackCamera
 from depthstation.core.capture.rs_writer import write_realsense_recording
 from depthstation.core.capture.sample_recordings import sample_frames, sample_info
 from depthstation.core.device import Camera
-from depthstation.core.errors import InputError
+from depthstation.core.errors import CameraError, InputError
 from depthstation.core.protocol import Streams
 
 
@@ -65,3 +65,40 @@ def test_playback_refuses_non_recordings(tmp_path: Path) -> None:
     cam = PlaybackCamera(bad)
     with pytest.raises(InputError):
         cam.start(None)
+
+
+class _SilentPipe:
+    """A pipeline that never delivers a frame (librealsense's timeout each time)."""
+
+    calls = 0
+
+    def wait_for_frames(self, timeout_ms: int) -> None:
+        self.calls += 1
+        raise RuntimeError(f"Frame didn't arrive within {timeout_ms}")
+
+    def stop(self) -> None:
+        return None
+
+
+@pytest.mark.parametrize(("status", "expected"), [("stopped", EOFError), ("playing", CameraError)])
+def test_a_timeout_is_the_end_only_when_the_playback_has_stopped(
+        d435_bag: Path, monkeypatch: pytest.MonkeyPatch, status: str, expected: type[Exception]) -> None:
+    """A fresh playback on a loaded machine missed a 2 s timeout with frames still to come; that
+    must not read as the end of the recording (a capture cut short without a word)."""
+    import pyrealsense2 as rs
+
+    from depthstation.acquire import playback_camera
+
+    cam = PlaybackCamera(d435_bag)
+    cam.start(Streams(width=640, height=480, fps=6))
+    real = cam._pipe
+    try:
+        pipe = _SilentPipe()
+        cam._pipe = pipe
+        monkeypatch.setattr(cam, "_playback_status", lambda: getattr(rs.playback_status, status))
+        with pytest.raises(expected):
+            cam.wait_for_frames(0.01)
+        assert pipe.calls == (1 if expected is EOFError else playback_camera.LATE_RETRIES + 1)
+    finally:
+        cam._pipe = real
+        cam.stop()
