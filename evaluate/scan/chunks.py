@@ -235,8 +235,6 @@ def split_last(chunks: list[ScanChunk]) -> list[ScanChunk]:
         return chunks
     tail = chunks[-2:]
     frames = sum(c.limit or 0 for c in tail)
-    if frames < 2:
-        return chunks
     out = chunks[:-2]
     start = tail[0].start
     for piece in taper(frames):
