@@ -14,6 +14,7 @@ from depthstation.core.errors import InputError
 from depthstation.core.geometry import rodrigues
 from depthstation.evaluate.scan.reference import PoissonParams, load_reference, reference_mesh
 from depthstation.evaluate.scan.registration import read_pass_points, read_similarity
+from depthstation.evaluate.scan.run import ScanOptions
 from depthstation.evaluate.scan.synthetic import Room, make_sequence, write_tum_folder
 from depthstation.evaluate.scan.trajectory import compose_similarity, read_tum, write_tum
 
@@ -93,6 +94,14 @@ def test_cloud_reference_is_meshed_trimmed_and_cached(tmp_path: Path) -> None:
     _, path2, info2 = reference_mesh(tmp_path / "cloud.ply", out,
                                      params=PoissonParams(depth=6))
     assert info2["cached"] and path2 == path1
+    # one Poisson thread (the default): the same cloud gives the same mesh, bit for bit, so a
+    # study repeated in a fresh folder repeats its grid exactly
+    m3, _, info3 = reference_mesh(tmp_path / "cloud.ply", tmp_path / "again", params=PoissonParams(depth=6))
+    assert not info3["cached"] and info3["poisson"]["threads"] == 1
+    np.testing.assert_array_equal(np.asarray(m3.vertices), np.asarray(m1.vertices))
+    np.testing.assert_array_equal(np.asarray(m3.triangles), np.asarray(m1.triangles))
+    with pytest.raises(InputError, match="--poisson-threads"):
+        ScanOptions(poisson_threads=-1).check()
 
 
 def test_scan_command_writes_a_result_folder(tmp_path: Path) -> None:

@@ -67,6 +67,10 @@ def scan(
     poisson_depth: int = typer.Option(9, "--poisson-depth", help="Poisson octree depth for a cloud."),
     density_quantile: float = typer.Option(0.05, "--density-quantile",
                                            help="Drop Poisson vertices below this density quantile."),
+    poisson_threads: int = typer.Option(1, "--poisson-threads",
+                                        help="Threads for meshing a cloud: 1 gives the same mesh from "
+                                             "the same cloud on every run; 0 uses all cores (faster, "
+                                             "but the mesh differs by micrometres from run to run)."),
     depth_topic: DepthTopic = None,
     color_topic: ColorTopic = None,
     infrared_topic: InfraredTopic = None,
@@ -87,7 +91,8 @@ def scan(
                        distance_max_m=distance_max_m, min_count_frame=min_count_frame,
                        min_count_sequence=min_count_sequence, figure_frame=figure_frame,
                        intrinsics=intrinsics, poisson_depth=poisson_depth,
-                       density_quantile=density_quantile, force=force, depth_topic=depth_topic,
+                       density_quantile=density_quantile, poisson_threads=poisson_threads,
+                       force=force, depth_topic=depth_topic,
                        color_topic=color_topic, infrared_topic=infrared_topic, renderer=renderer,
                        target=RerunTarget(rrd, spawn, serve, force))
     s = run_scan(sequence, poses, reference, out, opts)

@@ -77,6 +77,7 @@ class ScanOptions:
     force: bool = False
     poisson_depth: int = 9
     density_quantile: float = 0.05
+    poisson_threads: int = 1
     depth_topic: str | None = None      # ROS recordings: topics (None: the realsense-ros layout)
     color_topic: str | None = None
     infrared_topic: str | None = None
@@ -100,6 +101,9 @@ class ScanOptions:
                                    f"not '{self.register}'")
         if self.every < 1 or self.workers < 1 or self.chunk_frames < 1:
             raise InputError(None, "--every, --workers and --chunk-frames must be at least 1")
+        if self.poisson_threads < 0:
+            raise InputError(None, "--poisson-threads must be 0 (all cores) or more, "
+                                   f"not {self.poisson_threads}")
         check_renderer(self.renderer)
 
     @property
@@ -180,7 +184,8 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     similarity = read_similarity(opt.similarity) if opt.similarity is not None else None
     pass_points = read_pass_points(opt.pass_points) if opt.pass_points is not None else None
     mesh, mesh_path, mesh_info = reference_mesh(
-        Path(reference), out, PoissonParams(depth=opt.poisson_depth, density_quantile=opt.density_quantile),
+        Path(reference), out, PoissonParams(depth=opt.poisson_depth, density_quantile=opt.density_quantile,
+                                         threads=opt.poisson_threads),
         viewpoints=camera_centres(given, similarity, pass_points))
     # far-away coordinates (survey frames) are shifted before anything is registered or cast
     centres = given.poses[:, :3, 3]
