@@ -2,11 +2,37 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+import pytest
 
 from depthstation.core.camera_model import Intrinsics, pixel_rays
 from depthstation.core.grid import Grid
-from depthstation.evaluate.scan.raycast import _inclination_bin, cos_edges
+from depthstation.evaluate.scan.raycast import (
+    GUESS_CELLS,
+    _inclination_bin,
+    _pixel_bins,
+    cos_edges,
+    inclination_guess,
+)
+
+
+def _pass_bins(c: np.ndarray, g: Grid) -> Any:
+    """The inclination bins `_pixel_bins` gives pixels whose cos(inclination) is exactly `c`: each
+    looks along x at a normal along x, 1 m away, and its ray-norm factor (float64 here) is c."""
+    n = c.size
+    d_lo, d_step, nd, _, _, ni = g.bins
+    ce = cos_edges(g)
+    dirs = np.zeros((n, 3), np.float32)
+    dirs[:, 0] = 1.0
+    kk, sj, se = np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n)
+    start, stats = np.empty(nd + 1, np.int64), np.zeros(5, np.int64)
+    _pixel_bins(np.ones(n, np.float32), np.zeros(n, np.int32), np.array([[1.0, 0.0, 0.0]], np.float32),
+                dirs, np.eye(3), c.astype(np.float64), np.full(n, 1000, np.uint16), 0.001, d_lo, d_step,
+                nd, ce, inclination_guess(ce), ni, kk, sj, se, start, stats)
+    assert stats[3] == n  # all evaluated, in one distance bin: sj keeps the pixels' order
+    return sj
 
 
 def test_inclination_bin_equals_exact_arccos_binning() -> None:
@@ -30,3 +56,28 @@ def test_ray_directions_pass_through_integer_pixel_centres() -> None:
     d = pixel_rays(intr)
     np.testing.assert_allclose(d[2, 3], [0.0, 0.0, 1.0])  # principal point at integer (3, 2)
     np.testing.assert_allclose(d[0, 0], [-0.3, -2.0 / 12.0, 1.0], rtol=1e-6)
+
+
+@pytest.mark.parametrize("grid", [{}, {"inclination_bin_deg": 0.01}, {"inclination_bin_deg": 1.0},
+                                  {"inclination_bin_deg": 5.0, "inclination_min_deg": 10.0,
+                                   "inclination_max_deg": 60.0}])
+def test_the_pass_gives_the_inclination_bin_of_the_edge_walk(grid: dict[str, float]) -> None:
+    """The pass's bin (table guess, one comparison where its cell holds one edge) is the walk along
+    the exact edge cosines for every c: the edges and their neighbouring doubles, the table's cell
+    bounds and theirs, random values, just above 1, below the grid, NaN."""
+    g = Grid.empty(**grid)
+    ce = cos_edges(g)
+    ni = ce.size - 1
+    rng = np.random.default_rng(1)
+    cells = np.arange(GUESS_CELLS + 1) / GUESS_CELLS
+    near = np.concatenate([ce, cells])
+    c = np.concatenate([near, np.nextafter(near, 2.0), np.nextafter(near, -1.0), rng.uniform(0, 1, 200_000),
+                        np.cos(np.radians(rng.uniform(0, 2, 50_000))), [1.0 + 2e-16, -0.1, 0.0, np.nan]])
+    got = _pass_bins(c, g)
+    e = g.inclination_edges_deg
+    lo, step = float(e[0]), float(e[1] - e[0])
+    want = np.array([_inclination_bin(x, ce, lo, step, ni) if np.isfinite(x) else -1 for x in c])
+    np.testing.assert_array_equal(got, want)
+    if step >= 0.1:  # bins of 0.1 deg and more: every cell in the grid from 1 deg on is one comparison
+        inside = (cells >= ce[-1]) & (cells <= min(ce[0], np.cos(np.radians(1.0))))
+        assert np.all(inclination_guess(ce)[inside] >= 0)
