@@ -200,7 +200,7 @@ def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None =
     marker = item.out / DONE_MARKER
     marker.unlink(missing_ok=True)
     # the item's folder is written under a temporary name and replaces an unfinished one whole
-    with result_folder(item.out, force=True) as tmp:
+    with result_folder(item.out, force=True, inputs=item_paths(item)) as tmp:
         job = KINDS[item.kind](replace(item, out=tmp))
         prog = progress or (lambda d, t: None)
         if job.merge is not None:
@@ -328,6 +328,16 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
 
 
 # -- manifest kinds: each calls its study's one prepare / finish path -------------------------------
+def item_paths(item: BatchItem) -> list[Path]:
+    """Every path among an item's inputs (lists too): what its folder must not hold."""
+    out: list[Path] = []
+    for v in item.inputs.values():
+        for x in v if isinstance(v, list) else [v]:
+            if isinstance(x, (str, Path)):
+                out.append(Path(x))
+    return out
+
+
 def _paths(item: BatchItem, keys: Sequence[str]) -> dict[str, Path]:
     return {k: Path(item.inputs[k]) for k in keys if k in item.inputs}
 

@@ -76,10 +76,37 @@ def test_non_empty_out_and_existing_rrd_need_force(tmp_path: Path, session: Path
     code, err = run_here(capsys, *args, "--out", str(tmp_path / "new"), "--rrd", str(rrd))
     assert code == 2 and "x.rrd" in err and rrd.read_text() == "an old recording"
     assert not (tmp_path / "new").exists()
+    # --force replaces an earlier result only: a folder of the user's own files stays
     code, err = run_here(capsys, *args, "--out", str(out), "--rrd", str(rrd), "--force")
+    assert code == 2 and "did not write" in err and "Traceback" not in err
+    assert (out / "keep.txt").read_text() == "a result of last week" and rrd.read_text() == "an old recording"
+    earlier = tmp_path / "earlier"
+    assert run_here(capsys, *args, "--out", str(earlier))[0] == 0
+    (earlier / "notes.txt").write_text("added by hand")
+    code, err = run_here(capsys, *args, "--out", str(earlier), "--rrd", str(rrd), "--force")
     assert code == 0, err
-    assert not (out / "keep.txt").exists() and (out / "result.json").is_file()
+    assert not (earlier / "notes.txt").exists() and (earlier / "result.json").is_file()
+    assert (earlier / ".depthstation-result").is_file()
     assert rrd.read_bytes()[:4] != b"an o"  # a real recording now
+
+
+def test_force_never_deletes_an_input(tmp_path: Path, session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--out pointed at the input (a capture session, or a folder holding it) with --force: refused
+    before any work, the capture untouched; also when that folder is an earlier result."""
+    work = tmp_path / "copy"
+    shutil.copytree(session, work)
+    before = sorted(p.relative_to(work) for p in work.rglob("*"))
+    board = str(session.parent / "p.toml")
+    for out in (work, tmp_path):
+        code, err = run_here(capsys, "evaluate", "checkerboard", str(work), "--board", board, "--frames", "3",
+                             "--out", str(out), "--force")
+        assert code == 2 and "holds the input" in err and "Traceback" not in err, err
+    assert sorted(p.relative_to(work) for p in work.rglob("*")) == before
+    # an earlier result (simulate writes one) that holds the input of this run
+    code, err = run_here(capsys, "evaluate", "checkerboard", str(session), "--board", board, "--frames", "3",
+                         "--out", str(session), "--force")
+    assert code == 2 and "holds the input" in err
+    assert (session / "truth.json").is_file()
 
 
 def _small_disk(tmp_path: Path, kbytes: int) -> list[str] | None:

@@ -37,6 +37,7 @@ ForceOption = Annotated[bool, typer.Option("--force", help="Replace a non-empty 
                                                           "--rrd, only once the new result is complete.")]
 
 RESULT_FILE = "result.json"
+RESULT_MARKER = ".depthstation-result"  # in every folder result_folder finished: --force may replace it
 # the files a result folder is recognised by (docs/results.md)
 STANDPOINTS_FILE = "standpoints.csv"
 FRAMES_FILE = "frames.csv"
@@ -186,14 +187,45 @@ class _FolderLock:
 DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM)
 
 
+def _written_by_us(folder: Path) -> bool:
+    """Whether a folder is one that `result_folder` wrote (its marker, or result.json of a result
+    written before the marker existed)."""
+    return (folder / RESULT_MARKER).is_file() or (folder / RESULT_FILE).is_file()
+
+
+def check_replaceable(out: Path, inputs: Sequence[str | Path] = ()) -> None:
+    """What `--force` may replace: an earlier result, never a folder of the user's own files (a
+    recording, a capture session, notes) and never one that holds an input of this run.
+
+    Why: `--force` removes the old folder once the new result is complete; pointed at the input
+    folder, or at a folder that merely exists, it deleted what the user brought."""
+    if not _non_empty(out):
+        return
+    here = out.resolve()
+    for given in inputs:
+        path = Path(given)
+        if not path.exists():  # a preset name ('room', 'd455'), not a file
+            continue
+        p = path.resolve()
+        if p == here or here in p.parents:
+            raise InputError(out, f"holds the input {given}; --force would delete it with the old result: "
+                                  "choose another --out")
+    if not _written_by_us(out):
+        raise InputError(out, f"holds files depthstation did not write (no {RESULT_MARKER} or "
+                              f"{RESULT_FILE}); --force replaces only an earlier result: choose another "
+                              "--out")
+
+
 @contextmanager
-def result_folder(out: Path, *, force: bool = False) -> Iterator[Path]:
+def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path] = ()) -> Iterator[Path]:
     """Write a result folder under a temporary name and rename it into place when complete.
 
     Why: results are never overwritten or torn. A non-empty `out` is refused unless `force`
-    (then it is replaced only once the new folder is complete); a lock keeps a second run out of
+    (then it is replaced only once the new folder is complete, and only when it is an earlier
+    result that holds none of `inputs`: `check_replaceable`); a lock keeps a second run out of
     the same folder; a kill, an error or a full disk leaves at most a hidden `.<name>.partial-PID`
-    folder, never one that `view` or `compare` would take for a finished result.
+    folder, never one that `view` or `compare` would take for a finished result. The finished
+    folder carries a marker (`.depthstation-result`) so that a later `--force` knows it for ours.
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -201,6 +233,8 @@ def result_folder(out: Path, *, force: bool = False) -> Iterator[Path]:
     if _non_empty(out) and not force:
         raise InputError(out, "is not empty; depthstation never overwrites results (--force replaces "
                               "it once the new result is complete)")
+    if force:
+        check_replaceable(out, inputs)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -213,6 +247,12 @@ def result_folder(out: Path, *, force: bool = False) -> Iterator[Path]:
         yield tmp
         if _non_empty(out) and not force:
             raise InputError(out, f"appeared while this run was writing; the new result is left in {tmp}")
+        if force:
+            try:
+                check_replaceable(out, inputs)
+            except InputError as exc:
+                raise InputError(out, f"{exc.problem}; the new result is left in {tmp}") from exc
+        (tmp / RESULT_MARKER).write_text(json.dumps({"command_line": COMMAND_LINE.get()}) + "\n")
         old = out.parent / f".{out.name}.replaced-{os.getpid()}"
         if out.exists():
             out.rename(old)

@@ -117,7 +117,8 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
     def tick(msg: str) -> None:
         stderr_console.print(f"[bold]explain --scan[/]: {msg}")
 
-    with result_folder(out, force=force) as tmp:
+    inputs = [*real, poses, reference, *([similarity] if similarity else [])]
+    with result_folder(out, force=force, inputs=inputs) as tmp:
         ex = explain_scan(real[0], poses, reference, mdl, tmp, frames=frames, block_frames=block_frames,
                           seed=seed, register=register, similarity=similarity, resimulate=resimulate,
                           discovery=discover, tick=tick, topics=topics)

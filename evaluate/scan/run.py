@@ -284,7 +284,10 @@ def run_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     """The reference-scan study (paper Section 3.2) into the result folder `out`; returns the summary."""
     opt = options or ScanOptions()
     opt.check()
-    with result_folder(out, force=opt.force) as tmp, ChunkRunner(opt.workers, opt.cluster) as runner:
+    inputs = [p for p in (sequence, poses, reference, opt.similarity, opt.pass_points, opt.intrinsics)
+              if p is not None]
+    with result_folder(out, force=opt.force, inputs=inputs) as tmp, \
+            ChunkRunner(opt.workers, opt.cluster) as runner:
         job = prepare_scan(sequence, poses, reference, tmp, opt, in_process=runner.in_process)
         with recording("depthstation-scan", opt.target.within(out, tmp),
                        description=rerun_log.DESCRIPTION) as rec:
