@@ -90,7 +90,8 @@ def test_non_empty_out_and_existing_rrd_need_force(tmp_path: Path, session: Path
     assert rrd.read_bytes()[:4] != b"an o"  # a real recording now
 
 
-def test_force_never_deletes_an_input(tmp_path: Path, session: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_force_never_deletes_an_input(tmp_path: Path, session: Path,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
     """--out pointed at the input (a capture session, or a folder holding it) with --force: refused
     before any work, the capture untouched; also when that folder is an earlier result."""
     work = tmp_path / "copy"

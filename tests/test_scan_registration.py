@@ -9,6 +9,7 @@ back the grid still shows the bias; a trajectory in another frame is said not to
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 from typing import Any
@@ -123,3 +124,34 @@ def test_a_trajectory_in_another_frame_is_said_not_to_fit(walk: dict[str, Any], 
     said = [w for w in found if w.code == "registration-fit"]
     assert len(said) == 1 and "does not fit the reference" in said[0].message
     assert "--register" in said[0].message
+
+
+@pytest.mark.parametrize("mistake", ["y-up", "millimetres", "one wall"])
+def test_a_reference_in_other_axes_or_units_is_said_not_to_fit(walk: dict[str, Any], tmp_path: Path,
+                                                                mistake: str) -> None:
+    """The scene turned Y-up, scaled to millimetres (every ray meets a wall ~1000x too far: the
+    noise allowance grew with the reference's depth) or cut to one wall (most rays meet no surface:
+    those never counted as off)."""
+    import open3d as o3d
+
+    d = walk["dir"]
+    mesh = o3d.io.read_triangle_mesh(str(d / "scene.ply"))
+    if mistake == "y-up":
+        mesh.rotate(np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]]), center=np.zeros(3))
+    elif mistake == "millimetres":
+        mesh.scale(1000.0, center=np.array([0.0, -0.75, 0.0]))  # about the walk: every ray still hits
+    else:
+        v, t = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+        x = v[t].mean(axis=1)[:, 0]
+        mesh.remove_triangles_by_mask(x < x.max() - 0.05)
+        mesh.remove_unreferenced_vertices()
+    o3d.io.write_triangle_mesh(str(tmp_path / "wrong.ply"), mesh)
+    with collecting() as found:
+        run_scan(d / "sequence.mcap", d / "trajectory.txt", tmp_path / "wrong.ply", tmp_path / "o",
+                 ScanOptions(min_count_sequence=100, frames=4, **BINS))  # type: ignore[arg-type]
+    said = [w for w in found if w.code == "registration-fit"]
+    assert len(said) == 1 and "does not fit the reference" in said[0].message, found
+    fit = json.loads((tmp_path / "o" / "summary.json").read_text())["fit_check"]
+    assert not fit["fits"]
+    if mistake == "one wall":
+        assert fit["miss_share"] > 0.5 and "see no reference surface" in said[0].message

@@ -46,7 +46,14 @@ from depthstation.evaluate.scan.registration import (
     register,
 )
 from depthstation.evaluate.scan.report import write_scan
-from depthstation.evaluate.scan.study import PER_FRAME_DIR, ChunkResult, FitCheck, StudyConfig, fit_check
+from depthstation.evaluate.scan.study import (
+    FIT_MISS_SHARE,
+    PER_FRAME_DIR,
+    ChunkResult,
+    FitCheck,
+    StudyConfig,
+    fit_check,
+)
 from depthstation.evaluate.scan.trajectory import LocalFrames, Trajectory, local_shift, read_tum
 
 
@@ -216,9 +223,15 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
 def say_registration(reg: Registration, fit: FitCheck | None, sequence: Path) -> None:
     """The two things a registration can hide, said where the user looks: a trajectory that does
     not fit the reference, and a scale that absorbs the depth-scale error."""
-    if fit is not None and not fit.fits:
-        advice = ("register it: --register rigid (another frame), similarity (another frame and scale), "
-                  "pass-points, or give --similarity")
+    advice = ("register it: --register rigid (another frame), similarity (another frame and scale), "
+              "pass-points, or give --similarity; or check the depth units, the pose file's axes and "
+              "quaternion order, and the reference's units")
+    if fit is not None and fit.miss_share > FIT_MISS_SHARE:
+        warn(f"the trajectory does not fit the reference after registration '{reg.mode}': "
+             f"{100 * fit.miss_share:.0f}% of the depth pixels of {fit.frames} frames see no reference "
+             f"surface at all (the reference in other axes or units, or covering little of the walk); "
+             f"{advice}", str(sequence), "registration-fit")
+    elif fit is not None and not fit.fits:
         warn(f"the trajectory does not fit the reference after registration '{reg.mode}': "
              f"{100 * fit.off_share:.0f}% of the depth pixels of {fit.frames} frames miss the mesh by more "
              f"than the depth noise explains (median |error| {1000 * fit.median_abs_error_m:.0f} mm); "

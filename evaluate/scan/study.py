@@ -162,8 +162,11 @@ def frame_images(caster: FrameRenderer, source: FrameSource, trajectory: Traject
 
 # a posed frame fits the reference when its depth agrees along the rays: a pixel is off when its
 # error exceeds FIT_LIMIT_M or 4x Intel's expected noise (z^2 * 0.08 px / (f B)) at its distance
+# (the nearer of measured and reference depth: a reference kilometres away must not widen it), and
+# when most pixels with depth see no reference surface at all (axes or units of another frame)
 FIT_LIMIT_M = 0.02
 FIT_SHARE = 0.15
+FIT_MISS_SHARE = 0.5
 SUBPIXEL_PX = 0.08
 
 
@@ -175,16 +178,20 @@ class FitCheck:
     pixels: int
     off_share: float         # share of pixels whose |error| exceeds their limit
     median_abs_error_m: float
+    miss_share: float = 0.0  # share of the pixels with depth whose ray meets no reference surface
 
     @property
     def fits(self) -> bool:
-        return self.off_share <= FIT_SHARE
+        return self.off_share <= FIT_SHARE and self.miss_share <= FIT_MISS_SHARE
 
     def to_dict(self) -> dict[str, Any]:
         return {"frames": self.frames, "pixels": self.pixels, "off_share": self.off_share,
-                "median_abs_error_m": self.median_abs_error_m, "fits": self.fits,
+                "miss_share": self.miss_share, "median_abs_error_m": self.median_abs_error_m,
+                "fits": self.fits,
                 "rule": f"a pixel is off when |measured - reference| > max({FIT_LIMIT_M} m, 4 z^2 "
-                        f"{SUBPIXEL_PX} px / (f B)); the trajectory fits when at most {FIT_SHARE:.0%} are"}
+                        f"{SUBPIXEL_PX} px / (f B)), z the nearer of measured and reference depth; the "
+                        f"trajectory fits when at most {FIT_SHARE:.0%} are and at most "
+                        f"{FIT_MISS_SHARE:.0%} of the pixels with depth miss the reference"}
 
 
 def fit_check(caster: FrameRenderer, source: FrameSource, trajectory: Trajectory, *, frames: int = 10,
@@ -195,20 +202,25 @@ def fit_check(caster: FrameRenderer, source: FrameSource, trajectory: Trajectory
     picks = sorted({round(i) for i in np.linspace(0, max(n - 1, 0), frames)}) if n else list(range(frames))
     intr = caster.intr
     fb = intr.fx * (source.info.baseline_m or 0.05)
-    off = total = used = 0
+    off = total = used = measured = missed = 0
     errors: list[NDArray[np.float32]] = []
     for k in picks:
         images = frame_images(caster, source, trajectory, k, tolerance_s)
         if images is None:
             continue
-        ok = np.isfinite(images.error_m) & np.isfinite(images.reference_m)
-        z = images.reference_m[ok]
+        has_depth = np.isfinite(images.measured_m)
+        ok = has_depth & np.isfinite(images.reference_m)
+        measured += int(np.count_nonzero(has_depth))
+        missed += int(np.count_nonzero(has_depth & ~ok))
+        z = np.minimum(images.reference_m[ok], images.measured_m[ok])
         err = np.abs(images.error_m[ok])
         limit = np.maximum(FIT_LIMIT_M, 4 * z * z * SUBPIXEL_PX / fb)
         off += int(np.count_nonzero(err > limit))
         total += int(err.size)
         errors.append(err[:: max(1, err.size // 20000)])
         used += 1
-    if used == 0 or total == 0:
+    if used == 0 or measured == 0:
         return None
-    return FitCheck(used, total, off / total, float(np.median(np.concatenate(errors))))
+    if total == 0:  # depth everywhere, a reference nowhere
+        return FitCheck(used, 0, 0.0, float("nan"), 1.0)
+    return FitCheck(used, total, off / total, float(np.median(np.concatenate(errors))), missed / measured)
