@@ -200,7 +200,7 @@ def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None =
     marker = item.out / DONE_MARKER
     marker.unlink(missing_ok=True)
     # the item's folder is written under a temporary name and replaces an unfinished one whole
-    with result_folder(item.out, force=True, inputs=item_paths(item)) as tmp:
+    with result_folder(item.out, force=True, inputs=item_paths(item), kind=item.kind) as tmp:
         job = KINDS[item.kind](replace(item, out=tmp))
         prog = progress or (lambda d, t: None)
         if job.merge is not None:

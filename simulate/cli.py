@@ -32,7 +32,7 @@ def checkerboard_cmd(
 ) -> None:
     """Simulate every standpoint of a checkerboard protocol, with truth.json beside the captures."""
 
-    with result_folder(out, force=force, inputs=[protocol, model]) as tmp:
+    with result_folder(out, force=force, inputs=[protocol, model], kind="simulate-checkerboard") as tmp:
         simulate_checkerboard(protocol, model, tmp, fmt=fmt, seed=seed, frames=frames,
                               standpoints=standpoint or None, progress=True)
         truth = load_truth(tmp)
@@ -68,7 +68,7 @@ def scan_cmd(
     if color_encoding not in COLOR_ENCODINGS:
         raise InputError(None, f"--color-encoding {color_encoding!r}: use one of "
                                f"{', '.join(COLOR_ENCODINGS)}")
-    with result_folder(out, force=force, inputs=[scene, trajectory, model]) as tmp:
+    with result_folder(out, force=force, inputs=[scene, trajectory, model], kind="simulate-scan") as tmp:
         simulate_scan(scene, trajectory, model, tmp, seed=seed, frames=frames, width=width,
                       height=height, fps=fps, progress=True, color_encoding=color_encoding)
         truth = load_truth(tmp)

@@ -72,14 +72,15 @@ def test_non_empty_out_and_existing_rrd_need_force(tmp_path: Path, session: Path
     assert code == 2 and "never overwrite" in err
     assert (out / "keep.txt").read_text() == "a result of last week"
     rrd = tmp_path / "x.rrd"
-    rrd.write_text("an old recording")
+    rrd.write_bytes(b"RRF2 an old recording")
     code, err = run_here(capsys, *args, "--out", str(tmp_path / "new"), "--rrd", str(rrd))
-    assert code == 2 and "x.rrd" in err and rrd.read_text() == "an old recording"
+    assert code == 2 and "x.rrd" in err and rrd.read_bytes() == b"RRF2 an old recording"
     assert not (tmp_path / "new").exists()
     # --force replaces an earlier result only: a folder of the user's own files stays
     code, err = run_here(capsys, *args, "--out", str(out), "--rrd", str(rrd), "--force")
     assert code == 2 and "did not write" in err and "Traceback" not in err
-    assert (out / "keep.txt").read_text() == "a result of last week" and rrd.read_text() == "an old recording"
+    assert (out / "keep.txt").read_text() == "a result of last week"
+    assert rrd.read_bytes() == b"RRF2 an old recording"
     earlier = tmp_path / "earlier"
     assert run_here(capsys, *args, "--out", str(earlier))[0] == 0
     (earlier / "notes.txt").write_text("added by hand")
@@ -87,7 +88,7 @@ def test_non_empty_out_and_existing_rrd_need_force(tmp_path: Path, session: Path
     assert code == 0, err
     assert not (earlier / "notes.txt").exists() and (earlier / "result.json").is_file()
     assert (earlier / ".depthstation-result").is_file()
-    assert rrd.read_bytes()[:4] != b"an o"  # a real recording now
+    assert rrd.read_bytes() != b"RRF2 an old recording" and rrd.read_bytes()[:3] == b"RRF"  # a new one
 
 
 def test_force_never_deletes_an_input(tmp_path: Path, session: Path,
@@ -108,6 +109,17 @@ def test_force_never_deletes_an_input(tmp_path: Path, session: Path,
                          "--out", str(session), "--force")
     assert code == 2 and "holds the input" in err
     assert (session / "truth.json").is_file()
+    # another simulated session is a capture, not a result this command may replace
+    code, err = run_here(capsys, "evaluate", "checkerboard", str(session), "--board", board, "--frames", "3",
+                         "--out", str(work), "--force")
+    assert code == 2 and "earlier 'simulate-checkerboard' result" in err
+    # a recording given as --rrd: never overwritten
+    mcap = next(work.glob("*.mcap"))
+    head = mcap.read_bytes()[:64]
+    code, err = run_here(capsys, "evaluate", "checkerboard", str(session), "--board", board, "--frames", "3",
+                         "--out", str(tmp_path / "r"), "--rrd", str(mcap), "--force")
+    assert code == 2 and "not a rerun recording" in err and mcap.read_bytes()[:64] == head
+    assert sorted(p.relative_to(work) for p in work.rglob("*")) == before
 
 
 def _small_disk(tmp_path: Path, kbytes: int) -> list[str] | None:

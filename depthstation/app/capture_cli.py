@@ -41,7 +41,7 @@ def import_cmd(
     """Import recordings into a capture session (one MCAP per standpoint): our MCAP, RealSense
     .bag/.db3, ROS bags (rosbag2 folders or files, ROS 1 .bag), PNG folders."""
 
-    with progress() as bar, result_folder(out, force=force, inputs=sources) as tmp:
+    with progress() as bar, result_folder(out, force=force, inputs=sources, kind="capture-import") as tmp:
         session = import_recordings(sources, tmp, compression=compression, on_frame=_frame_bar(bar),
                                     topics=topic_choice(depth_topic, color_topic, infrared_topic))
     frames = sum(int(e.get("frames", 0)) for e in session.standpoints)
@@ -74,7 +74,7 @@ def export_cmd(
     RGB-D folder (ORB-SLAM3, RTAB-Map: make the scan study's poses) or a RealSense .db3 (Viewer).
     Written under a temporary name and renamed when complete, like every result folder."""
     recordings = open_inputs(list(sources), topic_choice(depth_topic, color_topic, infrared_topic))
-    with progress() as bar, result_folder(out, force=force, inputs=sources) as tmp:
+    with progress() as bar, result_folder(out, force=force, inputs=sources, kind="capture-export") as tmp:
         done = export_recordings(recordings, to, tmp, on_frame=_frame_bar(bar))
     for path, n in done:
         typer.echo(f"{out / path.relative_to(tmp)}: {n} frames")

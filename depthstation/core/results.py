@@ -193,7 +193,17 @@ def _written_by_us(folder: Path) -> bool:
     return (folder / RESULT_MARKER).is_file() or (folder / RESULT_FILE).is_file()
 
 
-def check_replaceable(out: Path, inputs: Sequence[str | Path] = ()) -> None:
+def _kind_of(folder: Path) -> str | None:
+    """What kind of result a folder of ours holds (its marker's, else result.json's kind)."""
+    for name in (RESULT_MARKER, RESULT_FILE):
+        with suppress(OSError, ValueError):
+            kind = json.loads((folder / name).read_text()).get("kind")
+            if isinstance(kind, str):
+                return kind
+    return None
+
+
+def check_replaceable(out: Path, inputs: Sequence[str | Path] = (), kind: str | None = None) -> None:
     """What `--force` may replace: an earlier result, never a folder of the user's own files (a
     recording, a capture session, notes) and never one that holds an input of this run.
 
@@ -214,10 +224,16 @@ def check_replaceable(out: Path, inputs: Sequence[str | Path] = ()) -> None:
         raise InputError(out, f"holds files depthstation did not write (no {RESULT_MARKER} or "
                               f"{RESULT_FILE}); --force replaces only an earlier result: choose another "
                               "--out")
+    theirs = _kind_of(out)
+    if kind is not None and theirs is not None and theirs != kind:
+        raise InputError(out, f"holds an earlier '{theirs}' result; --force replaces only an earlier "
+                              f"'{kind}' result (a simulated session is a capture, not a result to "
+                              "overwrite): choose another --out")
 
 
 @contextmanager
-def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path] = ()) -> Iterator[Path]:
+def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path] = (),
+                  kind: str | None = None) -> Iterator[Path]:
     """Write a result folder under a temporary name and rename it into place when complete.
 
     Why: results are never overwritten or torn. A non-empty `out` is refused unless `force`
@@ -225,7 +241,8 @@ def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path
     result that holds none of `inputs`: `check_replaceable`); a lock keeps a second run out of
     the same folder; a kill, an error or a full disk leaves at most a hidden `.<name>.partial-PID`
     folder, never one that `view` or `compare` would take for a finished result. The finished
-    folder carries a marker (`.depthstation-result`) so that a later `--force` knows it for ours.
+    folder carries a marker (`.depthstation-result`, with `kind`) so that a later `--force` knows
+    it for ours, and replaces it only by a result of the same kind.
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -234,7 +251,7 @@ def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path
         raise InputError(out, "is not empty; depthstation never overwrites results (--force replaces "
                               "it once the new result is complete)")
     if force:
-        check_replaceable(out, inputs)
+        check_replaceable(out, inputs, kind)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -249,10 +266,11 @@ def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path
             raise InputError(out, f"appeared while this run was writing; the new result is left in {tmp}")
         if force:
             try:
-                check_replaceable(out, inputs)
+                check_replaceable(out, inputs, kind)
             except InputError as exc:
                 raise InputError(out, f"{exc.problem}; the new result is left in {tmp}") from exc
-        (tmp / RESULT_MARKER).write_text(json.dumps({"command_line": COMMAND_LINE.get()}) + "\n")
+        (tmp / RESULT_MARKER).write_text(json.dumps({"kind": kind or _kind_of(tmp),
+                                                     "command_line": COMMAND_LINE.get()}) + "\n")
         old = out.parent / f".{out.name}.replaced-{os.getpid()}"
         if out.exists():
             out.rename(old)
@@ -278,12 +296,24 @@ def disk_error(exc: OSError, where: Path) -> DepthstationError | OSError:
     return DepthstationError(f"{path}: cannot write ({what}); nothing was kept in {where}")
 
 
+def _is_recording_rrd(path: Path) -> bool:
+    """An earlier rerun recording: what `new_file` (the only writer of .rrd files) may replace."""
+    try:
+        with path.open("rb") as fh:
+            return path.is_file() and fh.read(3) == b"RRF"
+    except OSError:
+        return False
+
+
 def new_file(path: Path, *, force: bool = False) -> Path:
     """The temporary name to write `path` under (rename it with `finish_file`); refuses an existing
     `path` unless `force`."""
     path = Path(path)
     if path.exists() and not force:
         raise InputError(path, "exists; depthstation never overwrites a file (--force replaces it)")
+    if path.exists() and not _is_recording_rrd(path):
+        raise InputError(path, "is not a rerun recording (.rrd); --force replaces only an earlier one, never "
+                               "another file (a capture given as --rrd by mistake): choose another name")
     path.parent.mkdir(parents=True, exist_ok=True)
     return path.with_name(f".{path.name}.partial-{os.getpid()}")
 

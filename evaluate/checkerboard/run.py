@@ -168,7 +168,7 @@ def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames:
                                                            collect_samples=collect_samples,
                                                            topics=topics,
                                                            roi=None if roi_pct is None else roi_pct / 100.0))
-    with result_folder(out, force=force, inputs=[*inputs, board_path]) as tmp:
+    with result_folder(out, force=force, inputs=[*inputs, board_path], kind="checkerboard") as tmp:
         return _run(job, tmp, (target or RerunTarget()).within(out, tmp), workers, cluster)
 
 

@@ -118,7 +118,7 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
         stderr_console.print(f"[bold]explain --scan[/]: {msg}")
 
     inputs = [*real, poses, reference, *([similarity] if similarity else [])]
-    with result_folder(out, force=force, inputs=inputs) as tmp:
+    with result_folder(out, force=force, inputs=inputs, kind="explain-scan") as tmp:
         ex = explain_scan(real[0], poses, reference, mdl, tmp, frames=frames, block_frames=block_frames,
                           seed=seed, register=register, similarity=similarity, resimulate=resimulate,
                           discovery=discover, tick=tick, topics=topics)

@@ -317,7 +317,7 @@ def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, o
     with `model`, locate, attribute, refit, check, and write the result folder (whole or not at
     all; a non-empty `out` only with `force`); its explain.json."""
     inputs = [*real, *([board] if isinstance(board, Path) else [])]
-    with result_folder(out, force=force, inputs=inputs) as tmp:
+    with result_folder(out, force=force, inputs=inputs, kind="explain") as tmp:
         return _run_explain(real, board, model, tmp, frames, seed, resimulate, workers, cluster,
                             parameters, None if target is None else target.within(out, tmp), tick, topics,
                             discovery)

@@ -299,7 +299,7 @@ def run_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     opt.check()
     inputs = [p for p in (sequence, poses, reference, opt.similarity, opt.pass_points, opt.intrinsics)
               if p is not None]
-    with result_folder(out, force=opt.force, inputs=inputs) as tmp, \
+    with result_folder(out, force=opt.force, inputs=inputs, kind="scan") as tmp, \
             ChunkRunner(opt.workers, opt.cluster) as runner:
         job = prepare_scan(sequence, poses, reference, tmp, opt, in_process=runner.in_process)
         with recording("depthstation-scan", opt.target.within(out, tmp),
