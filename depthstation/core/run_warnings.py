@@ -10,6 +10,7 @@ test) gets each warning at once through the `depthstation.warnings` logger (stde
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -34,6 +35,10 @@ class RunWarning:
 
 log = logging.getLogger("depthstation.warnings")
 _COLLECTED: ContextVar[list[RunWarning] | None] = ContextVar("depthstation_warnings", default=None)
+# the main thread's outermost collector, for threads that did not inherit the context (a thread
+# pool's workers start with an empty one): their warnings reached stderr but not result.json or
+# --strict (a truncated recording read by a standpoint worker went unrecorded)
+_MAIN: list[list[RunWarning]] = []
 
 
 @contextmanager
@@ -42,18 +47,26 @@ def collecting() -> Iterator[list[RunWarning]]:
     outer = _COLLECTED.get()
     mine: list[RunWarning] = []
     token = _COLLECTED.set(mine)
+    main = outer is None and threading.current_thread() is threading.main_thread()
+    if main:
+        _MAIN.append(mine)
     try:
         yield mine
     finally:
         _COLLECTED.reset(token)
+        if main:
+            _MAIN.remove(mine)
         if outer is not None:
             outer.extend(w for w in mine if w not in outer)
 
 
 def warn(message: str, where: str | None = None, code: str = "general") -> RunWarning:
-    """Record a warning (once: the same message for the same place is not repeated)."""
+    """Record a warning (once: the same message for the same place is not repeated). In a thread
+    outside any collector of its own, the main thread's running command collects it."""
     w = RunWarning(message, None if where is None else str(where), code)
     bucket = _COLLECTED.get()
+    if bucket is None and _MAIN and threading.current_thread() is not threading.main_thread():
+        bucket = _MAIN[-1]
     if bucket is None:
         log.warning(w.line())
     elif w not in bucket:

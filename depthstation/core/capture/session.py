@@ -26,6 +26,7 @@ from depthstation.core.capture.mcap_writer import CAPTURE_COMPRESSION, McapFileW
 from depthstation.core.errors import CaptureError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.results import _jsonable
+from depthstation.core.run_warnings import warn
 from depthstation.core.text_files import read_text
 
 log = logging.getLogger("depthstation.core.capture")
@@ -194,8 +195,13 @@ class Session:
         """Readers for the standpoints of the given statuses, in capture order."""
         out = []
         for e in self.data.get("standpoints", []):
-            if e.get("status") in statuses and (self.dir / e["file"]).is_file():
+            if e.get("status") not in statuses:
+                continue
+            if (self.dir / e["file"]).is_file():
                 out.append(open_mcap(self.dir / e["file"]))
+            else:  # listed as recorded, gone from the disk: a standpoint the study must not drop silently
+                warn(f"standpoint {e['name']} is listed as {e.get('status')} in {SESSION_FILE} but its "
+                     f"recording {e['file']} is missing; it is left out", str(self.dir), "missing-recording")
         return out
 
     def discard(self, name: str, reason: str = "") -> None:

@@ -1,0 +1,70 @@
+"""Warnings reach the user whatever thread raised them: a recording read by a standpoint worker
+that turns out truncated, or a standpoint the session lists but whose file is gone, end in the
+printed warnings, `result.json` and `--strict`'s exit 3 (they were printed mid-progress, or not at
+all, and the run exited 0)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from depthstation.app.cli import run_cli
+from depthstation.core.run_warnings import collecting, warn
+
+
+def test_a_warning_from_a_pool_thread_is_collected_once() -> None:
+    with collecting() as found, ThreadPoolExecutor(2) as pool:
+        list(pool.map(lambda i: warn("cut short", "a.mcap", "truncated-input"), range(4)))
+    assert [w.code for w in found] == ["truncated-input"]
+    with ThreadPoolExecutor(1) as pool:  # no command running: nothing is kept for later
+        pool.submit(warn, "alone").result()
+    with collecting() as later:
+        pass
+    assert later == []
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("sim")
+    proto = root / "p.toml"
+    proto.write_text((Path(__file__).parents[1] / "protocols" / "demo-d455.toml").read_text()
+                     .replace("width = 1280", "width = 640").replace("height = 720", "height = 360"))
+    assert run_cli(["simulate", "checkerboard", "--protocol", str(proto), "--out", str(root / "s"),
+                    "--frames", "12", "--standpoint", "standpoint_01", "--standpoint", "standpoint_02"]) == 0
+    return root / "s"
+
+
+def _strict(work: Path, board: Path, out: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str, Any]:
+    capsys.readouterr()
+    code = run_cli(["--strict", "evaluate", "checkerboard", str(work), "--board", str(board),
+                    "--out", str(out), "--frames", "12"])
+    info = json.loads((out / "result.json").read_text()) if (out / "result.json").is_file() else {}
+    return code, capsys.readouterr().err, info
+
+
+def test_a_truncated_standpoint_among_two_is_warned_and_strict(session: Path, tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    work = tmp_path / "t"
+    shutil.copytree(session, work)
+    cut = work / "standpoint_02.mcap"
+    data = cut.read_bytes()
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    code, err, info = _strict(work, session.parent / "p.toml", tmp_path / "o", capsys)
+    assert code == 3, err
+    assert "cut short" in err and str(cut) in info["truncated_inputs"]
+
+
+def test_a_standpoint_whose_recording_is_gone_is_warned(session: Path, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    work = tmp_path / "m"
+    shutil.copytree(session, work)
+    (work / "standpoint_02.mcap").unlink()
+    code, err, info = _strict(work, session.parent / "p.toml", tmp_path / "o", capsys)
+    assert code == 3, err
+    assert "standpoint_02" in err and "missing" in err
+    assert any(w["code"] == "missing-recording" for w in info["warnings"])
