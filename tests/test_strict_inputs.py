@@ -119,6 +119,20 @@ def test_camera_json_out_of_range(png_set: Path, tmp_path: Path, change: dict[st
     one_line_error(r, *words)
 
 
+def test_images_of_another_size_than_camera_json(png_set: Path, tmp_path: Path,
+                                                 run: Callable[..., Ran]) -> None:
+    """Width and height of camera.json that are not the images' (swapped, or another resolution's):
+    every pixel would sit on the wrong ray, or the kernels read past the image."""
+    cam = json.loads((png_set / "camera.json").read_text())
+    w, h = cam["color"]["width"], cam["color"]["height"]
+    edit_json(png_set / "camera.json",
+              {"color.width": h, "color.height": w, "color.cx": h / 2, "color.cy": w / 2})
+    r = run("evaluate", "checkerboard", str(png_set), "--board", str(png_set / "board.json"),
+            "--out", str(tmp_path / "o"), "--frames", "1")
+    one_line_error(r, "_depth.png", f"is {w}x{h} pixels", f"{h}x{w}")
+    assert not (tmp_path / "o").exists()
+
+
 PROTOCOL = (ROOT / "protocols" / "demo-d455.toml").read_text()
 
 

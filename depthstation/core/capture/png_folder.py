@@ -41,11 +41,15 @@ class PngRecording(Recording):
             depth = cv2.imread(str(dpath), cv2.IMREAD_UNCHANGED)
             if depth is None or depth.dtype != np.uint16 or depth.ndim != 2:
                 raise InputError(dpath, "is no 16-bit single-channel depth PNG")
+            _check_size(dpath, depth, self.info.depth_intrinsics,
+                        "the colour stream's (depth_aligned_to_color)" if self.info.depth_aligned_to_color
+                        else "the depth stream's")
             color = None
             if cpath is not None:
                 bgr = cv2.imread(str(cpath), cv2.IMREAD_COLOR)
                 if bgr is None:
                     raise InputError(cpath, "is no readable colour image")
+                _check_size(cpath, bgr, self.info.color_intrinsics, "the colour stream's")
                 color = np.ascontiguousarray(bgr[..., ::-1])
             yield FrameSet(
                 index=k,
@@ -54,6 +58,17 @@ class PngRecording(Recording):
                 color=None if color is None else color.astype(np.uint8, copy=False),
                 metadata={"source_file": dpath.name, "timestamp_source": "nominal fps"},
             )
+
+
+def _check_size(path: Path, image: np.ndarray, intr: Intrinsics | None, whose: str) -> None:
+    """An image whose size is not its stream's in camera.json: every pixel would sit at the wrong
+    ray (or outside the image), so the numbers would be wrong or the kernels read out of bounds."""
+    if intr is None:
+        return
+    h, w = image.shape[:2]
+    if (h, w) != (intr.height, intr.width):
+        raise InputError(path, f"is {w}x{h} pixels, but camera.json gives {whose} size as "
+                               f"{intr.width}x{intr.height}")
 
 
 def _png_camera_json(folder: Path) -> Path | None:
