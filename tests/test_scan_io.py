@@ -164,3 +164,21 @@ def test_scan_rejects_conflicting_registration_inputs(tmp_path: Path) -> None:
                  ScanOptions(similarity=tmp_path / "s.txt", pass_points=tmp_path / "p.csv"))
     with pytest.raises(InputError, match="sequence not found"):
         run_scan(tmp_path / "nope", tmp_path / "p.txt", tmp_path / "r.ply", tmp_path / "o")
+
+
+def test_tum_folder_images_of_another_size_than_the_intrinsics(tmp_path: Path) -> None:
+    """An intrinsics file for another resolution (or a PNG listed but gone) is bad input naming
+    the file; the study's kernels read past the image or failed with an internal IndexError."""
+    seq = make_sequence(frames=2, width=80, height=60, seed=2)
+    folder = write_tum_folder(seq, tmp_path / "seq")
+    cam = json.loads((folder / "camera.json").read_text())
+    wrong = tmp_path / "intr.json"
+    wrong.write_text(json.dumps({**cam, "width": 160, "height": 120}))
+    with pytest.raises(InputError, match="gives 160x120 pixels, but the depth images are 80x60") as err:
+        open_recording(folder, intrinsics=wrong)
+    assert err.value.path == wrong
+    last = sorted((folder / "depth").iterdir())[-1]
+    last.unlink()
+    rec = open_recording(folder)
+    with pytest.raises(InputError, match="listed in the association file but not found"):
+        list(rec.frames())

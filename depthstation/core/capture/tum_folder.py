@@ -69,9 +69,17 @@ class TumSequence(Recording):
 
     def _iter(self, start: int) -> Iterator[FrameSet]:
         for i in range(start, len(self.depth_files)):
-            img = cv2.imread(str(self.depth_files[i]), cv2.IMREAD_UNCHANGED)
+            f = self.depth_files[i]
+            if not f.is_file():
+                raise InputError(f, "listed in the association file but not found")
+            img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
             if img is None or img.dtype != np.uint16 or img.ndim != 2:
-                raise InputError(self.depth_files[i], "not a 16-bit single-channel depth PNG")
+                raise InputError(f, "not a 16-bit single-channel depth PNG")
+            intr = self.info.depth_intrinsics
+            if img.shape != (intr.height, intr.width):
+                where = self.metadata.get("intrinsics_file", "intrinsics")
+                raise InputError(f, f"is {img.shape[1]}x{img.shape[0]} pixels, but the intrinsics give "
+                                    f"{intr.width}x{intr.height} ({where})")
             t_ns = round(self.timestamps_s[i] * 1e9)
             yield FrameSet(index=i, timestamp_ns=t_ns, depth=img.astype(np.uint16))
 
@@ -107,12 +115,17 @@ def open_tum_folder(path: Path, intrinsics: Path | None = None) -> TumSequence:
     if ipath is None:
         raise InputError(path, f"no intrinsics file ({', '.join(_INTRINSICS_NAMES)})")
     intr, units = _read_intrinsics(Path(ipath))
+    if not files[0].is_file():
+        raise InputError(files[0], f"listed in {assoc.name} but not found")
+    first = cv2.imread(str(files[0]), cv2.IMREAD_UNCHANGED)
+    if first is None:
+        raise InputError(files[0], "cannot read depth PNG")
     if intr.width == 0 or intr.height == 0:
-        first = cv2.imread(str(files[0]), cv2.IMREAD_UNCHANGED)
-        if first is None:
-            raise InputError(files[0], "cannot read depth PNG")
         intr = Intrinsics(first.shape[1], first.shape[0], intr.fx, intr.fy, intr.ppx, intr.ppy,
                           intr.model, intr.coeffs)
+    elif first.shape[:2] != (intr.height, intr.width):
+        raise InputError(Path(ipath), f"gives {intr.width}x{intr.height} pixels, but the depth images are "
+                                      f"{first.shape[1]}x{first.shape[0]} ({files[0].name})")
     info = StreamInfo(depth_intrinsics=intr, color_intrinsics=None,
                       depth_units_m=units if units is not None else 1.0 / TUM_DEPTH_FACTOR)
-    return TumSequence(path, files, stamps, info, name=path.name)
+    return TumSequence(path, files, stamps, info, name=path.name, metadata={"intrinsics_file": str(ipath)})
