@@ -39,6 +39,17 @@ def test_tum_rejects_bad_lines(tmp_path: Path) -> None:
     p.write_text("# header\n1.0 0 0 0 0 0 0\n")
     with pytest.raises(InputError, match="line 2: expected 8 values"):
         read_tum(p)
+    # two trackers' files joined: one time, two poses, is refused naming both lines; the same line
+    # twice is harmless and kept once
+    p.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n1.0 0.5 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match="lines 1 and 3 give two different poses at t=1.000000000"):
+        read_tum(p)
+    p.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n")
+    assert len(read_tum(p)) == 2
+    # a lost-tracking row of NaN is not a pose: refused naming the line and the value
+    p.write_text("1.0 0 0 0 0 0 0 1\n2.0 nan 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match="line 2: tx not finite"):
+        read_tum(p)
 
 
 def test_similarity_and_pass_point_files(tmp_path: Path) -> None:

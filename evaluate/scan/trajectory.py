@@ -129,6 +129,7 @@ def read_tum(path: Path) -> Trajectory:
     if not path.is_file():
         raise InputError(path, "trajectory file not found")
     rows: list[list[float]] = []
+    lines: list[int] = []
     for lineno, line in enumerate(read_text(path, "TUM trajectory").splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
@@ -138,19 +139,38 @@ def read_tum(path: Path) -> Trajectory:
             raise InputError(path, f"line {lineno}: expected 8 values "
                                    f"(timestamp tx ty tz qx qy qz qw), got {len(parts)}")
         try:
-            rows.append([float(p) for p in parts])
+            row = [float(p) for p in parts]
         except ValueError as exc:
             raise InputError(path, f"line {lineno}: not a number ({exc})") from exc
+        if not all(np.isfinite(row)):  # a NaN pose is a tracking loss to leave out, not a pose
+            names = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
+            bad = ", ".join(n for n, v in zip(names, row, strict=True) if not np.isfinite(v))
+            raise InputError(path, f"line {lineno}: {bad} not finite (leave the frames a tracker lost "
+                                   "out of the file)")
+        rows.append(row)
+        lines.append(lineno)
     if not rows:
         raise InputError(path, "trajectory has no poses")
     a = np.asarray(rows)
     order = np.argsort(a[:, 0], kind="stable")
     a = a[order]
+    at = np.asarray(lines)[order]
+    same_t = np.flatnonzero(np.diff(a[:, 0]) == 0)
+    if same_t.size:  # two files joined, or one written twice: the same line twice is harmless
+        clash = [k for k in same_t if not np.array_equal(a[k], a[k + 1])]
+        if clash:
+            k = clash[0]
+            more = f" ({len(clash)} such times)" if len(clash) > 1 else ""
+            raise InputError(path, f"lines {at[k]} and {at[k + 1]} give two different poses at "
+                                   f"t={float(a[k, 0]):.9f}{more}")
+        keep = np.ones(len(a), bool)
+        keep[same_t + 1] = False
+        a = a[keep]
     poses = np.tile(np.eye(4), (a.shape[0], 1, 1))
     for i, row in enumerate(a):
         q = row[4:8]
         nq = np.linalg.norm(q)
-        if not np.isfinite(nq) or nq < 1e-9:
+        if nq < 1e-9:
             raise InputError(path, f"pose at t={row[0]} has a zero quaternion")
         poses[i, :3, :3] = quaternion_to_matrix(q / nq)
         poses[i, :3, 3] = row[1:4]
