@@ -21,6 +21,7 @@ from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_recording
 from depthstation.core.capture.topics import TopicChoice, topic_choice
 from depthstation.core.errors import EvaluationError, InputError
+from depthstation.core.frames import FrameSource
 from depthstation.core.parallel import ChunkRunner, ProgressFn
 from depthstation.core.progress import progress
 from depthstation.core.rerun_bridge import RerunTarget, recording
@@ -188,6 +189,7 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     out.mkdir(parents=True, exist_ok=True)
     source = open_recording(Path(sequence), intrinsics=opt.intrinsics, topics=opt.topics)
     given = read_tum(Path(poses))
+    check_clocks(source, given, Path(poses), opt.tolerance_s)
     similarity = read_similarity(opt.similarity) if opt.similarity is not None else None
     pass_points = read_pass_points(opt.pass_points) if opt.pass_points is not None else None
     mesh, mesh_path, mesh_info = reference_mesh(
@@ -218,6 +220,29 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     return ScanJob(Path(sequence), Path(poses), Path(reference), out, opt, source, given, posed, reg,
                    mesh_path, mesh_info, fit, config, chunks,
                    {"reference": t_mesh - t0, "registration": t_reg - t_mesh})
+
+
+def _frame_time_s(source: FrameSource, index: int) -> float | None:
+    for fs in source.frames(limit=1, start=index):
+        return fs.timestamp_ns * 1e-9
+    return None
+
+
+def check_clocks(source: FrameSource, trajectory: Trajectory, poses: Path, tolerance_s: float) -> None:
+    """Frames and poses on one clock: their time spans must overlap. Poses in milliseconds or
+    nanoseconds, relative to the first frame, or from another clock match no frame; said here, in
+    the units of both files, instead of a registration that finds nothing."""
+    n = source.frame_count
+    first = _frame_time_s(source, 0)
+    last = _frame_time_s(source, n - 1) if n else first
+    if first is None or last is None or len(trajectory) == 0:
+        return
+    p0, p1 = float(trajectory.timestamps_s[0]), float(trajectory.timestamps_s[-1])
+    if p1 + tolerance_s < first or p0 - tolerance_s > last:
+        raise InputError(poses, f"no pose time lies within the frames' times: poses span {p0:.6f} to "
+                                f"{p1:.6f} s, the frames {first:.6f} to {last:.6f} s (poses in "
+                                "milliseconds or nanoseconds, relative to the first frame, or from "
+                                "another clock? TUM time stamps are seconds on the frames' clock)")
 
 
 def say_registration(reg: Registration, fit: FitCheck | None, sequence: Path) -> None:
