@@ -68,3 +68,20 @@ def test_a_standpoint_whose_recording_is_gone_is_warned(session: Path, tmp_path:
     assert code == 3, err
     assert "standpoint_02" in err and "missing" in err
     assert any(w["code"] == "missing-recording" for w in info["warnings"])
+
+
+def test_a_board_other_than_the_recorded_one_is_warned(session: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """A print at 97 % given at its nominal size (or the reverse) moves every distance by 3 %,
+    inside the board-scale check's 5 %: the session's own board says so."""
+    board = tmp_path / "b.json"
+    board.write_text(json.dumps({"type": "checkerboard", "squares_x": 7, "squares_y": 5,
+                                 "square_length_m": 0.092}))
+    code, err, info = _strict(session, board, tmp_path / "o", capsys)
+    assert code == 3, err
+    said = [w for w in info["warnings"] if w["code"] == "board-mismatch"]
+    assert len(said) == 1 and "square_length_m 0.095 there, 0.092" in said[0]["message"]
+    capsys.readouterr()
+    code = run_cli(["evaluate", "checkerboard", str(session), "--board", str(board), "--roi", "0.4",
+                    "--out", str(tmp_path / "r")])
+    assert code == 2 and "did you mean 40?" in capsys.readouterr().err

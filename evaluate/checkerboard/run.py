@@ -93,6 +93,9 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
         raise InputError(None, f"--frames must be at least 1, not {opt.frames}")
     if opt.roi is not None and not 0.0 < opt.roi <= 1.0:
         raise InputError(None, f"--roi must be a percentage in (0, 100], not {100 * opt.roi:g}")
+    if opt.roi is not None and opt.roi < 0.01:  # a fraction given for a percentage
+        raise InputError(None, f"--roi is a percentage of the image: {100 * opt.roi:g} % leaves a few "
+                               f"pixels for the plane fit (did you mean {10000 * opt.roi:g}?); use 1 to 100")
     brd = board if isinstance(board, Board) else load_board(board)
     source = f"{brd.type} {brd.squares_x}x{brd.squares_y}, {brd.square_length_m} m squares (given)" \
         if isinstance(board, Board) else str(board)
@@ -108,7 +111,44 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
                                      "inputs hold the same standpoint (two sessions of one protocol?); "
                                      "evaluate them in separate runs")
         seen[r.name] = r.path
+    check_recorded_board(brd, recs, source)
     return CheckerboardJob(list(inputs), source, brd, recs, opt)
+
+
+BOARD_KEYS = ("type", "squares_x", "squares_y", "square_length_m", "marker_length_m")
+
+
+def check_recorded_board(board: Board, recs: list[Recording], source: str) -> None:
+    """Warn where the board given differs from the one the recording says it shows (the session's
+    protocol, a PNG set's board.json). Why: every distance scales with the square length, so a
+    print at 97 % ("fit to page") given at its nominal size, or the reverse, moves the accuracy by
+    3 % of the distance, and the board-scale check (5 %) lets that through."""
+    told: set[str] = set()
+    for r in recs:
+        rec = r.metadata.get("board")
+        if not isinstance(rec, dict):
+            proto = r.metadata.get("protocol")
+            rec = proto.get("board") if isinstance(proto, dict) else None
+        if not isinstance(rec, dict):
+            continue
+        diffs = []
+        for key in BOARD_KEYS:
+            mine, theirs = getattr(board, key), rec.get(key)
+            if theirs is None or mine is None:
+                continue
+            if isinstance(mine, float) and isinstance(theirs, (int, float)):
+                if abs(float(theirs) - mine) <= 1e-4 * abs(mine):
+                    continue
+            elif mine == theirs:
+                continue
+            diffs.append(f"{key} {theirs!r} there, {mine!r} in {source}")
+        if diffs:
+            text = "; ".join(diffs)
+            where = str(r.path.parent)  # the session, or the PNG set's root (its board.json)
+            if text not in told:
+                told.add(text)
+                warn(f"the recording's board differs from the one given: {text} (every distance scales "
+                     "with the square length: which one is the print?)", where, "board-mismatch")
 
 
 def check_usable(job: CheckerboardJob, results: list[StandpointResult]) -> None:
