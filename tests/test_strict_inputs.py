@@ -133,6 +133,20 @@ def test_images_of_another_size_than_camera_json(png_set: Path, tmp_path: Path,
     assert not (tmp_path / "o").exists()
 
 
+def test_unaligned_depth_needs_its_transform(png_set: Path, run: Callable[..., Ran]) -> None:
+    """depth_aligned_to_color false without depth_to_color: identity was assumed without a word."""
+    cam = json.loads((png_set / "camera.json").read_text())
+    edit_json(png_set / "camera.json", {"depth_aligned_to_color": False, "depth": cam["color"]})
+    one_line_error(run("capture", "info", str(png_set / "pose03")), "camera.json", "depth_to_color")
+    edit_json(png_set / "camera.json", {"depth_to_color": {"rotation": [1, 0, 0, 0, 1, 0, 0, 0, 1],
+                                                           "translation": [-0.05, 0, 0]}})
+    r = run("capture", "info", str(png_set / "pose03"))
+    assert r.returncode == 0, r.stderr
+    from depthstation.core.capture.registry import open_recording
+
+    assert open_recording(png_set / "pose03").info.depth_to_color.translation == (-0.05, 0.0, 0.0)
+
+
 PROTOCOL = (ROOT / "protocols" / "demo-d455.toml").read_text()
 
 

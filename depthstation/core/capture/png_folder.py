@@ -91,6 +91,29 @@ def _intrinsics(cam: dict[str, Any], key: str, path: Path) -> Intrinsics:
         raise InputError(path, f"{key}: {exc}") from exc
 
 
+def _depth_to_color(cam: dict[str, Any], path: Path) -> Extrinsics:
+    """The depth -> colour transform of unaligned depth (row-major `rotation`, `translation` in
+    m, as capture-format.md). Never assumed: with identity, every depth pixel would be looked up
+    at the wrong colour pixel, the baseline (~5 cm) off."""
+    table = cam.get("depth_to_color")
+    if not isinstance(table, dict):
+        raise InputError(path, "missing key 'depth_to_color' (depth_aligned_to_color is false: the depth -> "
+                               "colour transform, row-major 'rotation' (9 values) and 'translation' (m))")
+    try:
+        rot = tuple(float(x) for x in table["rotation"])
+        trans = tuple(float(x) for x in table["translation"])
+    except KeyError as exc:
+        raise InputError(path, f"missing key 'depth_to_color.{exc.args[0]}'") from exc
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, f"depth_to_color: {exc}") from exc
+    r = np.asarray(rot)
+    if r.size != 9 or len(trans) != 3 or not np.all(np.isfinite(r)) or not np.all(np.isfinite(trans)) \
+            or not np.allclose(r.reshape(3, 3) @ r.reshape(3, 3).T, np.eye(3), atol=1e-4):
+        raise InputError(path, "depth_to_color needs a rotation (9 values, orthonormal) and a translation "
+                               "(3 values, m)")
+    return Extrinsics(rot, (trans[0], trans[1], trans[2]))
+
+
 def open_png(folder: Path) -> PngRecording:
     cam_path = _png_camera_json(folder)
     if cam_path is None:
@@ -106,6 +129,7 @@ def open_png(folder: Path) -> PngRecording:
     if not isinstance(aligned, bool):
         raise InputError(cam_path, f"depth_aligned_to_color must be true or false, got {aligned!r}")
     depth_intr = color if aligned else _intrinsics(cam, "depth", cam_path)
+    to_color = Extrinsics() if aligned else _depth_to_color(cam, cam_path)
     if "depth_units_m" not in cam:  # the scale of every depth value: never assumed
         raise InputError(cam_path, "missing key 'depth_units_m' (metres per depth count, e.g. 0.001)")
     units = cam["depth_units_m"]
@@ -122,7 +146,7 @@ def open_png(folder: Path) -> PngRecording:
     info = StreamInfo(
         depth_intrinsics=depth_intr,
         color_intrinsics=color,
-        depth_to_color=Extrinsics(),
+        depth_to_color=to_color,
         depth_units_m=float(units),
         depth_aligned_to_color=aligned,
         baseline_m=None if baseline is None else float(baseline),
