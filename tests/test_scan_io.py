@@ -212,3 +212,20 @@ def test_poses_on_another_clock_are_bad_input(tmp_path: Path, clock: str) -> Non
     with pytest.raises(InputError, match="no pose time lies within the frames' times") as err:
         run_scan(folder, tmp_path / "poses.txt", tmp_path / "room.ply", tmp_path / "o")
     assert err.value.path == tmp_path / "poses.txt"
+
+
+def test_figure_frame_outside_the_sequence_is_bad_input(tmp_path: Path) -> None:
+    """--figure-frame -1 drew a figure titled 'frame -1'; past the end, Fig. 8 and 9 went missing."""
+    import open3d as o3d
+
+    from depthstation.evaluate.scan.run import run_scan
+
+    with pytest.raises(InputError, match="counts from 0"):
+        ScanOptions(figure_frame=-1).check()
+    seq = make_sequence(frames=3, width=80, height=60, seed=2)
+    folder = write_tum_folder(seq, tmp_path / "seq")
+    write_tum(tmp_path / "poses.txt", np.asarray(seq.timestamps_ns) * 1e-9, seq.poses)
+    o3d.io.write_triangle_mesh(str(tmp_path / "room.ply"), Room().mesh(segments=32))
+    with pytest.raises(InputError, match=r"--figure-frame 9: the sequence has 3 frames \(0 to 2\)"):
+        run_scan(folder, tmp_path / "poses.txt", tmp_path / "room.ply", tmp_path / "o",
+                 ScanOptions(figure_frame=9))

@@ -101,5 +101,5 @@ def scan(
     cu = s["grid"].get("cell_uncertainty") or {}
     if cu.get("cells"):
         typer.echo(f"cell means: median 95% uncertainty {cu['median_u95_m'] * 1e3:.2f} mm over "
-                   f"{cu['cells']} cells (frames as clusters; a pixel counts as 1/"
-                   f"{cu['median_design_effect']:.0f} of a sample: se_m, u95_m in grid.npz)")
+                   f"{cu['cells']} cells (frames as clusters; design effect "
+                   f"{cu['median_design_effect']:.2g}: se_m, u95_m in grid.npz)")

@@ -39,7 +39,10 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
     stream = f"depth {intr.width}x{intr.height}"
     caster = renderer_for(job.mesh_path, source.info.depth_intrinsics, job.config)
     images = frame_images(caster, source, job.posed, fig_index, opt.tolerance_s)
-    if images is not None:
+    if images is None:
+        warn(f"frame {fig_index} (--figure-frame) has no pose within {opt.tolerance_s} s or no depth: "
+             "Fig. 8 and 9 are left out", str(job.sequence), "figure-frame")
+    else:
         frame_cfg = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
                                 tolerance_s=opt.tolerance_s, renderer=opt.renderer)
         one = evaluate_chunk(caster, source, job.posed, frame_cfg, fig_index, 1)
@@ -57,7 +60,11 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
     figures["sequence_grid"] = grid_figure(grid, out / "fig10_sequence_grid.png", opt.min_count_sequence,
                                            f"Fig. 10: {source.name} ({stream}, {len(result.used)} frames); "
                                            f"{job.registration.caption()}").name
-    if not (grid.count >= opt.min_count_sequence).any():
+    if grid.total == 0:
+        warn(f"no pixel was gridded: {result.stats[3]} pixels had depth and a reference hit, of "
+             f"{result.stats[0]} in {len(result.used)} frames; check the depth units, the trajectory's "
+             "frame and units, and --distance-max-m", str(job.sequence), "no-samples")
+    elif not (grid.count >= opt.min_count_sequence).any():
         warn(f"no cell of the grid holds {opt.min_count_sequence} samples (--min-count-sequence): too few "
              "frames for these bins; Fig. 10 draws coarser display cells", str(job.sequence), "sparse-grid")
     job.seconds["figures"] = time.perf_counter() - t0

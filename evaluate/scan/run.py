@@ -109,6 +109,8 @@ class ScanOptions:
                                    f"not '{self.register}'")
         if self.every < 1 or self.workers < 1 or self.chunk_frames < 1:
             raise InputError(None, "--every, --workers and --chunk-frames must be at least 1")
+        if self.figure_frame is not None and self.figure_frame < 0:
+            raise InputError(None, f"--figure-frame counts from 0, not {self.figure_frame}")
         if self.poisson_threads < 0:
             raise InputError(None, "--poisson-threads must be 0 (all cores) or more, "
                                    f"not {self.poisson_threads}")
@@ -188,6 +190,10 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
             raise InputError(path, f"{role} not found")
     out.mkdir(parents=True, exist_ok=True)
     source = open_recording(Path(sequence), intrinsics=opt.intrinsics, topics=opt.topics)
+    n_frames = source.frame_count
+    if opt.figure_frame is not None and n_frames and opt.figure_frame >= n_frames:
+        raise InputError(Path(sequence), f"--figure-frame {opt.figure_frame}: the sequence has {n_frames} "
+                                         f"frames (0 to {n_frames - 1})")
     given = read_tum(Path(poses))
     check_clocks(source, given, Path(poses), opt.tolerance_s)
     similarity = read_similarity(opt.similarity) if opt.similarity is not None else None
