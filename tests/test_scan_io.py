@@ -222,6 +222,12 @@ def test_figure_frame_outside_the_sequence_is_bad_input(tmp_path: Path) -> None:
 
     with pytest.raises(InputError, match="counts from 0"):
         ScanOptions(figure_frame=-1).check()
+    for bad, words in (({"tolerance_s": float("nan")}, "--pose-tolerance-s"),
+                       ({"tolerance_s": -1.0}, "0 or more"),
+                       ({"distance_max_m": 0.0}, "--distance-max-m"),
+                       ({"distance_bin_m": -0.1}, "--distance-bin-m")):
+        with pytest.raises(InputError, match=words):
+            ScanOptions(**bad).check()  # type: ignore[arg-type]
     seq = make_sequence(frames=3, width=80, height=60, seed=2)
     folder = write_tum_folder(seq, tmp_path / "seq")
     write_tum(tmp_path / "poses.txt", np.asarray(seq.timestamps_ns) * 1e-9, seq.poses)

@@ -147,6 +147,14 @@ def test_unaligned_depth_needs_its_transform(png_set: Path, run: Callable[..., R
     assert open_recording(png_set / "pose03").info.depth_to_color.translation == (-0.05, 0.0, 0.0)
 
 
+def test_board_dictionary_typo_names_the_file_and_the_fix(tmp_path: Path, run: Callable[..., Ran]) -> None:
+    board = tmp_path / "b.json"
+    board.write_text(json.dumps({"type": "charuco", "squares_x": 7, "squares_y": 5, "square_length_m": 0.075,
+                                 "marker_length_m": 0.056, "dictionary": "DICT_4x4_50"}))
+    r = run("evaluate", "checkerboard", str(tmp_path), "--board", str(board), "--out", str(tmp_path / "o"))
+    one_line_error(r, "b.json", "board.dictionary", "did you mean DICT_4X4_50?")
+
+
 PROTOCOL = (ROOT / "protocols" / "demo-d455.toml").read_text()
 
 

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -136,6 +137,12 @@ class Board:
                 raise InputError(source, "board: a charuco board needs marker_length_m and dictionary")
             if not 0 < board.marker_length_m < board.square_length_m:
                 raise InputError(source, "board.marker_length_m must be smaller than square_length_m")
+            if not (board.dictionary.startswith("DICT_") and hasattr(cv2.aruco, board.dictionary)):
+                names = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and n.upper() == n)
+                close = [n for n in names if n.lower() == board.dictionary.lower()]
+                hint = f" (did you mean {close[0]}?)" if close else f" (e.g. {', '.join(names[:4])}, ...)"
+                raise InputError(source, f"board.dictionary '{board.dictionary}' is not an OpenCV ArUco "
+                                         f"dictionary{hint}")
         return board
 
 

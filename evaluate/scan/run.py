@@ -9,6 +9,7 @@ same files.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -109,6 +110,13 @@ class ScanOptions:
                                    f"not '{self.register}'")
         if self.every < 1 or self.workers < 1 or self.chunk_frames < 1:
             raise InputError(None, "--every, --workers and --chunk-frames must be at least 1")
+        for name, value in (("--distance-bin-m", self.distance_bin_m),
+                            ("--inclination-bin-deg", self.inclination_bin_deg),
+                            ("--distance-max-m", self.distance_max_m)):
+            if not (math.isfinite(value) and value > 0):
+                raise InputError(None, f"{name} must be a positive number, not {value}")
+        if not (math.isfinite(self.tolerance_s) and self.tolerance_s >= 0):
+            raise InputError(None, f"--pose-tolerance-s must be 0 or more seconds, not {self.tolerance_s}")
         if self.figure_frame is not None and self.figure_frame < 0:
             raise InputError(None, f"--figure-frame counts from 0, not {self.figure_frame}")
         if self.poisson_threads < 0:
