@@ -195,6 +195,26 @@ def test_export_rosbag2_and_db3_read_back(tmp_path: Path, capsys: pytest.Capture
     np.testing.assert_array_equal(next(rs.frames()).depth, frames[0].depth)
 
 
+def test_export_rosbag2_writes_millimetres_whatever_the_units(tmp_path: Path,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """16UC1 is millimetres (REP 118): depth in 100 um units came back 10x too far in ROS and here."""
+    import dataclasses
+
+    info = dataclasses.replace(sample_info(), depth_units_m=0.0001)
+    frames = list(sample_frames(info, 2, seed=3))
+    src = tmp_path / "fine.mcap"
+    write_mcap(src, info, frames)
+    code, _, err = _cli(["capture", "export", str(src), "--to", "rosbag2", "--out", str(tmp_path / "ros")],
+                        capsys)
+    assert code == 0 and "resolution reduced to 1 mm" in err, err
+    bag = open_recording(tmp_path / "ros" / "fine")
+    for a, b in zip(frames, bag.frames(), strict=True):
+        z_src = a.depth.astype(np.float64) * 0.0001
+        z_bag = b.depth.astype(np.float64) * bag.info.depth_units_m
+        near = a.depth.astype(np.float64) * 0.1 <= 65535
+        assert np.all(np.abs(z_bag - z_src)[near] <= 0.0005 + 1e-12)  # rounded to the millimetre
+
+
 def _cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
     """Run the console script's main() in-process: (exit code, stdout, stderr)."""
     from depthstation.app import cli

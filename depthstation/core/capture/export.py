@@ -36,6 +36,7 @@ from depthstation.core.capture.rs_writer import write_realsense_recording
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.results import write_json
+from depthstation.core.run_warnings import warn
 
 TARGETS = ("rosbag2", "tum", "db3")
 ROS2_NAMESPACE = "/camera/camera/"
@@ -80,6 +81,8 @@ def export_rosbag2(rec: Recording, out: Path, on_frame: FrameHook | None = None)
          info.infrared_intrinsics, mw.INFRARED_FRAME_ID),
     ]
     n = 0
+    to_mm = ros_millimetres(info.depth_units_m)
+    beyond = 0
     with Writer(out, version=8, storage_plugin=StoragePlugin.MCAP) as w:
         conns: dict[str, Any] = {}
 
@@ -94,7 +97,11 @@ def export_rosbag2(rec: Recording, out: Path, on_frame: FrameHook | None = None)
             if n == 0:
                 _write_static(write, info, t, ts)
             stamps = (fs.metadata or {}).get(mw.STREAM_STAMPS_KEY) or {}
-            arrays = {"depth": fs.depth, "color": fs.color, "infrared": fs.infrared}
+            depth = fs.depth
+            if to_mm is not None and depth is not None:
+                depth, lost = to_mm(depth)
+                beyond += lost
+            arrays = {"depth": depth, "color": fs.color, "infrared": fs.infrared}
             for kind, image_topic, info_topic, encoding, intr, frame in streams:
                 a = arrays[kind]
                 if a is None:
@@ -104,7 +111,30 @@ def export_rosbag2(rec: Recording, out: Path, on_frame: FrameHook | None = None)
                 if intr is not None:
                     write(info_topic, rosmsgs.CAMERA_INFO, tk, rosmsgs.camera_info_msg(intr, tk, frame))
             n += 1
+    if to_mm is not None:
+        finer = info.depth_units_m < 0.001
+        warn(f"depth in units of {info.depth_units_m * 1e3:g} mm written as millimetres (16UC1 is "
+             f"millimetres, REP 118){': resolution reduced to 1 mm' if finer else ''}"
+             f"{f'; {beyond} pixels beyond 65.535 m written as no depth' if beyond else ''}",
+             str(rec.path), "export-depth-units")
     return n
+
+
+def ros_millimetres(units_m: float) -> Callable[[NDArray[np.uint16]], tuple[NDArray[np.uint16], int]] | None:
+    """Depth counts -> ROS millimetres, for depth units other than 1 mm (None: already mm). Why:
+    16UC1 means millimetres to every ROS tool and to our own reader; raw counts of 100 um units
+    read back 10x too far. Returns the converted image and the pixels too far for 16 bits."""
+    if abs(units_m - 0.001) <= 1e-12:
+        return None
+    k = units_m / 0.001
+
+    def convert(counts: NDArray[np.uint16]) -> tuple[NDArray[np.uint16], int]:
+        mm = np.rint(counts.astype(np.float64) * k)
+        far = mm > 65535
+        mm[far] = 0
+        return mm.astype(np.uint16), int(np.count_nonzero(far))
+
+    return convert
 
 
 def _write_static(write: Callable[..., None], info: StreamInfo, t_ns: int, ts: Any) -> None:
