@@ -113,6 +113,21 @@ def test_topics_by_name_and_colour_stamps_apart(tmp_path: Path) -> None:
     assert np.all(np.abs(b[keep].astype(float) - a[keep]) <= step_mm + 1.0)
 
 
+def test_one_topic_for_two_streams_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The depth topic given as --color-topic made an import of 0 frames with exit 0; the colour
+    given as --infrared-topic stored RGB as infrared."""
+    info = sample_info()
+    path = tmp_path / "std"
+    write_bag(path, info, list(sample_frames(info, 2, seed=5)))
+    depth, colour = "/camera/camera/depth/image_rect_raw", "/camera/camera/color/image_raw"
+    for option, topic, words in (("--color-topic", depth, "both depth and color"),
+                                 ("--infrared-topic", colour, "both color and infrared")):
+        code, _, err = _cli(["capture", "import", str(path), option, topic, "--out", str(tmp_path / "o")],
+                            capsys)
+        assert code == 2 and words in err and option in err and "Traceback" not in err, err
+        assert not (tmp_path / "o").exists()
+
+
 def test_bag_without_depth_names_the_topics(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore

@@ -155,6 +155,17 @@ def _choose_topics(path: Path, conns: list[Any], choice: TopicChoice | None) -> 
     if "depth" not in picked:
         raise InputError(path, "has no depth image topic (topics: "
                                f"{_topic_list(conns) or 'none'}); name it with --depth-topic")
+    # one topic as two streams: the depth named as colour read every frame as colour and none as
+    # depth (an empty import, exit 0), the colour named as infrared stored RGB as infrared
+    given = {} if choice is None else {k: t for k, t in choice.to_dict().items() if t is not None}
+    seen_as: dict[str, str] = {}
+    for kind, topic in picked.items():
+        if topic in seen_as:
+            named = [f"--{k}-topic" for k in (seen_as[topic], kind) if k in given]
+            raise InputError(path, f"{topic} would be read as both {seen_as[topic]} and {kind}"
+                                   f"{' (' + ' and '.join(named) + ')' if named else ''}; each stream "
+                                   "needs its own topic")
+        seen_as[topic] = kind
     return picked
 
 
