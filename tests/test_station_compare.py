@@ -173,3 +173,27 @@ def test_cli_exit_codes(tmp_path: Path) -> None:
     assert bad.returncode == 2
     assert bad.stderr.strip().count("\n") == 0 and "not a folder" in bad.stderr
 
+
+
+def test_same_names_at_other_places_match_by_geometry(tmp_path: Path) -> None:
+    """Two sessions of different plans both name their standpoints standpoint_01..N: by name, a
+    1.8 m standpoint was compared with a 2.6 m one without a word."""
+    from depthstation.core.run_warnings import collecting
+
+    ref = read_standpoints(write_checkerboard(tmp_path / "a", 0.095) / "standpoints.csv")
+    shifted = [dict(r, distance_m=ref[(i + 1) % len(ref)]["distance_m"],
+                    inclination_deg=ref[(i + 1) % len(ref)]["inclination_deg"]) for i, r in enumerate(ref)]
+    with collecting() as found:
+        idx = match_standpoints(ref, shifted)
+    assert all(j is not None for j in idx)  # each place exists in the other, under another name
+    for i, j in enumerate(idx):
+        assert j is not None and j != i
+        assert shifted[j]["distance_m"] == pytest.approx(ref[i]["distance_m"])
+        assert shifted[j]["inclination_deg"] == pytest.approx(ref[i]["inclination_deg"])
+    assert [w.code for w in found] == ["compare-match"] and "matched by distance" in found[0].message
+    with collecting() as found:
+        assert match_standpoints(ref, shifted, mode="name") == list(range(len(ref)))
+    assert [w.code for w in found] == ["compare-match"]
+    with collecting() as found:  # the same places: names as before, nothing said
+        assert match_standpoints(ref, ref) == list(range(len(ref)))
+    assert found == []

@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from depthstation.core.errors import InputError
 from depthstation.core.grid import Grid
+from depthstation.core.run_warnings import warn
 
 # The figures of a standpoint that are compared (checkerboard standpoints.csv, issue 4).
 STANDPOINT_COLUMNS = (
@@ -36,25 +37,48 @@ def _finite(x: Any) -> float:
     return v
 
 
+def _offset(a: dict[str, Any], b: dict[str, Any]) -> float:
+    """Distance between two standpoints in (distance / 10 cm, inclination / 5 deg) units."""
+    dd = (_finite(a["distance_m"]) - _finite(b["distance_m"])) / DISTANCE_SCALE_M
+    di = (_finite(a["inclination_deg"]) - _finite(b["inclination_deg"])) / INCLINATION_SCALE_DEG
+    return math.hypot(dd, di)
+
+
+def _place(r: dict[str, Any]) -> str:
+    return f"{_finite(r['distance_m']):.2f} m, {_finite(r['inclination_deg']):.0f} deg"
+
+
 def match_standpoints(ref: list[dict[str, Any]], other: list[dict[str, Any]], mode: str = "auto",
                       max_offset: float = 1.0) -> list[int | None]:
     """For each reference row, the index of its counterpart in `other` (None when unmatched).
 
     mode 'name': same standpoint name. 'nearest': smallest offset in (distance / 10 cm,
     inclination / 5 deg) units, within `max_offset`, each row of `other` used once (greedy by offset).
-    'auto': by name when every reference name exists in `other`, else nearest.
+    'auto': by name when every reference name exists in `other` and each pair lies within
+    `max_offset`, else nearest (a warning says the names disagreed with the geometry).
     """
     if mode not in ("auto", "name", "nearest"):
         raise InputError(None, f"unknown match mode {mode!r} (auto, name, nearest)")
     names = {str(r["standpoint"]): i for i, r in enumerate(other)}
     if mode == "name" or (mode == "auto" and all(str(r["standpoint"]) in names for r in ref)):
-        return [names.get(str(r["standpoint"])) for r in ref]
+        by_name = [names.get(str(r["standpoint"])) for r in ref]
+        apart = [(a, other[j]) for a, j in zip(ref, by_name, strict=True)
+                 if j is not None and not _offset(a, other[j]) <= max_offset]
+        if not apart:
+            return by_name
+        a, b = apart[0]
+        where = (f"{a['standpoint']} is at {_place(a)} in the first and {_place(b)} in the other "
+                 f"({len(apart)} such name(s))")
+        if mode == "name":  # asked for: kept, and said
+            warn(f"standpoints matched by name lie apart: {where}", None, "compare-match")
+            return by_name
+        # two sessions of different plans share the names standpoint_01..N: geometry decides
+        warn(f"standpoint names do not mean the same place ({where}): matched by distance and "
+             "inclination instead (--match name forces the names)", None, "compare-match")
     pairs = []
     for i, a in enumerate(ref):
         for j, b in enumerate(other):
-            dd = (_finite(a["distance_m"]) - _finite(b["distance_m"])) / DISTANCE_SCALE_M
-            di = (_finite(a["inclination_deg"]) - _finite(b["inclination_deg"])) / INCLINATION_SCALE_DEG
-            off = math.hypot(dd, di)
+            off = _offset(a, b)
             if math.isfinite(off) and off <= max_offset:
                 pairs.append((off, i, j))
     out: list[int | None] = [None] * len(ref)
