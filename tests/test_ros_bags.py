@@ -128,6 +128,22 @@ def test_one_topic_for_two_streams_is_refused(tmp_path: Path, capsys: pytest.Cap
         assert not (tmp_path / "o").exists()
 
 
+def test_images_of_another_size_than_their_camera_info(tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]) -> None:
+    """Colour at half the size its camera_info gives was read with those intrinsics (the board's
+    pixels on the wrong rays, blamed later on the square length); PNG sets refuse the same."""
+    import dataclasses
+
+    info = sample_info()
+    frames = [dataclasses.replace(f, color=np.ascontiguousarray(f.color[::2, ::2]))
+              for f in sample_frames(info, 2, seed=5)]
+    path = tmp_path / "half"
+    write_bag(path, info, frames)
+    code, _, err = _cli(["capture", "info", str(path)], capsys)
+    c = info.color_intrinsics
+    assert code == 2 and f"its camera_info says {c.width}x{c.height}" in err and "Traceback" not in err, err
+
+
 def test_bag_without_depth_names_the_topics(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore

@@ -347,24 +347,42 @@ class RosRecording(Recording):
 
     def _frameset(self, order: int, stamp: int, depth: tuple[Any, str], parts: dict[str, tuple[Any, str]],
                   stamps: dict[str, int], record: dict[str, Any] | None) -> FrameSet:
-        d = rosmsgs.depth_to_units(_pixels(*depth), self.info.depth_units_m)
+        d = rosmsgs.depth_to_units(self._pixels("depth", *depth), self.info.depth_units_m)
         if d.ndim != 2:
             raise InputError(self.path, f"depth topic {self.streams['depth'].topic} holds no "
                                         f"single-channel image (shape {d.shape})")
+        self._check_size("depth", d, self.info.depth_intrinsics)
         color = infrared = None
         if "color" in parts:
-            color = _pixels(*parts["color"])
+            color = self._pixels("color", *parts["color"])
+            self._check_size("color", color, self.info.color_intrinsics)
             if color.ndim == 2:
                 color = np.repeat((color >> 8 if color.dtype == np.uint16 else color)[..., None], 3, axis=2)
             color = color.astype(np.uint8, copy=False)
         if "infrared" in parts:
-            ir = _pixels(*parts["infrared"])
+            ir = self._pixels("infrared", *parts["infrared"])
+            self._check_size("infrared", ir, self.info.infrared_intrinsics)
             ir = ir[..., 0] if ir.ndim == 3 else ir
             infrared = (ir >> 8 if ir.dtype == np.uint16 else ir).astype(np.uint8, copy=False)
         if record is not None:  # our MCAP rewritten by a ROS tool: its frame records survive
             meta = dict(record.get("metadata") or {})
             return FrameSet(int(record["index"]), stamp, d, color, infrared, meta)
         return FrameSet(order, stamp, d, color, infrared, {mw.STREAM_STAMPS_KEY: stamps} if stamps else {})
+
+    def _pixels(self, kind: str, msg: Any, msgtype: str) -> NDArray[Any]:
+        """An image's pixels; an encoding we cannot read is bad input naming the bag and topic."""
+        try:
+            return _pixels(msg, msgtype)
+        except ValueError as exc:
+            raise InputError(self.path, f"{kind} topic {self.streams[kind].topic}: {exc}") from exc
+
+    def _check_size(self, kind: str, image: NDArray[Any], intr: Intrinsics | None) -> None:
+        """An image of another size than its CameraInfo: every pixel on the wrong ray (PNG sets
+        and TUM folders refuse the same)."""
+        if intr is not None and image.shape[:2] != (intr.height, intr.width):
+            raise InputError(self.path, f"{kind} topic {self.streams[kind].topic}: images are "
+                                        f"{image.shape[1]}x{image.shape[0]} pixels, its camera_info says "
+                                        f"{intr.width}x{intr.height}")
 
     def temperatures(self) -> dict[str, tuple[list[int], list[float]]]:
         out: dict[str, tuple[list[int], list[float]]] = {}
