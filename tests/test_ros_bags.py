@@ -246,6 +246,26 @@ def test_export_rosbag2_writes_millimetres_whatever_the_units(tmp_path: Path,
         assert np.all(np.abs(z_bag - z_src)[near] <= 0.0005 + 1e-12)  # rounded to the millimetre
 
 
+def test_tum_export_says_what_it_cannot_hold(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Two frames at one time stamp wrote one PNG over the other, and depth beyond 13.1 m (TUM's
+    5000 counts per metre in 16 bits) became 'no depth', both without a word."""
+    import dataclasses
+
+    info = sample_info()
+    frames = list(sample_frames(info, 3, seed=4))
+    frames[2] = dataclasses.replace(frames[2], timestamp_ns=frames[1].timestamp_ns)
+    frames[0].depth[0, 0] = 14000  # 14 m in 1 mm units
+    src = tmp_path / "a.mcap"
+    write_mcap(src, info, frames)
+    code, _, err = _cli(["capture", "export", str(src), "--to", "tum", "--out", str(tmp_path / "tum")],
+                        capsys)
+    assert code == 0, err
+    assert "repeat an earlier frame's time stamp" in err and "1 pixels beyond 13.107 m" in err
+    folder = tmp_path / "tum" / "a"
+    lines = [x for x in (folder / "depth.txt").read_text().splitlines() if not x.startswith("#")]
+    assert len(lines) == 2 and len(list((folder / "depth").iterdir())) == 2
+
+
 def _cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
     """Run the console script's main() in-process: (exit code, stdout, stderr)."""
     from depthstation.app import cli

@@ -195,12 +195,20 @@ def export_tum(rec: Recording, out: Path, on_frame: FrameHook | None = None) -> 
     assoc: list[str] = []
     factor = tum_factor(info.depth_units_m)
     scale = info.depth_units_m * factor
+    names: set[str] = set()
+    repeated = beyond = 0
     for fs in _counted(rec, on_frame):
         if fs.depth is None:
             continue
         name = _tum_name(int(fs.timestamp_ns))
+        if name in names:  # one file name per time stamp: a second frame would overwrite the first
+            repeated += 1
+            continue
+        names.add(name)
         counts = fs.depth.astype(np.float64) * scale
-        png = np.where(counts < 65535.5, np.rint(counts), 0).astype(np.uint16)
+        far = counts >= 65535.5
+        beyond += int(np.count_nonzero(far))
+        png = np.where(far, 0, np.rint(counts)).astype(np.uint16)
         if not cv2.imwrite(str(out / "depth" / f"{name}.png"), png):
             raise InputError(out, "cannot write depth PNGs there")
         depth_lines.append(f"{name} depth/{name}.png")
@@ -215,6 +223,12 @@ def export_tum(rec: Recording, out: Path, on_frame: FrameHook | None = None) -> 
     if rgb_lines:
         (out / "rgb.txt").write_text(header.format("rgb", rec.name) + "\n".join(rgb_lines) + "\n")
         (out / "associations.txt").write_text("\n".join(assoc) + "\n")
+    if repeated:
+        warn(f"{repeated} frame(s) repeat an earlier frame's time stamp (to the microsecond TUM names "
+             "its files by): left out of the TUM export", str(rec.path), "export-repeated-stamp")
+    if beyond:
+        warn(f"{beyond} pixels beyond {65535 / factor:.3f} m (16-bit PNG at {factor:g} counts per metre) "
+             "written as no depth", str(rec.path), "export-depth-units")
     units = 1.0 / factor
     di = info.depth_intrinsics
     camera = {**di.to_dict(), "depth_units_m": units,
