@@ -144,6 +144,26 @@ def test_images_of_another_size_than_their_camera_info(tmp_path: Path,
     assert code == 2 and f"its camera_info says {c.width}x{c.height}" in err and "Traceback" not in err, err
 
 
+def test_repeated_depth_stamps_are_warned(tmp_path: Path) -> None:
+    """Colour pairs with depth by header stamp: two depth frames at one stamp took the same colour
+    frame without a word."""
+    import dataclasses
+
+    from depthstation.core.run_warnings import collecting
+
+    info = sample_info()
+    frames = list(sample_frames(info, 3, seed=5))
+    frames[2] = dataclasses.replace(frames[2], timestamp_ns=frames[1].timestamp_ns)
+    write_bag(tmp_path / "rep", info, frames)
+    with collecting() as found:
+        assert len(list(open_recording(tmp_path / "rep").frames())) == 3
+    assert [w.code for w in found] == ["ros-stamps"]
+    write_bag(tmp_path / "ok", info, list(sample_frames(info, 3, seed=5)))
+    with collecting() as found:
+        list(open_recording(tmp_path / "ok").frames())
+    assert found == []
+
+
 def test_bag_without_depth_names_the_topics(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore

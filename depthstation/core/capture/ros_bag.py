@@ -34,6 +34,7 @@ from depthstation.core.capture.recording import Recording, log
 from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
+from depthstation.core.run_warnings import warn
 
 IMAGE_TYPES = (rosmsgs.IMAGE, rosmsgs.COMPRESSED_IMAGE)
 TF_TOPICS = ("/tf_static", "/tf")
@@ -277,6 +278,7 @@ class RosRecording(Recording):
         last: dict[str, float] = {k: -np.inf for k in others}
         records: dict[int, dict[str, Any]] = {}
         n_depth = 0
+        prev_stamp = -1
 
         def ready(done: bool) -> Iterator[FrameSet]:
             while pending and (done or all(last[k] > pending[0][1] + tol for k in others)):
@@ -307,7 +309,13 @@ class RosRecording(Recording):
                 if order < start:
                     continue
                 msg = deserialize(raw, msgtype)
-                pending.append((order, rosmsgs.stamp_ns(msg.header) or bag_t, msg, msgtype))
+                stamp = rosmsgs.stamp_ns(msg.header) or bag_t
+                if stamp <= prev_stamp and others:  # pairing by stamp cannot tell these frames apart
+                    warn(f"depth header stamps of {topic} repeat or go back: colour and infrared are paired "
+                         "by stamp, so such frames may carry another frame's images", str(self.path),
+                         "ros-stamps")
+                prev_stamp = max(prev_stamp, stamp)
+                pending.append((order, stamp, msg, msgtype))
             else:
                 msg = deserialize(raw, msgtype)
                 stamp = rosmsgs.stamp_ns(msg.header) or bag_t
