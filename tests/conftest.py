@@ -1,4 +1,5 @@
-"""Shared fixtures: paths to the real data beside the repository, skipped with a reason when absent."""
+"""Shared fixtures: paths to the real data beside the repository (skipped with a reason when absent)
+and a small simulated session."""
 
 from __future__ import annotations
 
@@ -41,3 +42,19 @@ def d435_bag() -> Path:
     if not path.is_file():
         pytest.skip(f"real RealSense .bag not found at {path}")
     return path
+
+
+@pytest.fixture(scope="module")
+def small_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small simulated session (2 standpoints x 12 frames of 640x360) and its protocol beside it
+    (`p.toml`, the board file the evaluation takes)."""
+    from depthstation.app.cli import run_cli
+
+    root = tmp_path_factory.mktemp("sim")
+    proto = root / "p.toml"
+    proto.write_text((Path(__file__).parents[1] / "protocols" / "demo-d455.toml").read_text()
+                     .replace("width = 1280", "width = 640").replace("height = 720", "height = 360"))
+    code = run_cli(["simulate", "checkerboard", "--protocol", str(proto), "--out", str(root / "s"),
+                    "--frames", "12", "--standpoint", "standpoint_01", "--standpoint", "standpoint_02"])
+    assert code == 0
+    return root / "s"

@@ -29,16 +29,8 @@ def run_here(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
 
 
 @pytest.fixture(scope="module")
-def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A small simulated session (2 standpoints x 12 frames of 640x360)."""
-    root = tmp_path_factory.mktemp("sim")
-    proto = root / "p.toml"
-    proto.write_text((Path(__file__).parents[1] / "protocols" / "demo-d455.toml").read_text()
-                     .replace("width = 1280", "width = 640").replace("height = 720", "height = 360"))
-    code = run_cli(["simulate", "checkerboard", "--protocol", str(proto), "--out", str(root / "s"),
-                    "--frames", "12", "--standpoint", "standpoint_01", "--standpoint", "standpoint_02"])
-    assert code == 0
-    return root / "s"
+def session(small_session: Path) -> Path:
+    return small_session
 
 
 def test_second_run_into_a_busy_folder_refuses(tmp_path: Path, session: Path) -> None:

@@ -29,14 +29,8 @@ def test_a_warning_from_a_pool_thread_is_collected_once() -> None:
 
 
 @pytest.fixture(scope="module")
-def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("sim")
-    proto = root / "p.toml"
-    proto.write_text((Path(__file__).parents[1] / "protocols" / "demo-d455.toml").read_text()
-                     .replace("width = 1280", "width = 640").replace("height = 720", "height = 360"))
-    assert run_cli(["simulate", "checkerboard", "--protocol", str(proto), "--out", str(root / "s"),
-                    "--frames", "12", "--standpoint", "standpoint_01", "--standpoint", "standpoint_02"]) == 0
-    return root / "s"
+def session(small_session: Path) -> Path:
+    return small_session
 
 
 def _strict(work: Path, board: Path, out: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str, Any]:
