@@ -248,11 +248,19 @@ def check_clocks(source: FrameSource, trajectory: Trajectory, poses: Path, toler
     the units of both files, instead of a registration that finds nothing."""
     n = source.frame_count
     first = _frame_time_s(source, 0)
-    last = _frame_time_s(source, n - 1) if n else first
-    if first is None or last is None or len(trajectory) == 0:
+    if first is None or len(trajectory) == 0:
         return
     p0, p1 = float(trajectory.timestamps_s[0]), float(trajectory.timestamps_s[-1])
-    if p1 + tolerance_s < first or p0 - tolerance_s > last:
+
+    def apart(last: float) -> bool:
+        return p1 + tolerance_s < first or p0 - tolerance_s > last
+
+    fps = source.info.fps
+    # the span from the frame rate first: reading the last frame reads the whole file through
+    if n and fps and not apart(first + (n - 1) / fps):
+        return
+    last = _frame_time_s(source, n - 1) if n else first
+    if last is not None and apart(last):
         raise InputError(poses, f"no pose time lies within the frames' times: poses span {p0:.6f} to "
                                 f"{p1:.6f} s, the frames {first:.6f} to {last:.6f} s (poses in "
                                 "milliseconds or nanoseconds, relative to the first frame, or from "
