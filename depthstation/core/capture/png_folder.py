@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
-from depthstation.core.capture.recording import Recording
+from depthstation.core.capture.recording import Recording, size_problem
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.text_files import read_text
@@ -61,14 +61,9 @@ class PngRecording(Recording):
 
 
 def _check_size(path: Path, image: np.ndarray, intr: Intrinsics | None, whose: str) -> None:
-    """An image whose size is not its stream's in camera.json: every pixel would sit at the wrong
-    ray (or outside the image), so the numbers would be wrong or the kernels read out of bounds."""
-    if intr is None:
-        return
-    h, w = image.shape[:2]
-    if (h, w) != (intr.height, intr.width):
-        raise InputError(path, f"is {w}x{h} pixels, but camera.json gives {whose} size as "
-                               f"{intr.width}x{intr.height}")
+    problem = size_problem(image, intr, f"camera.json gives {whose} size as")
+    if problem:
+        raise InputError(path, problem)
 
 
 def _png_camera_json(folder: Path) -> Path | None:

@@ -11,12 +11,21 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from depthstation.core.camera_model import StreamInfo
+from depthstation.core.camera_model import Intrinsics, StreamInfo
 from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 
 log = logging.getLogger("depthstation.core.capture")
+
+
+def size_problem(image: Any, intr: Intrinsics | None, says: str) -> str | None:
+    """What is wrong when an image is not the size its stream's intrinsics give (None when it is):
+    every pixel would sit on the wrong ray, or past the image in a kernel. One check for every
+    reader (PNG sets, TUM folders, ROS bags), each naming its own file."""
+    if intr is None or tuple(image.shape[:2]) == (intr.height, intr.width):
+        return None
+    return f"is {image.shape[1]}x{image.shape[0]} pixels, but {says} {intr.width}x{intr.height}"
 
 
 class NotThisFormat(InputError):

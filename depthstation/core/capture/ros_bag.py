@@ -30,7 +30,7 @@ from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
 from depthstation.core.capture import mcap_writer as mw
 from depthstation.core.capture import rosmsgs
 from depthstation.core.capture.mcap_reader import MCAP_MAGIC, mcap_messages
-from depthstation.core.capture.recording import Recording, log
+from depthstation.core.capture.recording import Recording, log, size_problem
 from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
@@ -387,10 +387,9 @@ class RosRecording(Recording):
     def _check_size(self, kind: str, image: NDArray[Any], intr: Intrinsics | None) -> None:
         """An image of another size than its CameraInfo: every pixel on the wrong ray (PNG sets
         and TUM folders refuse the same)."""
-        if intr is not None and image.shape[:2] != (intr.height, intr.width):
-            raise InputError(self.path, f"{kind} topic {self.streams[kind].topic}: images are "
-                                        f"{image.shape[1]}x{image.shape[0]} pixels, its camera_info says "
-                                        f"{intr.width}x{intr.height}")
+        problem = size_problem(image, intr, "its camera_info says")
+        if problem:
+            raise InputError(self.path, f"{kind} topic {self.streams[kind].topic}: an image {problem}")
 
     def temperatures(self) -> dict[str, tuple[list[int], list[float]]]:
         out: dict[str, tuple[list[int], list[float]]] = {}

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from depthstation.core.camera_model import Intrinsics, StreamInfo
-from depthstation.core.capture.recording import Recording
+from depthstation.core.capture.recording import Recording, size_problem
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.text_files import read_text
@@ -75,11 +75,10 @@ class TumSequence(Recording):
             img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
             if img is None or img.dtype != np.uint16 or img.ndim != 2:
                 raise InputError(f, "not a 16-bit single-channel depth PNG")
-            intr = self.info.depth_intrinsics
-            if img.shape != (intr.height, intr.width):
-                where = self.metadata.get("intrinsics_file", "intrinsics")
-                raise InputError(f, f"is {img.shape[1]}x{img.shape[0]} pixels, but the intrinsics give "
-                                    f"{intr.width}x{intr.height} ({where})")
+            where = self.metadata.get("intrinsics_file", "intrinsics")
+            problem = size_problem(img, self.info.depth_intrinsics, f"the intrinsics ({where}) give")
+            if problem:
+                raise InputError(f, problem)
             t_ns = round(self.timestamps_s[i] * 1e9)
             yield FrameSet(index=i, timestamp_ns=t_ns, depth=img.astype(np.uint16))
 
