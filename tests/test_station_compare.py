@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from depthstation.app.cli import run_cli
 from depthstation.app.compare import compare_grids, compare_standpoints, match_standpoints
 from depthstation.app.compare_report import COMPARE_CSV, run_compare
 from depthstation.core.errors import InputError
@@ -197,3 +198,22 @@ def test_same_names_at_other_places_match_by_geometry(tmp_path: Path) -> None:
     with collecting() as found:  # the same places: names as before, nothing said
         assert match_standpoints(ref, ref) == list(range(len(ref)))
     assert found == []
+
+
+def test_bad_output_options_are_refused_before_any_table(tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    """An existing --rrd (or a folder given as one) and a negative --min-count are bad input, refused
+    before the comparison prints or writes anything (they were refused after its tables)."""
+    a = write_scan(tmp_path / "a", 0.004)
+    b = write_scan(tmp_path / "b", 0.004)
+    rrd = tmp_path / "old.rrd"
+    rrd.write_bytes(b"RRF2 an earlier recording")
+    cases = [(["--rrd", str(rrd)], "old.rrd"), (["--rrd", str(tmp_path)], "is a folder"),
+             (["--min-count", "-5"], "--min-count")]
+    for extra, named in cases:
+        capsys.readouterr()
+        code = run_cli(["compare", str(a), str(b), "--out", str(tmp_path / "cmp"), *extra])
+        captured = capsys.readouterr()
+        assert code == 2 and named in captured.err, (extra, captured.err)
+        assert "mean diff" not in captured.out + captured.err and not (tmp_path / "cmp").exists()
+    assert rrd.read_bytes() == b"RRF2 an earlier recording"

@@ -203,6 +203,8 @@ def run_compare(dirs: list[Path], out: Path, *, min_count: int = 2000, match: st
                 quiet: bool = False, force: bool = False) -> dict[str, Any]:
     """Compare result folders of one kind (the first is the reference) into `out` (written whole or
     not at all; a non-empty `out` only with `force`); returns the summary."""
+    if min_count < 1:
+        raise InputError(None, f"--min-count must be at least 1 sample, not {min_count}")
     with result_folder(out, force=force, inputs=dirs, kind="compare") as tmp:
         return _compare(dirs, tmp, min_count=min_count, match=match, max_offset=max_offset,
                         target=None if target is None else target.within(out, tmp), quiet=quiet)

@@ -22,7 +22,7 @@ import numpy as np
 from depthstation.core.errors import DepthstationError
 from depthstation.core.heatmaps import colorize
 from depthstation.core.progress import stderr_console
-from depthstation.core.results import finish_file, new_file
+from depthstation.core.results import check_new_file, finish_file, new_file
 
 DESCRIPTION_PATH = "description"
 DISTANCE_DIM = "distance [m]"
@@ -37,6 +37,10 @@ class RerunTarget:
     spawn: bool = False
     serve: bool = False
     force: bool = False  # replace an existing .rrd (only once the new one is complete)
+
+    def __post_init__(self) -> None:
+        if self.rrd is not None:  # refused now, not after the study it records
+            check_new_file(Path(self.rrd), force=self.force)
 
     @property
     def enabled(self) -> bool:

@@ -305,15 +305,24 @@ def _is_recording_rrd(path: Path) -> bool:
         return False
 
 
-def new_file(path: Path, *, force: bool = False) -> Path:
-    """The temporary name to write `path` under (rename it with `finish_file`); refuses an existing
-    `path` unless `force`."""
+def check_new_file(path: Path, *, force: bool = False) -> None:
+    """Refuse a file `new_file` would refuse, before any work (a run must not compute for minutes
+    and then fail on its output name)."""
     path = Path(path)
+    if path.is_dir():
+        raise InputError(path, "is a folder; give a file name for the recording (e.g. run.rrd)")
     if path.exists() and not force:
         raise InputError(path, "exists; depthstation never overwrites a file (--force replaces it)")
     if path.exists() and not _is_recording_rrd(path):
         raise InputError(path, "is not a rerun recording (.rrd); --force replaces only an earlier one, never "
                                "another file (a capture given as --rrd by mistake): choose another name")
+
+
+def new_file(path: Path, *, force: bool = False) -> Path:
+    """The temporary name to write `path` under (rename it with `finish_file`); refuses an existing
+    `path` unless `force`."""
+    path = Path(path)
+    check_new_file(path, force=force)
     path.parent.mkdir(parents=True, exist_ok=True)
     return path.with_name(f".{path.name}.partial-{os.getpid()}")
 
