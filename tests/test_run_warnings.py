@@ -79,3 +79,24 @@ def test_a_board_other_than_the_recorded_one_is_warned(session: Path, tmp_path: 
     code = run_cli(["evaluate", "checkerboard", str(session), "--board", str(board), "--roi", "0.4",
                     "--out", str(tmp_path / "r")])
     assert code == 2 and "did you mean 40?" in capsys.readouterr().err
+
+
+def test_a_truncated_recording_imported_into_a_session_is_warned_at_every_study(
+        session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The import's warning is printed once; the session keeps the cut, so a study of it days later
+    still says that one standpoint holds only the frames recovered (it was listed as complete)."""
+    cut = tmp_path / "standpoint_02.mcap"
+    data = (session / "standpoint_02.mcap").read_bytes()
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    imported = tmp_path / "imported"
+    code = run_cli(["capture", "import", str(session / "standpoint_01.mcap"), str(cut),
+                    "--out", str(imported)])
+    assert code == 0
+    entry = next(e for e in json.loads((imported / "session.json").read_text())["standpoints"]
+                 if e["name"] == "standpoint_02")
+    assert entry["status"] == "complete" and 0 < entry["source_truncated"]["recovered_frames"] < 12
+    code, err, info = _strict(imported, session.parent / "p.toml", tmp_path / "o", capsys)
+    assert code == 3, err
+    assert "standpoint_02" in err and "cut short" in err
+    assert str(imported / "standpoint_02.mcap") in info["truncated_inputs"]
+    assert str(imported / "standpoint_01.mcap") not in info["truncated_inputs"]

@@ -60,4 +60,9 @@ def import_recordings(
                 w.write(fs)
                 if on_frame is not None:
                     on_frame(rec, i)
+            if getattr(rec, "truncated", False):  # kept in the session: every later study warns again
+                cut = {"path": str(rec.path), "recovered_frames": getattr(rec, "recovered_frames", None)}
+                w.entry["source_truncated"] = cut
+                w.set_metadata("source", dict(meta["source"], truncated=True,
+                                              recovered_frames=cut["recovered_frames"]))
     return session

@@ -199,6 +199,11 @@ class Session:
                 continue
             if (self.dir / e["file"]).is_file():
                 out.append(open_mcap(self.dir / e["file"]))
+                cut = e.get("source_truncated")
+                if cut:  # the import's own warning is long gone: say it to every study of the session
+                    warn(f"standpoint {e['name']} was imported from {cut.get('path')}, which is cut short: "
+                         f"it holds only the {cut.get('recovered_frames')} frames recovered from it",
+                         str(self.dir / e["file"]), "truncated-input")
             else:  # listed as recorded, gone from the disk: a standpoint the study must not drop silently
                 warn(f"standpoint {e['name']} is listed as {e.get('status')} in {SESSION_FILE} but its "
                      f"recording {e['file']} is missing; it is left out", str(self.dir), "missing-recording")
