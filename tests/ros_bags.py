@@ -60,8 +60,9 @@ class BagWriter:
     def __init__(self, path: Path, info: StreamInfo, *, ros: int = 2, storage: str = "mcap",
                  namespace: str = "/camera/camera/", compressed: bool = False, depth_only: bool = False,
                  extrinsics_topic: bool = False, depth_float: bool = False, frame_prefix: str = "camera",
-                 color_offset_ns: int = 0, color_encoding: str = "rgb8") -> None:
+                 color_offset_ns: int = 0, color_encoding: str = "rgb8", aligned: bool = False) -> None:
         self.info = info
+        self.aligned = aligned  # depth on aligned_depth_to_color, stamped in the colour optical frame
         self.color_encoding = color_encoding
         self.ros = ros
         self.ns = namespace
@@ -166,6 +167,10 @@ class BagWriter:
     def _topic(self, stream: str, kind: str = "image") -> str:
         image = {"depth": "depth/image_rect_raw", "color": "color/image_raw",
                  "infra1": "infra1/image_rect_raw"}[stream]
+        if stream == "depth" and self.aligned:
+            image = "aligned_depth_to_color/image_raw"
+            if kind == "info":
+                return self.ns + "aligned_depth_to_color/camera_info"
         if kind == "info":
             return self.ns + stream + "/camera_info"
         if self.compressed:
@@ -237,11 +242,14 @@ class BagWriter:
             depth = fs.depth.astype(np.float32) * np.float32(info.depth_units_m)
             depth[fs.depth == 0] = np.nan
             enc = "32FC1"
-        frame = f"{p}_depth_optical_frame"
+        frame = f"{p}_color_optical_frame" if self.aligned else f"{p}_depth_optical_frame"
         mt, msg = self._image(depth, enc, t, frame)
         self._write(self._topic("depth"), mt, msg, t)
         self._write(self._topic("depth", "info"), "sensor_msgs/msg/CameraInfo",
                     self._camera_info(info.depth_intrinsics, t, frame), t)
+        if self.aligned and info.stereo_intrinsics is not None:  # the wrapper's depth/camera_info beside
+            self._write(self.ns + "depth/camera_info", "sensor_msgs/msg/CameraInfo",
+                        self._camera_info(info.stereo_intrinsics, t, f"{p}_depth_optical_frame"), t)
         if self.depth_only:
             return
         if fs.color is not None and info.color_intrinsics is not None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 from ros_bags import write_bag
 
+from depthstation.core.camera_model import Extrinsics
 from depthstation.core.capture.mcap_writer import write_mcap
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs, open_recording
@@ -301,3 +303,35 @@ def _cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str,
         sys.argv = old
     captured = capsys.readouterr()
     return code, captured.out, captured.err
+
+
+def test_aligned_depth_keeps_its_baseline_and_stereo_imager(tmp_path: Path) -> None:
+    """realsense-ros with align_depth stamps depth in the colour optical frame and publishes the
+    imager's own intrinsics on depth/camera_info: the baseline (from /tf_static) and the stereo
+    intrinsics that Intel's metrics need were lost (the frame prefix was looked for before 'depth')."""
+    base = sample_info(64, 48)
+    info = replace(base, depth_intrinsics=base.color_intrinsics, depth_aligned_to_color=True,
+                   stereo_intrinsics=base.depth_intrinsics, depth_to_color=Extrinsics())
+    frames = list(sample_frames(base, 2, seed=4))
+    write_bag(tmp_path / "aligned", info, frames, aligned=True)
+    bag = open_recording(tmp_path / "aligned")
+    assert bag.metadata["source"]["topics"]["depth"].endswith("aligned_depth_to_color/image_raw")
+    assert bag.info.depth_aligned_to_color
+    assert bag.info.baseline_m == pytest.approx(base.baseline_m, abs=1e-9)
+    assert bag.info.stereo_intrinsics is not None
+    assert bag.info.stereo_intrinsics.fx == pytest.approx(base.depth_intrinsics.fx, rel=1e-6)
+
+
+def test_export_of_an_aligned_png_set_keeps_baseline_and_stereo_imager(
+        charuco_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The real D435 set (depth aligned to colour by the SDK): its rosbag2 export read back has the
+    baseline and the unaligned depth intrinsics of camera.json (the dqt_* columns need both)."""
+    png = open_recording(charuco_dir / "pose03")
+    code, _, err = _cli(["capture", "export", str(charuco_dir / "pose03"), "--to", "rosbag2",
+                         "--out", str(tmp_path / "ros")], capsys)
+    assert code == 0, err
+    bag = open_recording(tmp_path / "ros" / "pose03")
+    assert png.info.baseline_m and bag.info.baseline_m == pytest.approx(png.info.baseline_m, abs=1e-9)
+    assert png.info.stereo_intrinsics is not None and bag.info.stereo_intrinsics is not None
+    for k in ("width", "height", "fx", "fy", "ppx", "ppy"):
+        assert getattr(bag.info.stereo_intrinsics, k) == pytest.approx(getattr(png.info.stereo_intrinsics, k))

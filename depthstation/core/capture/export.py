@@ -96,6 +96,9 @@ def export_rosbag2(rec: Recording, out: Path, on_frame: FrameHook | None = None)
             t = int(fs.timestamp_ns)
             if n == 0:
                 _write_static(write, info, t, ts)
+                if aligned and info.stereo_intrinsics is not None:  # the imager's own, as the wrapper
+                    write(ns + "depth/camera_info", rosmsgs.CAMERA_INFO, t,  # publishes beside aligned depth
+                          rosmsgs.camera_info_msg(info.stereo_intrinsics, t, mw.DEPTH_FRAME_ID), latched=True)
             stamps = (fs.metadata or {}).get(mw.STREAM_STAMPS_KEY) or {}
             depth = fs.depth
             if to_mm is not None and depth is not None:

@@ -232,7 +232,9 @@ def _baseline(reader: Any, ns: str, tree: dict[str, tuple[str, Extrinsics]],
         p = np.asarray(msg.p if hasattr(msg, "p") else msg.P, dtype=np.float64)
         if p[0] > 0 and p[3] != 0:
             return float(abs(p[3]) / p[0])
-    prefix = depth_frame.split("depth")[0] if "depth" in depth_frame else ""
+    # the camera's frame prefix ("camera_"): aligned depth is stamped in the colour frame
+    prefix = next((depth_frame.split(k)[0] for k in ("depth", "color", "infra1", "aligned")
+                   if k in depth_frame), "")
     lefts = (prefix + "infra1_optical_frame", prefix + "infra1_frame", depth_frame)
     left = next((f for f in lefts if f in tree), None)
     right = next((f for f in (prefix + "infra2_optical_frame", prefix + "infra2_frame") if f in tree), None)
