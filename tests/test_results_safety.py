@@ -129,6 +129,17 @@ def _small_disk(tmp_path: Path, kbytes: int) -> list[str] | None:
     return None
 
 
+def test_out_under_a_file_is_bad_input_naming_the_file(tmp_path: Path, session: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """--out below a regular file (a typo: the board file as a folder) was "File exists", exit 1."""
+    board = tmp_path / "p.toml"
+    shutil.copy(session.parent / "p.toml", board)
+    code, err = run_here(capsys, "evaluate", "checkerboard", str(session), "--board", str(board),
+                         "--out", str(board / "res"), "--frames", "12")
+    assert code == 2 and f"{board} is a file" in err, err
+    assert board.read_text() == (session.parent / "p.toml").read_text()
+
+
 def test_full_disk_is_one_line_and_leaves_no_finished_folder(tmp_path: Path, session: Path) -> None:
     prefix = _small_disk(tmp_path, 64)
     if prefix is None:

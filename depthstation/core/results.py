@@ -247,6 +247,9 @@ def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError(out, "exists and is not a folder")
+    blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:  # mkdir would fail with "File exists" (exit 1, the file unnamed)
+        raise InputError(out, f"cannot be made: {blocking} is a file, not a folder")
     if _non_empty(out) and not force:
         raise InputError(out, "is not empty; depthstation never overwrites results (--force replaces "
                               "it once the new result is complete)")
