@@ -39,6 +39,12 @@ def test_import_and_info_of_real_bag(d435_bag: Path, tmp_path: Path) -> None:
     # Importing again into the same folder must not overwrite: one-line error, exit 2.
     p = run("import", str(d435_bag), "--out", str(out))
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1
+    # One recording given twice (directly, or once as itself and once by another spelling) would be
+    # two standpoints of the same frames, each weighing double in every study: refused.
+    again = str(d435_bag.parent / ".." / d435_bag.parent.name / d435_bag.name)
+    p = run("import", str(d435_bag), again, "--out", str(tmp_path / "twice"))
+    assert p.returncode == 2 and "given twice" in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "twice").exists()
 
 
 def test_bad_inputs_exit_2_one_line(tmp_path: Path) -> None:
