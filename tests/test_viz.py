@@ -9,6 +9,7 @@ import pytest
 
 from depthstation.app.view import folder_to_rrd, view_path
 from depthstation.core import rerun_bridge as viz
+from depthstation.core.errors import InputError
 from depthstation.core.heatmaps import colorize
 
 
@@ -108,3 +109,46 @@ def test_web_viewer_binds_to_localhost_only() -> None:
     finally:
         os.killpg(proc.pid, signal.SIGTERM)
         proc.wait(timeout=10)
+
+
+def test_view_refuses_what_is_not_a_result_or_a_recording(tmp_path: Path) -> None:
+    """Files named .rrd that are no recording, a broken result.json or grid, a folder of captured
+    PNGs: one-line bad input, nothing written into the user's folder (view.rrd landed in captures)."""
+    from tests.test_station_compare import write_scan
+
+    for name, data in (("empty.rrd", b""), ("notes.rrd", b"my notes"), ("cut.rrd", b"RR")):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(InputError, match="not a rerun recording"):
+            view_path(tmp_path / name, spawn=False)
+    pngs = tmp_path / "pose03"
+    pngs.mkdir()
+    (pngs / "frame0_color.png").write_bytes(b"\\x89PNG")
+    with pytest.raises(InputError, match="not a result folder"):
+        view_path(pngs, spawn=False)
+    assert sorted(p.name for p in pngs.iterdir()) == ["frame0_color.png"]
+    scan = write_scan(tmp_path / "scan", 0.004)
+    grid = scan / "grid.npz"
+    good = grid.read_bytes()
+    grid.write_bytes(good[: len(good) // 2])
+    with pytest.raises(InputError, match=r"grid\.npz"):
+        view_path(scan, spawn=False)
+    grid.write_bytes(good)
+    (scan / "result.json").write_text("{broken")
+    with pytest.raises(InputError, match=r"result\.json"):
+        view_path(scan, spawn=False)
+
+
+def test_view_rebuilds_a_recording_older_than_its_folder(tmp_path: Path) -> None:
+    """A batch rerun rewrites combined/grid.npz; the view.rrd made before showed the old grid."""
+    import os
+
+    from tests.test_station_compare import write_scan
+
+    scan = write_scan(tmp_path / "scan", 0.004)
+    first = view_path(scan, spawn=False)
+    os.utime(first, (1, 1))  # made long ago: every file of the folder is newer
+    again = view_path(scan, spawn=False)
+    assert again == first and again.stat().st_mtime > 1  # rebuilt
+    made = again.stat().st_mtime
+    os.utime(scan / "grid.npz", (1, 1))  # nothing newer than the recording: opened as it is
+    assert view_path(scan, spawn=False).stat().st_mtime == made

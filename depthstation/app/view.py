@@ -14,7 +14,17 @@ from depthstation.core import rerun_bridge as viz
 from depthstation.core.errors import InputError
 from depthstation.core.grid import GRID_FILE, Grid
 from depthstation.core.progress import stderr_console
-from depthstation.core.results import EXPLAIN_FILE, STANDPOINTS_FILE, finish_file, new_file, read_standpoints
+from depthstation.core.results import (
+    EXPLAIN_FILE,
+    RESULT_FILE,
+    RESULT_MARKER,
+    STANDPOINTS_FILE,
+    finish_file,
+    is_recording_rrd,
+    new_file,
+    read_result_info,
+    read_standpoints,
+)
 
 MIN_COUNT_VIEW = 10
 SERIES_COLUMNS = ("noise_m", "accuracy_m", "accuracy_rms_m", "fill_rate")
@@ -38,13 +48,18 @@ def folder_to_rrd(folder: Path, rrd: Path) -> Path:
     import rerun as rr
 
     folder = Path(folder)
-    info: dict[str, Any] = {}
-    if (folder / "result.json").is_file():
-        info = json.loads((folder / "result.json").read_text())
+    info: dict[str, Any] = read_result_info(folder) if (folder / RESULT_FILE).is_file() else {}
     pngs = sorted(folder.glob("*.png"))
     has = {n: (folder / n).is_file() for n in (STANDPOINTS_FILE, GRID_FILE, EXPLAIN_FILE)}
-    if not (any(has.values()) or pngs or info):
-        raise InputError(folder, "nothing to show (no result.json, tables, grids or figures)")
+    if not (any(has.values()) or info or (folder / RESULT_MARKER).is_file()):
+        # figures alone do not make a result: a folder of PNG captures would get a view.rrd written into it
+        raise InputError(folder, f"not a result folder (no {RESULT_FILE}, {STANDPOINTS_FILE}, {GRID_FILE} "
+                                 f"or {EXPLAIN_FILE}){'; it holds only images (a capture?)' if pngs else ''}")
+    if has[EXPLAIN_FILE]:
+        try:
+            explain = json.loads((folder / EXPLAIN_FILE).read_text())
+        except json.JSONDecodeError as exc:
+            raise InputError(folder / EXPLAIN_FILE, f"broken JSON ({exc})") from exc
     parts: list[str] = []
     views: list[Any] = []
     with viz.recording(f"depthstation-view-{folder.name}", viz.RerunTarget(rrd=rrd)) as rec:
@@ -76,7 +91,6 @@ def folder_to_rrd(folder: Path, rrd: Path) -> Path:
             parts.append("`standpoints/*`: per standpoint (timeline `standpoint`, table order) noise, "
                          "accuracy, fill rate; the full table as a document")
         if has[EXPLAIN_FILE]:
-            explain = json.loads((folder / EXPLAIN_FILE).read_text())
             viz.send_text(rec, "explain/json", "```json\n" + json.dumps(explain, indent=2)[:20000] + "\n```")
             views.append(viz.text_view("explain/json", "explain.json"))
             parts.append("`explain/json`: the mismatch found, candidates and selected effects")
@@ -91,6 +105,13 @@ def folder_to_rrd(folder: Path, rrd: Path) -> Path:
         viz.send_text(rec, viz.DESCRIPTION_PATH, _describe(folder, info, parts))
         rr.send_blueprint(viz.blueprint(*views), recording=rec)
     return rrd
+
+
+def _newer_than(folder: Path, rrd: Path) -> bool:
+    """Whether a file of the result folder changed after its recording was made."""
+    made = rrd.stat().st_mtime
+    return any(p.is_file() and p != rrd and p.suffix != ".rrd" and p.stat().st_mtime > made
+               for p in folder.iterdir())
 
 
 def open_rrd(rrd: Path, *, spawn: bool, serve: bool) -> None:
@@ -118,12 +139,19 @@ def view_path(path: Path, *, spawn: bool = True, serve: bool = False, rrd: Path 
     """
     path = Path(path)
     if path.is_file() and path.suffix == ".rrd":
+        if not is_recording_rrd(path):
+            raise InputError(path, "is not a rerun recording (no RRF header: empty, cut short at the start, "
+                                   "or another file named .rrd)")
         target = path
     elif path.is_dir():
         target = Path(rrd) if rrd is not None else path / "view.rrd"
-        if target.exists() and not force and rrd is None:
+        stale = target.exists() and rrd is None and _newer_than(path, target)
+        if target.exists() and not force and rrd is None and not stale:
             stderr_console.print(f"opening the recording made before, {target} (--force rebuilds it)")
         else:
+            if stale:  # the folder changed since (a batch rerun updated combined/): rebuilt, not shown stale
+                stderr_console.print(f"{target} is older than the result it shows; rebuilding it")
+                force = True
             tmp = new_file(target, force=force)
             folder_to_rrd(path, tmp)
             finish_file(tmp, target)

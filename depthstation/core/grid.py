@@ -7,6 +7,8 @@ across frames, chunks or workers (Chan et al.) to the same result up to float ro
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -440,8 +442,8 @@ class Grid:
         try:
             with np.load(path) as z:
                 data = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as exc:
-            raise InputError(path, f"not a grid file ({exc})") from exc
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # cut short, not npz
+            raise InputError(path, f"not a readable grid file ({type(exc).__name__}: {exc})") from exc
         need = ("distance_edges_m", "inclination_edges_deg", "count", "mean_m", "var_m2")
         missing = [k for k in need if k not in data]
         if missing:
