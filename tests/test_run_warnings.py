@@ -100,3 +100,25 @@ def test_a_truncated_recording_imported_into_a_session_is_warned_at_every_study(
     assert "standpoint_02" in err and "cut short" in err
     assert str(imported / "standpoint_02.mcap") in info["truncated_inputs"]
     assert str(imported / "standpoint_01.mcap") not in info["truncated_inputs"]
+
+
+def test_standpoints_of_two_cameras_are_warned(session: Path, tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """A session resumed with another camera holds D455 and D435 standpoints; the result named the
+    first camera only, and the fitted noise curve mixed two baselines without a word."""
+    other = tmp_path / "d435"
+    code = run_cli(["simulate", "checkerboard", "--protocol", str(session.parent / "p.toml"),
+                    "--model", "d435", "--out", str(other), "--frames", "12",
+                    "--standpoint", "standpoint_02"])
+    assert code == 0
+    work = tmp_path / "mixed"
+    shutil.copytree(session, work)
+    (work / "standpoint_02.mcap").unlink()
+    shutil.copy(other / "standpoint_02.mcap", work / "standpoint_02.mcap")
+    code, err, info = _strict(work, session.parent / "p.toml", tmp_path / "o", capsys)
+    assert code == 3, err
+    said = [w["message"] for w in info["warnings"] if w["code"] == "mixed-cameras"]
+    assert len(said) == 1 and "standpoint_01" in said[0] and "standpoint_02" in said[0]
+    assert "baseline_mm 95" in said[0] and "baseline_mm 50" in said[0]
+    code, err, info = _strict(session, session.parent / "p.toml", tmp_path / "o2", capsys)
+    assert code == 0 and not info["warnings"], err  # one camera: no word

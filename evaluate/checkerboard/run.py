@@ -112,7 +112,36 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
                                      "evaluate them in separate runs")
         seen[r.name] = r.path
     check_recorded_board(brd, recs, source)
+    check_one_camera(recs)
     return CheckerboardJob(list(inputs), source, brd, recs, opt)
+
+
+def camera_identity(rec: Recording) -> dict[str, Any]:
+    """What makes two standpoints the same camera in the same mode: device name and serial,
+    stereo baseline, depth resolution and depth units (what `result.json` reports as one device)."""
+    dev = dict(rec.metadata.get("device") or rec.info.device or {})
+    i = rec.info.depth_intrinsics
+    baseline = rec.info.baseline_m
+    return {"device": dev.get("name") or dev.get("model"), "serial": dev.get("serial_number"),
+            "baseline_mm": None if baseline is None else round(1e3 * baseline, 2),
+            "depth": f"{i.width}x{i.height}", "depth_units_m": rec.info.depth_units_m}
+
+
+def check_one_camera(recs: list[Recording]) -> None:
+    """Warn when the standpoints come from different cameras or modes (a session resumed with another
+    camera, another camera's recording dropped into a session). Why: noise grows with z^2 / (f B), so
+    standpoints of a D435 among D455 ones bend every fitted curve, and `result.json` names one device."""
+    ids = [camera_identity(r) for r in recs]
+    differ = sorted(k for k in ids[0] if any(x[k] != ids[0][k] for x in ids[1:]
+                                             if x[k] is not None and ids[0][k] is not None))
+    if not differ:
+        return
+    groups: dict[str, list[str]] = {}
+    for r, x in zip(recs, ids, strict=True):
+        groups.setdefault(", ".join(f"{k} {x[k]}" for k in differ), []).append(r.name)
+    listing = "; ".join(f"{', '.join(names)}: {what}" for what, names in groups.items())
+    warn(f"the standpoints come from more than one camera or mode ({listing}); the result names the first "
+         "one: evaluate each camera separately", str(recs[0].path.parent), "mixed-cameras")
 
 
 BOARD_KEYS = ("type", "squares_x", "squares_y", "square_length_m", "marker_length_m")
