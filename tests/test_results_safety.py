@@ -75,10 +75,13 @@ def test_non_empty_out_and_existing_rrd_need_force(tmp_path: Path, session: Path
     assert rrd.read_bytes() == b"RRF2 an old recording"
     earlier = tmp_path / "earlier"
     assert run_here(capsys, *args, "--out", str(earlier))[0] == 0
-    (earlier / "notes.txt").write_text("added by hand")
+    (earlier / "notes.txt").write_text("added by hand")  # never deleted with the earlier result
+    code, err = run_here(capsys, *args, "--out", str(earlier), "--rrd", str(rrd), "--force")
+    assert code == 2 and "notes.txt" in err and (earlier / "notes.txt").is_file()
+    (earlier / "notes.txt").unlink()
     code, err = run_here(capsys, *args, "--out", str(earlier), "--rrd", str(rrd), "--force")
     assert code == 0, err
-    assert not (earlier / "notes.txt").exists() and (earlier / "result.json").is_file()
+    assert (earlier / "result.json").is_file()
     assert (earlier / ".depthstation-result").is_file()
     assert rrd.read_bytes() != b"RRF2 an old recording" and rrd.read_bytes()[:3] == b"RRF"  # a new one
 
@@ -112,6 +115,26 @@ def test_force_never_deletes_an_input(tmp_path: Path, session: Path,
                          "--out", str(tmp_path / "r"), "--rrd", str(mcap), "--force")
     assert code == 2 and "not a rerun recording" in err and mcap.read_bytes()[:64] == head
     assert sorted(p.relative_to(work) for p in work.rglob("*")) == before
+
+
+def test_force_keeps_files_added_to_an_earlier_result(tmp_path: Path, session: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """A user's notes put into a finished result folder were deleted by the next run's --force; the
+    marker now lists the files the result wrote, and --force refuses a folder holding others (the
+    recording `view` adds is ours)."""
+    out = tmp_path / "res"
+    args = ["evaluate", "checkerboard", str(session), "--board", str(session.parent / "p.toml"),
+            "--frames", "3", "--out", str(out)]
+    assert run_here(capsys, *args)[0] == 0
+    (out / "view.rrd").write_bytes(b"RRF2 made by view later")
+    code, err = run_here(capsys, *args, "--force")
+    assert code == 0, err  # only its own files (and view's recording): replaced
+    (out / "notes").mkdir()
+    (out / "notes" / "my_analysis.md").write_text("three weeks of thinking")
+    code, err = run_here(capsys, *args, "--force")
+    assert code == 2 and "notes/my_analysis.md" in err, err
+    assert (out / "notes" / "my_analysis.md").read_text() == "three weeks of thinking"
+    assert (out / "standpoints.csv").is_file()
 
 
 def _small_disk(tmp_path: Path, kbytes: int) -> list[str] | None:

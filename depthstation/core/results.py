@@ -193,6 +193,34 @@ def _written_by_us(folder: Path) -> bool:
     return (folder / RESULT_MARKER).is_file() or (folder / RESULT_FILE).is_file()
 
 
+MARKER_FILES_MAX = 100_000  # a result with more files lists none (then nothing is checked)
+LATER_FILES = ("view.rrd", ".view.rrd.partial-")  # what `view` adds to a finished result
+
+
+def _listing(folder: Path) -> list[str] | None:
+    """The files of a finished result folder (relative, sorted), for its marker; None if too many."""
+    out = []
+    for f in folder.rglob("*"):
+        if f.is_file() and f.name != RESULT_MARKER:
+            out.append(f.relative_to(folder).as_posix())
+            if len(out) > MARKER_FILES_MAX:
+                return None
+    return sorted(out)
+
+
+def files_added(folder: Path) -> list[str]:
+    """Files in an earlier result that it did not write (the user's notes, another run's output):
+    what `--force` must not delete. Empty where the marker lists no files (results before it did)."""
+    with suppress(OSError, ValueError):
+        written = json.loads((folder / RESULT_MARKER).read_text()).get("files")
+        if isinstance(written, list):
+            known = set(written)
+            return sorted(rel for f in folder.rglob("*") if f.is_file() and f.name != RESULT_MARKER
+                          and (rel := f.relative_to(folder).as_posix()) not in known
+                          and not rel.startswith(LATER_FILES))
+    return []
+
+
 def _kind_of(folder: Path) -> str | None:
     """What kind of result a folder of ours holds (its marker's, else result.json's kind)."""
     for name in (RESULT_MARKER, RESULT_FILE):
@@ -224,6 +252,11 @@ def check_replaceable(out: Path, inputs: Sequence[str | Path] = (), kind: str | 
         raise InputError(out, f"holds files depthstation did not write (no {RESULT_MARKER} or "
                               f"{RESULT_FILE}); --force replaces only an earlier result: choose another "
                               "--out")
+    added = files_added(out)
+    if added:
+        shown = ", ".join(added[:3]) + (f" and {len(added) - 3} more" if len(added) > 3 else "")
+        raise InputError(out, f"holds files the earlier result did not write ({shown}); --force would "
+                              "delete them with it: move them, or choose another --out")
     theirs = _kind_of(out)
     if kind is not None and theirs is not None and theirs != kind:
         raise InputError(out, f"holds an earlier '{theirs}' result; --force replaces only an earlier "
@@ -273,7 +306,8 @@ def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path
             except InputError as exc:
                 raise InputError(out, f"{exc.problem}; the new result is left in {tmp}") from exc
         (tmp / RESULT_MARKER).write_text(json.dumps({"kind": kind or _kind_of(tmp),
-                                                     "command_line": COMMAND_LINE.get()}) + "\n")
+                                                     "command_line": COMMAND_LINE.get(),
+                                                     "files": _listing(tmp)}) + "\n")
         old = out.parent / f".{out.name}.replaced-{os.getpid()}"
         if out.exists():
             out.rename(old)
