@@ -5,7 +5,8 @@ each) is run overnight, on a cluster, and must survive an interruption. Each ite
 checkerboard evaluation; its frames or standpoints go out as chunks through
 :mod:`depthstation.parallel`; an item counts as finished only when its folder holds
 ``result.json`` *and* the done marker, which is written last, so a restart redoes exactly the
-items that were not finished (and an item whose manifest entry changed).
+items that were not finished, an item whose manifest entry changed and an item whose inputs
+changed (size, time or the SHA-256 of their first and last MiB: cheap on a GB recording).
 
 Manifest (TOML; relative paths are relative to the manifest's folder)::
 
@@ -33,7 +34,14 @@ from typing import Any
 from depthstation.core.errors import DepthstationError, EvaluationError, InputError
 from depthstation.core.grid import GRID_FILE, Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn, progress_bar
-from depthstation.core.results import RESULT_FILE, result_folder, write_json, write_result_info
+from depthstation.core.results import (
+    RESULT_FILE,
+    fingerprint,
+    result_folder,
+    write_json,
+    write_result_info,
+)
+from depthstation.core.run_warnings import warn
 from depthstation.core.text_files import read_text
 from depthstation.core.tomlcompat import tomllib
 from depthstation.evaluate.checkerboard.chunks import StandpointOptions, checkerboard_chunk
@@ -184,21 +192,60 @@ def load_manifest(path: Path) -> Manifest:
 
 
 # -- running ---------------------------------------------------------------------------------------
+def _read_json(path: Path) -> dict[str, Any]:
+    """A JSON object from a file of ours, {} when missing or broken (then the item is redone)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
 def is_done(item: BatchItem) -> bool:
     """Finished = result.json present and the done marker names this item's fingerprint."""
     marker = item.out / DONE_MARKER
     if not (item.out / RESULT_FILE).is_file() or not marker.is_file():
         return False
-    try:
-        return bool(json.loads(marker.read_text()).get("fingerprint") == item.fingerprint())
-    except (json.JSONDecodeError, AttributeError):
-        return False
+    return bool(_read_json(marker).get("fingerprint") == item.fingerprint())
+
+
+def _what_changed(then: dict[str, Any], now: dict[str, Any]) -> str:
+    if not now.get("exists", True):
+        return "it is gone"
+    parts = [what for key, what in (("bytes", "size"), ("mtime_ns", "modification time"),
+                                    ("sha256_head_tail", "content"), ("files", "number of files"),
+                                    ("sha256_listing", "file names, sizes or times"))
+             if then.get(key) != now.get(key)]
+    return ", ".join(parts) or "fingerprint"
+
+
+def changed_inputs(item: BatchItem) -> list[tuple[str, str]]:
+    """(path, what changed) for each input of a finished item that differs from the fingerprint
+    taken when it ran. Why: the manifest text alone said 'finished' for an item whose recording
+    was replaced, and the combined result kept the old numbers. Cheap: size, time and the first
+    and last MiB (results.fingerprint), not the whole file. A marker from before the inputs were
+    kept in it falls back to result.json's input_fingerprints."""
+    stored = _read_json(item.out / DONE_MARKER).get("inputs")
+    if not isinstance(stored, list):
+        mine = {str(p) for p in item_paths(item)}
+        recorded = _read_json(item.out / RESULT_FILE).get("input_fingerprints")
+        stored = [f for f in recorded or [] if isinstance(f, dict) and f.get("path") in mine]
+    out: list[tuple[str, str]] = []
+    for then in stored:
+        if not isinstance(then, dict) or "path" not in then:
+            continue
+        now = fingerprint(then["path"])
+        if now != then:
+            out.append((str(then["path"]), _what_changed(then, now)))
+    return out
 
 
 def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None = None) -> Path | None:
     """Evaluate one item through the runner and write its folder; the done marker comes last."""
     marker = item.out / DONE_MARKER
     marker.unlink(missing_ok=True)
+    # taken before reading: an input that changes while the item runs is seen changed next time
+    inputs = [fingerprint(p) for p in item_paths(item)]
     # the item's folder is written under a temporary name and replaces an unfinished one whole
     with result_folder(item.out, force=True, inputs=item_paths(item), kind=item.kind) as tmp:
         job = KINDS[item.kind](replace(item, out=tmp))
@@ -214,7 +261,7 @@ def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None =
         if not (tmp / RESULT_FILE).is_file():
             raise EvaluationError(f"{item.name}: the {item.kind} evaluation wrote no {RESULT_FILE}")
     grid_path = None if grid_name is None else item.out / Path(grid_name).name
-    write_json(marker, {"fingerprint": item.fingerprint(), "grid": grid_path})
+    write_json(marker, {"fingerprint": item.fingerprint(), "grid": grid_path, "inputs": inputs})
     return grid_path
 
 
@@ -291,9 +338,15 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
     with ChunkRunner(workers, cluster) as runner:
         for item in man.items:
             if is_done(item):
-                report.skipped.append(item.name)
-                say(f"{item.name}: finished before, skipped")
-                continue
+                changed = changed_inputs(item)
+                if not changed:
+                    report.skipped.append(item.name)
+                    say(f"{item.name}: finished before, skipped")
+                    continue
+                for path, what in changed:
+                    warn(f"changed since item '{item.name}' finished ({what}): the item is evaluated "
+                         "again", path, "batch-input-changed")
+                    say(f"{item.name}: input {path} changed ({what}), evaluated again")
             try:
                 with progress_bar(f"{item.name} ({item.kind})", progress) as prog:
                     run_item(item, runner, prog)

@@ -23,6 +23,7 @@ from depthstation.core.errors import InputError
 from depthstation.core.grid import GRID_FILE, Grid, pack_grid, unpack_grid
 from depthstation.core.parallel import FrameChunk, frame_chunks
 from depthstation.core.results import write_result_info
+from depthstation.core.run_warnings import collecting
 from depthstation.evaluate import batch as batch_mod
 from depthstation.evaluate.batch import (
     DONE_MARKER,
@@ -200,6 +201,23 @@ def test_changed_item_is_redone(tmp_path: Path) -> None:
     batch(manifest)
     manifest.write_text(manifest.read_text().replace("chunk_frames = 3", "chunk_frames = 5"))
     assert batch(manifest).done == ["seq_a"]
+
+
+def test_item_whose_input_changed_is_redone_and_said(tmp_path: Path) -> None:
+    names = ["seq_a", "seq_b"]
+    datas = [make_samples(tmp_path / f"{n}.npy", seed=30 + i) for i, n in enumerate(names)]
+    manifest = write_manifest(tmp_path, names)
+    batch(manifest)
+    datas[0] = make_samples(tmp_path / "seq_a.npy", seed=99)  # the recording replaced, same size
+    lines: list[str] = []
+    with collecting() as found:
+        report = batch(manifest, log=lines.append)
+    assert report.done == ["seq_a"] and report.skipped == ["seq_b"]
+    assert [(w.code, w.where) for w in found] == [("batch-input-changed", str(tmp_path / "seq_a.npy"))]
+    assert any("seq_a.npy changed" in line for line in lines)
+    # the combined grid holds the new recording, not the old one
+    assert_grid_is_truth(tmp_path / "results" / "combined" / GRID_FILE, datas)
+    assert batch(manifest).skipped == names  # fingerprints taken again: nothing changed since
 
 
 def test_failed_item_is_reported_and_others_finish(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
