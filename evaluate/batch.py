@@ -36,11 +36,13 @@ from depthstation.core.grid import GRID_FILE, Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn, progress_bar
 from depthstation.core.results import (
     RESULT_FILE,
+    RESULT_MARKER,
     fingerprint,
     result_folder,
     write_json,
     write_result_info,
 )
+from depthstation.core.run_warnings import current as current_warnings
 from depthstation.core.run_warnings import warn
 from depthstation.core.text_files import read_text
 from depthstation.core.tomlcompat import tomllib
@@ -246,6 +248,7 @@ def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None =
     marker.unlink(missing_ok=True)
     # taken before reading: an input that changes while the item runs is seen changed next time
     inputs = [fingerprint(p) for p in item_paths(item)]
+    before = current_warnings()
     # the item's folder is written under a temporary name and replaces an unfinished one whole
     with result_folder(item.out, force=True, inputs=item_paths(item), kind=item.kind) as tmp:
         job = KINDS[item.kind](replace(item, out=tmp))
@@ -261,8 +264,25 @@ def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None =
         if not (tmp / RESULT_FILE).is_file():
             raise EvaluationError(f"{item.name}: the {item.kind} evaluation wrote no {RESULT_FILE}")
     grid_path = None if grid_name is None else item.out / Path(grid_name).name
-    write_json(marker, {"fingerprint": item.fingerprint(), "grid": grid_path, "inputs": inputs})
+    own = [w.to_dict() for w in current_warnings() if w not in before]
+    write_json(marker, {"fingerprint": item.fingerprint(), "grid": grid_path, "inputs": inputs,
+                        "warnings": own})
     return grid_path
+
+
+def warn_again(item: BatchItem) -> int:
+    """The warnings a finished, skipped item had when it ran, warned again (how many). Why: a
+    rerun that only skips said nothing, so --strict passed and combined/result.json listed no
+    warning for numbers that carry one."""
+    recorded = _read_json(item.out / DONE_MARKER).get("warnings")
+    if not isinstance(recorded, list):  # a marker from before warnings were kept in it
+        recorded = _read_json(item.out / RESULT_FILE).get("warnings")
+    n = 0
+    for w in recorded if isinstance(recorded, list) else []:
+        if isinstance(w, dict) and isinstance(w.get("message"), str):
+            warn(w["message"], w.get("where"), str(w.get("code") or "general"))
+            n += 1
+    return n
 
 
 def _item_grid(item: BatchItem) -> Path | None:
@@ -273,8 +293,8 @@ def _item_grid(item: BatchItem) -> Path | None:
     return Path(g) if g else None
 
 
-def combine_grids(paths: Sequence[Path], out_dir: Path, inputs: Sequence[str]) -> Grid | None:
-    """Merge the items' grids (manifest order) into ``out_dir/grid.npz`` with its result.json."""
+def combine_grids(paths: Sequence[Path]) -> Grid | None:
+    """The items' grids (manifest order) merged into one (Chan), None without any."""
     grid: Grid | None = None
     for p in paths:
         g = Grid.load(p)
@@ -284,11 +304,6 @@ def combine_grids(paths: Sequence[Path], out_dir: Path, inputs: Sequence[str]) -
             raise InputError(p, "grid bins differ from the other items' (cannot combine)")
         else:
             grid.merge(g)
-    if grid is None:
-        return None
-    grid.save(out_dir / GRID_FILE)
-    write_result_info(out_dir, "combined-grid", [str(p) for p in paths], {"items": list(inputs)},
-                      extra={"summary": grid.summary()})
     return grid
 
 
@@ -310,6 +325,36 @@ def combine_tables(tables: Sequence[tuple[str, Path]], out: Path) -> Path:
         writer.writerows(rows)
     tmp.replace(out)
     return out
+
+
+COMBINED_FILES = {GRID_FILE, STANDPOINTS_FILE, RESULT_FILE}
+
+
+def write_combined(man: Manifest) -> Path | None:
+    """``combined/``, always with its result.json: the merged grid of the finished scan items,
+    their standpoints tables in one, and every warning of the batch (skipped items' included).
+    Written whole under a temporary name (no stale grid from an earlier run stays). Returns the
+    combined grid's path, None without one."""
+    done = [it for it in man.items if is_done(it)]
+    grids = [(it.name, g) for it in done if (g := _item_grid(it)) is not None]
+    tables = [(it.name, it.out / STANDPOINTS_FILE) for it in done if (it.out / STANDPOINTS_FILE).is_file()]
+    grid = combine_grids([g for _, g in grids])
+    target = man.out / COMBINED_DIR
+    if (target.is_dir() and not (target / RESULT_MARKER).is_file()
+            and {p.name for p in target.iterdir()} <= COMBINED_FILES):
+        # combined/ of a batch run before it had a marker (a table-only one had no result.json)
+        (target / RESULT_MARKER).write_text(json.dumps({"kind": "combined"}) + "\n")
+    with result_folder(target, force=True) as tmp:
+        if grid is not None:
+            grid.save(tmp / GRID_FILE)
+        if tables:
+            combine_tables(tables, tmp / STANDPOINTS_FILE)
+        kind = "combined-grid" if grid is not None else "combined-standpoints" if tables else "combined"
+        write_result_info(tmp, kind, [str(g) for _, g in grids] + [str(t) for _, t in tables],
+                          {"items": [it.name for it in done], "grid_items": [n for n, _ in grids],
+                           "table_items": [n for n, _ in tables]},
+                          extra={"summary": grid.summary()} if grid is not None else None)
+    return None if grid is None else target / GRID_FILE
 
 
 @dataclass
@@ -341,7 +386,9 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
                 changed = changed_inputs(item)
                 if not changed:
                     report.skipped.append(item.name)
-                    say(f"{item.name}: finished before, skipped")
+                    n = warn_again(item)
+                    said = f" ({n} warning(s) of its run)" if n else ""
+                    say(f"{item.name}: finished before, skipped{said}")
                     continue
                 for path, what in changed:
                     warn(f"changed since item '{item.name}' finished ({what}): the item is evaluated "
@@ -358,14 +405,7 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
                 continue
             report.done.append(item.name)
             say(f"{item.name}: done")
-    grids = [(it.name, g) for it in man.items if is_done(it) and (g := _item_grid(it)) is not None]
-    if grids:
-        combine_grids([g for _, g in grids], man.out / COMBINED_DIR, [n for n, _ in grids])
-        report.combined = man.out / COMBINED_DIR / GRID_FILE
-    tables = [(it.name, it.out / STANDPOINTS_FILE) for it in man.items
-              if is_done(it) and (it.out / STANDPOINTS_FILE).is_file()]
-    if tables:
-        combine_tables(tables, man.out / COMBINED_DIR / STANDPOINTS_FILE)
+    report.combined = write_combined(man)
     write_json(man.out / BATCH_FILE, {
         "manifest": str(man.path), "cluster": cluster, "workers": workers,
         "items": [{"name": it.name, "kind": it.kind, "out": str(it.out), "done": is_done(it),

@@ -19,11 +19,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from depthstation.app.cli import run_cli
 from depthstation.core.errors import InputError
 from depthstation.core.grid import GRID_FILE, Grid, pack_grid, unpack_grid
 from depthstation.core.parallel import FrameChunk, frame_chunks
 from depthstation.core.results import write_result_info
-from depthstation.core.run_warnings import collecting
+from depthstation.core.run_warnings import collecting, warn
 from depthstation.evaluate import batch as batch_mod
 from depthstation.evaluate.batch import (
     DONE_MARKER,
@@ -218,6 +219,37 @@ def test_item_whose_input_changed_is_redone_and_said(tmp_path: Path) -> None:
     # the combined grid holds the new recording, not the old one
     assert_grid_is_truth(tmp_path / "results" / "combined" / GRID_FILE, datas)
     assert batch(manifest).skipped == names  # fingerprints taken again: nothing changed since
+
+
+def table_chunk(path: str) -> list[str]:
+    return Path(path).read_text().split()
+
+
+def prepare_table(item: BatchItem) -> ItemJob:
+    """A checkerboard-like item: a standpoints table, no grid, and a warning of its run."""
+    path = Path(item.inputs["samples"])
+
+    def finish(results: list[list[str]]) -> None:
+        warn("board not found in 1 of 3 frames", results[0][0], "board-not-found")
+        (item.out / "standpoints.csv").write_text("standpoint,distance_m\n" + f"{results[0][0]},1.5\n")
+        write_result_info(item.out, "checkerboard", [str(path)], {})
+
+    return ItemJob(table_chunk, [str(path)], finish)
+
+
+def test_warnings_of_finished_items_come_back_on_rerun(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(batch_mod.KINDS, "synthtable", prepare_table)
+    (tmp_path / "pose03.txt").write_text("pose03")
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('out = "res"\n[[items]]\nkind = "synthtable"\ninputs = { samples = "pose03.txt" }\n')
+    combined = tmp_path / "res" / "combined" / "result.json"
+    for run in ("first", "rerun"):
+        assert run_cli(["evaluate", "batch", str(manifest), "--quiet", "--strict"]) == 3, run
+        info = json.loads(combined.read_text())  # a table-only batch gets its result.json too
+        assert info["kind"] == "combined-standpoints", run
+        assert [(w["where"], w["code"]) for w in info["warnings"]] == [("pose03", "board-not-found")], run
+    assert json.loads((tmp_path / "res" / "batch.json").read_text())["skipped"] == ["pose03"]
 
 
 def test_failed_item_is_reported_and_others_finish(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
