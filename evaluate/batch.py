@@ -26,6 +26,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -357,6 +358,46 @@ def write_combined(man: Manifest) -> Path | None:
     return None if grid is None else target / GRID_FILE
 
 
+BATCH_KIND = "batch"
+
+
+def claim_out(man: Manifest) -> None:
+    """Make sure ``out`` is this manifest's own batch folder (or empty), then mark it so.
+
+    Why: a batch writes batch.json, combined/ and the items' folders into ``out``; pointed at a
+    folder of the user's own files, or at another manifest's results, it overwrote them. Its own
+    earlier output (the marker naming this manifest, or a batch.json of a batch run before the
+    marker existed) is updated; anything else is refused before any item runs."""
+    out, mine = man.out, man.path.resolve()
+    if out.exists() and not out.is_dir():
+        raise InputError(out, f"the batch's out (in {man.path}) exists and is not a folder")
+    blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise InputError(out, f"cannot be made: {blocking} is a file, not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        marker = _read_json(out / RESULT_MARKER)
+        legacy = _read_json(out / BATCH_FILE)
+        if marker:
+            if marker.get("kind") != BATCH_KIND:
+                raise InputError(out, f"holds an earlier '{marker.get('kind')}' result, not a batch's; "
+                                      f"give the batch in {man.path} another out")
+            theirs = Path(str(marker.get("manifest", "")))
+            # the same manifest: by its path, or by its place beside out (the campaign folder was
+            # copied or moved with its results); one that is gone was renamed or moved
+            moved = out.resolve() / str(marker.get("manifest_from_out", ""))
+            if theirs != mine and moved.resolve() != mine and theirs.is_file():
+                raise InputError(out, f"is the result folder of another manifest ({theirs}); two "
+                                      "manifests sharing one out overwrite each other's combined/ and "
+                                      f"batch.json: give the batch in {man.path} its own out")
+        elif not ({"manifest", "items"} <= set(legacy) and Path(str(legacy["manifest"])).name == mine.name):
+            raise InputError(out, f"holds files depthstation did not write (no {RESULT_MARKER}); a "
+                                  "batch updates only its own earlier output: give the batch in "
+                                  f"{man.path} another out")
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / RESULT_MARKER, {"kind": BATCH_KIND, "manifest": str(mine),
+                                     "manifest_from_out": os.path.relpath(mine, out.resolve())})
+
+
 @dataclass
 class BatchReport:
     out: Path
@@ -379,7 +420,7 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
     man = load_manifest(manifest)
     say = log or (lambda s: None)
     report = BatchReport(man.out)
-    man.out.mkdir(parents=True, exist_ok=True)
+    claim_out(man)
     with ChunkRunner(workers, cluster) as runner:
         for item in man.items:
             if is_done(item):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -250,6 +251,36 @@ def test_warnings_of_finished_items_come_back_on_rerun(tmp_path: Path,
         assert info["kind"] == "combined-standpoints", run
         assert [(w["where"], w["code"]) for w in info["warnings"]] == [("pose03", "board-not-found")], run
     assert json.loads((tmp_path / "res" / "batch.json").read_text())["skipped"] == ["pose03"]
+
+
+def test_batch_refuses_an_out_it_did_not_write(tmp_path: Path) -> None:
+    make_samples(tmp_path / "seq_a.npy", seed=1)
+    manifest = write_manifest(tmp_path, ["seq_a"])
+    mine = {tmp_path / "results" / "batch.json": "my notes\n",
+            tmp_path / "results" / "combined" / "standpoints.csv": "standpoint,distance_m\nmine,1.0\n"}
+    for path, text in mine.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    with pytest.raises(InputError, match="did not write"):
+        batch(manifest)
+    assert {p: p.read_text() for p in mine} == mine
+    assert not (tmp_path / "results" / "seq_a").exists() and calls(tmp_path) == []
+
+
+def test_two_manifests_sharing_one_out_are_refused(tmp_path: Path) -> None:
+    datas = [make_samples(tmp_path / f"{n}.npy", seed=i) for i, n in enumerate(["seq_a", "seq_b"])]
+    first = write_manifest(tmp_path, ["seq_a"])
+    batch(first)
+    second = tmp_path / "other.toml"
+    second.write_text(first.read_text().replace("seq_a", "seq_b"))
+    with pytest.raises(InputError, match="another manifest"):
+        batch(second)
+    assert not (tmp_path / "results" / "seq_b").exists()
+    assert_grid_is_truth(tmp_path / "results" / "combined" / GRID_FILE, datas[:1])
+    copy = tmp_path / "copy"  # the campaign folder copied with its results: still its own out
+    shutil.copytree(tmp_path, copy, ignore=shutil.ignore_patterns("copy"))
+    again = batch(copy / first.name)  # (its inputs' paths changed: the item is evaluated again)
+    assert again.done + again.skipped == ["seq_a"]
 
 
 def test_failed_item_is_reported_and_others_finish(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
