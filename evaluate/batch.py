@@ -24,14 +24,20 @@ Manifest (TOML; relative paths are relative to the manifest's folder)::
 from __future__ import annotations
 
 import csv
+import dataclasses
+import difflib
 import hashlib
 import json
+import math
 import os
+import types
+import typing
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from depthstation.core.board import load_board
 from depthstation.core.errors import DepthstationError, EvaluationError, InputError
 from depthstation.core.grid import GRID_FILE, Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn, progress_bar
@@ -47,7 +53,7 @@ from depthstation.core.run_warnings import current as current_warnings
 from depthstation.core.run_warnings import warn
 from depthstation.core.text_files import read_text
 from depthstation.core.tomlcompat import tomllib
-from depthstation.evaluate.checkerboard.chunks import StandpointOptions, checkerboard_chunk
+from depthstation.evaluate.checkerboard.chunks import REFERENCES, StandpointOptions, checkerboard_chunk
 from depthstation.evaluate.checkerboard.run import finish_checkerboard, prepare_checkerboard
 from depthstation.evaluate.checkerboard.study import StandpointResult
 from depthstation.evaluate.scan.chunks import (
@@ -112,8 +118,26 @@ class ItemJob:
 KINDS: dict[str, Callable[[BatchItem], ItemJob]] = {}
 
 
-def register_kind(kind: str, prepare: Callable[[BatchItem], ItemJob]) -> None:
+@dataclass(frozen=True)
+class ItemCheck:
+    """What checking an item before the batch runs found: the recordings whose frames it reads
+    (two items reading one count them twice in the combined result) and its grid bins (scan
+    grids combine only with equal bins)."""
+
+    recordings: tuple[Path, ...]
+    bins: tuple[float, ...] | None = None
+
+
+#: kind -> check of an item's inputs and options before any item runs (InputError(None, problem)
+#: naming the key); kinds without one get the generic check (inputs are existing paths).
+CHECKS: dict[str, Callable[[BatchItem], ItemCheck]] = {}
+
+
+def register_kind(kind: str, prepare: Callable[[BatchItem], ItemJob],
+                  check: Callable[[BatchItem], ItemCheck] | None = None) -> None:
     KINDS[kind] = prepare
+    if check is not None:
+        CHECKS[kind] = check
 
 
 @dataclass
@@ -135,8 +159,135 @@ def _resolve_inputs(inputs: dict[str, Any], base: Path) -> dict[str, Any]:
     return {k: one(v) for k, v in inputs.items()}
 
 
+def _toml(value: Any) -> str:
+    """A value as it was written in the manifest (true, "false", 2.7)."""
+    return str(value).lower() if isinstance(value, bool) else json.dumps(value, default=str)
+
+
+def _toml_type(value: Any) -> str:
+    return {bool: "true/false", int: "a whole number", float: "a decimal number", str: "a string",
+            list: "an array", dict: "a table"}.get(type(value), type(value).__name__)
+
+
+def check_value(value: Any, hint: Any) -> str | None:
+    """What `value` (read from TOML) should have been for the type `hint`, None when it fits.
+
+    Why: Python's int(), float() and bool() accept what the user did not mean: true counted as
+    1 frame, 2.7 frames as 2, distance_max_m = true as 1 m, icp = "false" turned registration on.
+    A bool is not a number, a decimal is not a count, a string is not a switch."""
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        hint = args[0] if len(args) == 1 else hint
+    if typing.get_origin(hint) is tuple:
+        n = len(typing.get_args(hint))
+        ok = isinstance(value, list) and len(value) == n and all(check_value(v, float) is None for v in value)
+        return None if ok else f"an array of {n} numbers"
+    if hint is bool:
+        return None if isinstance(value, bool) else "true or false"
+    if hint is int:
+        return None if isinstance(value, int) and not isinstance(value, bool) else "a whole number"
+    if hint is float:
+        return None if isinstance(value, (int, float)) and not isinstance(value, bool) else "a number"
+    if hint is str:
+        return None if isinstance(value, str) else "a string"
+    return None
+
+
+def _check_options(options: dict[str, Any], hints: dict[str, Any], kind: str) -> None:
+    unknown = sorted(set(options) - set(hints))
+    if unknown:
+        close = difflib.get_close_matches(unknown[0], hints, n=1)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        raise InputError(None, f"unknown {kind} option '{unknown[0]}'{hint} "
+                               f"(known: {', '.join(sorted(hints))})")
+    for key, value in options.items():
+        want = check_value(value, hints[key])
+        if want is not None:
+            raise InputError(None, f"option {key} must be {want}, not {_toml(value)} ({_toml_type(value)})")
+
+
+def _check_input_keys(item: BatchItem, need: Sequence[str], may: Sequence[str] = (),
+                      lists: Sequence[str] = ()) -> None:
+    missing = [k for k in need if k not in item.inputs]
+    if missing:
+        raise InputError(None, f"a {item.kind} item needs inputs {', '.join(need)}; "
+                               f"{', '.join(missing)} missing")
+    unknown = sorted(set(item.inputs) - set(need) - set(may))
+    if unknown:
+        raise InputError(None, f"unknown input '{unknown[0]}' (a {item.kind} item takes "
+                               f"{', '.join([*need, *may])})")
+    for key, value in item.inputs.items():
+        if isinstance(value, list) and key not in lists:
+            raise InputError(None, f"inputs.{key} must be one path, not a list")
+
+
+def _generic_check(item: BatchItem) -> ItemCheck:
+    return ItemCheck(tuple(item_paths(item)))
+
+
+def _overlap(a: Path, b: Path) -> bool:
+    """One path is the other or holds it (a session and one of its recordings)."""
+    ra, rb = a.resolve(), b.resolve()
+    return ra == rb or ra in rb.parents or rb in ra.parents
+
+
+def _check_item(path: Path, k: int, raw: Any, base: Path, out: Path,
+                defaults: dict[str, Any]) -> tuple[BatchItem, ItemCheck]:
+    """One [[items]] entry resolved and checked (keys, option types, existing paths, the kind's
+    own rules); every problem an InputError naming the manifest and items[k]."""
+    where = f"items[{k}]"
+    if not isinstance(raw, dict):
+        raise InputError(path, f"{where} is not a table")
+    bad = sorted(set(raw) - {"kind", "name", "out", "inputs", "options"})
+    if bad:
+        raise InputError(path, f"{where}: unknown key '{bad[0]}' (kind, name, out, inputs, options)")
+    if not isinstance(raw.get("options", {}), dict):
+        raise InputError(path, f"{where}.options must be a table")
+    kind = raw.get("kind")
+    if kind not in KINDS:
+        known = ", ".join(sorted(KINDS)) or "none"
+        raise InputError(path, f"{where}: kind {kind!r} is not one of {known}")
+    inputs = raw.get("inputs", {})
+    if not isinstance(inputs, dict) or not inputs:
+        raise InputError(path, f"{where}: inputs must be a non-empty table")
+    for key, v in inputs.items():
+        if not (isinstance(v, str) or (isinstance(v, list) and v and all(isinstance(x, str) for x in v))):
+            raise InputError(path, f"{where}: inputs.{key} must be a path or a list of paths, not {v!r}")
+    for key in ("name", "out"):
+        if key in raw and not (isinstance(raw[key], str) and raw[key]):
+            raise InputError(path, f"{where}.{key} must be a non-empty string, not {raw[key]!r}")
+    options = dict(defaults.get(kind, {}))
+    options.update(raw.get("options", {}))
+    inputs = _resolve_inputs(inputs, base)
+    first = next(iter(inputs.values()))
+    first = first[0] if isinstance(first, list) else first
+    name = str(raw.get("name", raw.get("out", Path(str(first)).stem)))
+    item_out = out / str(raw.get("out", name))
+    if not item_out.resolve().is_relative_to(out.resolve()) or item_out.resolve() == out.resolve():
+        key = "out" if "out" in raw else "name"
+        raise InputError(path, f"{where}.{key}: {raw.get(key)!r} would write outside the batch's "
+                               f"result folder {out}")
+    if item_out.resolve().parts[len(out.resolve().parts)] in (COMBINED_DIR, BATCH_FILE, RESULT_MARKER):
+        key = "out" if "out" in raw else "name"
+        raise InputError(path, f"{where}.{key}: {raw.get(key)!r} is the batch's own {COMBINED_DIR}/ or "
+                               f"{BATCH_FILE}; give the item another out")
+    item = BatchItem(name, kind, inputs, options, item_out)
+    where = f"{where} ({name})"
+    try:
+        facts = CHECKS.get(kind, _generic_check)(item)
+        for p in item_paths(item):
+            if not p.exists():
+                raise InputError(None, f"input {p} not found")
+    except InputError as exc:
+        raise InputError(path, f"{where}: {exc}") from exc
+    return item, facts
+
+
 def load_manifest(path: Path) -> Manifest:
-    """Parse and check a manifest; every problem is an InputError naming the item."""
+    """Parse and check a whole manifest before anything runs: every problem (an option's type or
+    name, a missing input, a board that does not load, two items on one recording, scan items
+    with different grid bins) is an InputError naming the manifest and the item. Why: found at
+    the item's turn, earlier items had run for hours first, and batch.json was not written."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "manifest not found")
@@ -155,43 +306,33 @@ def load_manifest(path: Path) -> Manifest:
     defaults = data.get("defaults", {})
     if not isinstance(defaults, dict) or not all(isinstance(v, dict) for v in defaults.values()):
         raise InputError(path, "[defaults] must hold one table per kind ([defaults.scan], ...)")
+    for kind in defaults:
+        if kind not in KINDS:
+            close = difflib.get_close_matches(kind, KINDS, n=1)
+            hint = f"did you mean [defaults.{close[0]}]? " if close else ""
+            raise InputError(path, f"[defaults.{kind}]: no kind '{kind}' ({hint}kinds: "
+                                   f"{', '.join(sorted(KINDS))}); its options would apply to no item")
     raw_items = data.get("items", [])
     if not isinstance(raw_items, list) or not raw_items:
         raise InputError(path, "no [[items]] in the manifest")
-    items: list[BatchItem] = []
-    seen: set[Path] = set()
-    for k, raw in enumerate(raw_items):
-        where = f"items[{k}]"
-        if not isinstance(raw, dict):
-            raise InputError(path, f"{where} is not a table")
-        bad = sorted(set(raw) - {"kind", "name", "out", "inputs", "options"})
-        if bad:
-            raise InputError(path, f"{where}: unknown key '{bad[0]}' (kind, name, out, inputs, options)")
-        if not isinstance(raw.get("options", {}), dict):
-            raise InputError(path, f"{where}.options must be a table")
-        kind = raw.get("kind")
-        if kind not in KINDS:
-            known = ", ".join(sorted(KINDS)) or "none"
-            raise InputError(path, f"{where}: kind {kind!r} is not one of {known}")
-        inputs = raw.get("inputs", {})
-        if not isinstance(inputs, dict) or not inputs:
-            raise InputError(path, f"{where}: inputs must be a non-empty table")
-        options = dict(defaults.get(kind, {}))
-        options.update(raw.get("options", {}))
-        inputs = _resolve_inputs(inputs, base)
-        first = next(iter(inputs.values()))
-        first = first[0] if isinstance(first, list) else first
-        name = str(raw.get("name", raw.get("out", Path(str(first)).stem)))
-        item_out = out / str(raw.get("out", name))
-        if not item_out.resolve().is_relative_to(out.resolve()) or item_out.resolve() == out.resolve():
-            key = "out" if "out" in raw else "name"
-            raise InputError(path, f"{where}.{key}: {raw.get(key)!r} would write outside the batch's "
-                                   f"result folder {out}")
-        if item_out in seen:
-            raise InputError(path, f"{where}: out folder {item_out} is used by another item")
-        seen.add(item_out)
-        items.append(BatchItem(name, kind, inputs, options, item_out))
-    return Manifest(path, out, items)
+    checked = [_check_item(path, k, raw, base, out, defaults) for k, raw in enumerate(raw_items)]
+    for j, (b, fb) in enumerate(checked):
+        for i, (a, fa) in enumerate(checked[:j]):
+            wa, wb = f"items[{i}] ({a.name})", f"items[{j}] ({b.name})"
+            if a.out.resolve() == b.out.resolve() or _overlap(a.out, b.out):
+                raise InputError(path, f"{wb}: out folder {b.out} is (or holds, or lies in) the one of {wa}")
+            shared = next((x for x in fa.recordings for y in fb.recordings if _overlap(x, y)), None)
+            if a.kind == b.kind and shared is not None:
+                raise InputError(path, f"{wa} and {wb} both read {shared}: the combined result would count "
+                                       "its frames twice (double counts, too small U95); one item per "
+                                       "recording (to compare options on one recording, use separate "
+                                       "batches)")
+            if fa.bins is not None and fb.bins is not None and not all(
+                    math.isclose(x, y) for x, y in zip(fa.bins, fb.bins, strict=True)):
+                raise InputError(path, f"{wb}: grid bins {fb.bins} differ from those of {wa} {fa.bins} "
+                                       "(distance_bin_m, inclination_bin_deg, distance_max_m): their grids "
+                                       "cannot be combined; set them in [defaults.scan]")
+    return Manifest(path, out, [item for item, _ in checked])
 
 
 # -- running ---------------------------------------------------------------------------------------
@@ -520,5 +661,49 @@ def _prepare_scan(item: BatchItem) -> ItemJob:
                    decode=unpack_scan_result, description="frames")
 
 
-register_kind("scan", _prepare_scan)
-register_kind("checkerboard", _prepare_checkerboard)
+CHECKERBOARD_OPTIONS = {"frames": int, "reference": str}
+SCAN_PATHS = ("similarity", "pass_points", "intrinsics")
+
+
+def _check_checkerboard(item: BatchItem) -> ItemCheck:
+    """Inputs ``inputs`` (paths) and ``board`` (one, loadable); options typed, in range."""
+    _check_input_keys(item, ("inputs", "board"), lists=("inputs",))
+    _check_options(item.options, CHECKERBOARD_OPTIONS, "checkerboard")
+    frames = item.options.get("frames")
+    if frames is not None and frames < 1:
+        raise InputError(None, f"option frames must be at least 1, not {frames}")
+    if item.options.get("reference", "auto") not in REFERENCES:
+        raise InputError(None, f"option reference must be one of {', '.join(REFERENCES)}, "
+                               f"not {item.options['reference']!r}")
+    load_board(Path(item.inputs["board"]))
+    raw = item.inputs["inputs"]
+    paths = [Path(p) for p in (raw if isinstance(raw, list) else [raw])]
+    for j, b in enumerate(paths):
+        for a in paths[:j]:
+            if _overlap(a, b):
+                raise InputError(None, f"inputs.inputs names {b} and {a}: one recording twice would count "
+                                       "twice in the combined result")
+    return ItemCheck(tuple(paths))
+
+
+def _check_scan(item: BatchItem) -> ItemCheck:
+    """Inputs ``sequence``, ``poses``, ``reference`` and the optional paths; options typed as
+    ScanOptions' fields and checked as the command checks them."""
+    _check_input_keys(item, ("sequence", "poses", "reference"), SCAN_PATHS)
+    hints = typing.get_type_hints(ScanOptions)
+    names = {f.name for f in dataclasses.fields(ScanOptions)} - {"target", "workers", "cluster", "force"}
+    given_paths = sorted(set(item.options) & set(SCAN_PATHS))
+    if given_paths:
+        raise InputError(None, f"{given_paths[0]} is a path: give it in inputs (resolved against the "
+                               "manifest's folder), not in options")
+    _check_options(item.options, {k: hints[k] for k in names - set(SCAN_PATHS)}, "scan")
+    options = ScanOptions.from_mapping(item.options, _paths(item, SCAN_PATHS), None, item.name)
+    options.check()
+    if options.frames is not None and options.frames < 1:
+        raise InputError(None, f"option frames must be at least 1, not {options.frames}")
+    return ItemCheck((Path(item.inputs["sequence"]),),
+                     (options.distance_bin_m, options.inclination_bin_deg, options.distance_max_m))
+
+
+register_kind("scan", _prepare_scan, _check_scan)
+register_kind("checkerboard", _prepare_checkerboard, _check_checkerboard)

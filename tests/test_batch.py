@@ -312,3 +312,80 @@ def test_bad_manifest_is_input_error(tmp_path: Path, text: str, match: str) -> N
     path.write_text(text)
     with pytest.raises(InputError, match=match):
         load_manifest(path)
+
+
+BOARD = Path(__file__).parents[1] / "protocols" / "demo-d455.toml"
+
+
+def scan_item(name: str, options: str = "", poses: bool = True) -> str:
+    p = f'poses = "{name}.txt", ' if poses else ""
+    return (f'[[items]]\nkind = "scan"\nname = "{name}"\n'
+            f'inputs = {{ sequence = "{name}.mcap", {p}reference = "room.ply" }}\n'
+            f'options = {{ {options} }}\n')
+
+
+def cb_item(name: str, options: str = "", inputs: str = '["sess"]', board: str = str(BOARD)) -> str:
+    return (f'[[items]]\nkind = "checkerboard"\nname = "{name}"\n'
+            f'inputs = {{ inputs = {inputs}, board = "{board}" }}\noptions = {{ {options} }}\n')
+
+
+def real_kinds_manifest(root: Path, text: str) -> Path:
+    """A manifest of scan and checkerboard items on placeholder files: loading checks them
+    without opening any recording."""
+    for name in ("s1.mcap", "s1.txt", "s2.mcap", "s2.txt", "room.ply", "sess/standpoint_01.mcap"):
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).touch()
+    path = root / "m.toml"
+    path.write_text('out = "res"\n' + text)
+    return path
+
+
+@pytest.mark.parametrize(("text", "match"), [
+    # the same recording in two items (or twice in one) would count twice in the combined result
+    (scan_item("s1") + scan_item("s1").replace('name = "s1"', 'name = "again"'),
+     r"items\[0\] \(s1\) and items\[1\] \(again\) both read .*s1.mcap"),
+    (cb_item("a") + cb_item("b", inputs='["sess/standpoint_01.mcap"]'),
+     r"items\[0\] \(a\) and items\[1\] \(b\) both read .*sess"),
+    (cb_item("a", inputs='["sess", "sess"]'), r"items\[0\] \(a\): inputs.inputs names .*sess.* twice"),
+    # a typo in a defaults table
+    ("[defaults.checkerbaord]\nframes = 3\n" + cb_item("a"), r"did you mean \[defaults.checkerboard\]"),
+    # option values of the wrong type, said instead of misread
+    (cb_item("a", "frames = true"), r"items\[0\] \(a\): option frames must be a whole number, not true"),
+    (cb_item("a", "frames = 2.7"), r"option frames must be a whole number, not 2.7"),
+    (cb_item("a", 'frames = "abc"'), r'option frames must be a whole number, not "abc"'),
+    (scan_item("s1", "distance_max_m = true"), r"option distance_max_m must be a number, not true"),
+    (scan_item("s1", 'icp = "false"'), r'option icp must be true or false, not "false"'),
+    (scan_item("s1", "chunk_frames = 2.5"), r"option chunk_frames must be a whole number"),
+    # the rest found before any item runs, naming the item
+    (cb_item("a", "frames = -1"), r"items\[0\] \(a\): option frames must be at least 1"),
+    (cb_item("a", 'reference = "avg"'), r"option reference must be one of auto, average, frame"),
+    (cb_item("a", "frame = 3"), r"unknown checkerboard option 'frame' \(did you mean 'frames'\?\)"),
+    (cb_item("a", board="nope.json"), r"items\[0\] \(a\): .*nope.json.*not found"),
+    (cb_item("a", inputs="5"), r"items\[0\]: inputs.inputs must be a path or a list of paths, not 5"),
+    (scan_item("s1", poses=False), r"items\[0\] \(s1\): a scan item needs inputs .* poses missing"),
+    (scan_item("s1") + scan_item("s2", "distance_bin_m = 0.01"),
+     r"items\[1\] \(s2\): grid bins .* differ from those of items\[0\] \(s1\)"),
+])
+def test_real_kinds_manifest_errors_name_manifest_and_item(tmp_path: Path, text: str, match: str) -> None:
+    path = real_kinds_manifest(tmp_path, text)
+    with pytest.raises(InputError, match=match) as exc:
+        load_manifest(path)
+    assert str(exc.value).startswith(f"{path}: ")
+
+
+def test_right_option_types_load(tmp_path: Path) -> None:
+    text = (scan_item("s1", "distance_max_m = 6, icp = false, chunk_frames = 2, icp_band_m = [0.5, 2]")
+            + cb_item("a", 'frames = 3, reference = "average"'))
+    items = load_manifest(real_kinds_manifest(tmp_path, text)).items
+    assert items[0].options == {"distance_max_m": 6, "icp": False, "chunk_frames": 2, "icp_band_m": [0.5, 2]}
+    assert items[1].options == {"frames": 3, "reference": "average"}
+
+
+def test_manifest_checked_whole_before_any_item_runs(tmp_path: Path) -> None:
+    make_samples(tmp_path / "seq_a.npy", seed=1)
+    manifest = write_manifest(tmp_path, ["seq_a"])
+    manifest.write_text(manifest.read_text()
+                        + '[[items]]\nkind = "synthgrid"\ninputs = { samples = "gone.npy" }\n')
+    with pytest.raises(InputError, match=r"campaign.toml: items\[1\] \(gone\): input .*gone.npy not found"):
+        batch(manifest)
+    assert calls(tmp_path) == [] and not (tmp_path / "results").exists()
