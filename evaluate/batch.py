@@ -553,9 +553,10 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
     """Run every unfinished item of the manifest, then merge all items' grids into ``combined/``.
 
     One pool (or one cluster connection) serves all items; the items run one after another and
-    each spreads its chunks over the workers. An item that fails is reported and the batch goes
-    on; an interruption (Ctrl-C, a killed process) leaves the unfinished items without their
-    done marker, so the next run does them and only them.
+    each spreads its chunks over the workers. An item that fails (an input error of its data
+    included) is reported, the batch goes on and ends with an EvaluationError (exit 1); an
+    interruption (Ctrl-C, a killed process) leaves the unfinished items without their done
+    marker, so the next run does them and only them.
     """
 
     man = load_manifest(manifest)
@@ -579,9 +580,9 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
             try:
                 with progress_bar(f"{item.name} ({item.kind})", progress) as prog:
                     run_item(item, runner, prog)
-            except InputError:
-                raise
             except DepthstationError as exc:
+                # the manifest was checked whole before: what fails now is this item's data (no
+                # usable frame, a board found nowhere), and the other items still have theirs
                 report.failed[item.name] = str(exc)
                 say(f"{item.name}: failed: {exc}")
                 continue
