@@ -5,7 +5,8 @@ each) is run overnight, on a cluster, and must survive an interruption. Each ite
 checkerboard evaluation; its frames or standpoints go out as chunks through
 :mod:`depthstation.parallel`; an item counts as finished only when its folder holds
 ``result.json`` *and* the done marker, which is written last, so a restart redoes exactly the
-items that were not finished (and an item whose manifest entry changed).
+items that were not finished, an item whose manifest entry changed and an item whose inputs
+changed (size, time or the SHA-256 of their first and last MiB: cheap on a GB recording).
 
 Manifest (TOML; relative paths are relative to the manifest's folder)::
 
@@ -23,20 +24,36 @@ Manifest (TOML; relative paths are relative to the manifest's folder)::
 from __future__ import annotations
 
 import csv
+import dataclasses
+import difflib
 import hashlib
 import json
+import math
+import os
+import types
+import typing
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from depthstation.core.board import load_board
 from depthstation.core.errors import DepthstationError, EvaluationError, InputError
 from depthstation.core.grid import GRID_FILE, Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn, progress_bar
-from depthstation.core.results import RESULT_FILE, result_folder, write_json, write_result_info
+from depthstation.core.results import (
+    RESULT_FILE,
+    RESULT_MARKER,
+    fingerprint,
+    result_folder,
+    write_json,
+    write_result_info,
+)
+from depthstation.core.run_warnings import current as current_warnings
+from depthstation.core.run_warnings import warn
 from depthstation.core.text_files import read_text
 from depthstation.core.tomlcompat import tomllib
-from depthstation.evaluate.checkerboard.chunks import StandpointOptions, checkerboard_chunk
+from depthstation.evaluate.checkerboard.chunks import REFERENCES, StandpointOptions, checkerboard_chunk
 from depthstation.evaluate.checkerboard.run import finish_checkerboard, prepare_checkerboard
 from depthstation.evaluate.checkerboard.study import StandpointResult
 from depthstation.evaluate.scan.chunks import (
@@ -101,8 +118,26 @@ class ItemJob:
 KINDS: dict[str, Callable[[BatchItem], ItemJob]] = {}
 
 
-def register_kind(kind: str, prepare: Callable[[BatchItem], ItemJob]) -> None:
+@dataclass(frozen=True)
+class ItemCheck:
+    """What checking an item before the batch runs found: the recordings whose frames it reads
+    (two items reading one count them twice in the combined result) and its grid bins (scan
+    grids combine only with equal bins)."""
+
+    recordings: tuple[Path, ...]
+    bins: tuple[float, ...] | None = None
+
+
+#: kind -> check of an item's inputs and options before any item runs (InputError(None, problem)
+#: naming the key); kinds without one get the generic check (inputs are existing paths).
+CHECKS: dict[str, Callable[[BatchItem], ItemCheck]] = {}
+
+
+def register_kind(kind: str, prepare: Callable[[BatchItem], ItemJob],
+                  check: Callable[[BatchItem], ItemCheck] | None = None) -> None:
     KINDS[kind] = prepare
+    if check is not None:
+        CHECKS[kind] = check
 
 
 @dataclass
@@ -124,8 +159,135 @@ def _resolve_inputs(inputs: dict[str, Any], base: Path) -> dict[str, Any]:
     return {k: one(v) for k, v in inputs.items()}
 
 
+def _toml(value: Any) -> str:
+    """A value as it was written in the manifest (true, "false", 2.7)."""
+    return str(value).lower() if isinstance(value, bool) else json.dumps(value, default=str)
+
+
+def _toml_type(value: Any) -> str:
+    return {bool: "true/false", int: "a whole number", float: "a decimal number", str: "a string",
+            list: "an array", dict: "a table"}.get(type(value), type(value).__name__)
+
+
+def check_value(value: Any, hint: Any) -> str | None:
+    """What `value` (read from TOML) should have been for the type `hint`, None when it fits.
+
+    Why: Python's int(), float() and bool() accept what the user did not mean: true counted as
+    1 frame, 2.7 frames as 2, distance_max_m = true as 1 m, icp = "false" turned registration on.
+    A bool is not a number, a decimal is not a count, a string is not a switch."""
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        hint = args[0] if len(args) == 1 else hint
+    if typing.get_origin(hint) is tuple:
+        n = len(typing.get_args(hint))
+        ok = isinstance(value, list) and len(value) == n and all(check_value(v, float) is None for v in value)
+        return None if ok else f"an array of {n} numbers"
+    if hint is bool:
+        return None if isinstance(value, bool) else "true or false"
+    if hint is int:
+        return None if isinstance(value, int) and not isinstance(value, bool) else "a whole number"
+    if hint is float:
+        return None if isinstance(value, (int, float)) and not isinstance(value, bool) else "a number"
+    if hint is str:
+        return None if isinstance(value, str) else "a string"
+    return None
+
+
+def _check_options(options: dict[str, Any], hints: dict[str, Any], kind: str) -> None:
+    unknown = sorted(set(options) - set(hints))
+    if unknown:
+        close = difflib.get_close_matches(unknown[0], hints, n=1)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        raise InputError(None, f"unknown {kind} option '{unknown[0]}'{hint} "
+                               f"(known: {', '.join(sorted(hints))})")
+    for key, value in options.items():
+        want = check_value(value, hints[key])
+        if want is not None:
+            raise InputError(None, f"option {key} must be {want}, not {_toml(value)} ({_toml_type(value)})")
+
+
+def _check_input_keys(item: BatchItem, need: Sequence[str], may: Sequence[str] = (),
+                      lists: Sequence[str] = ()) -> None:
+    missing = [k for k in need if k not in item.inputs]
+    if missing:
+        raise InputError(None, f"a {item.kind} item needs inputs {', '.join(need)}; "
+                               f"{', '.join(missing)} missing")
+    unknown = sorted(set(item.inputs) - set(need) - set(may))
+    if unknown:
+        raise InputError(None, f"unknown input '{unknown[0]}' (a {item.kind} item takes "
+                               f"{', '.join([*need, *may])})")
+    for key, value in item.inputs.items():
+        if isinstance(value, list) and key not in lists:
+            raise InputError(None, f"inputs.{key} must be one path, not a list")
+
+
+def _generic_check(item: BatchItem) -> ItemCheck:
+    return ItemCheck(tuple(item_paths(item)))
+
+
+def _overlap(a: Path, b: Path) -> bool:
+    """One path is the other or holds it (a session and one of its recordings)."""
+    ra, rb = a.resolve(), b.resolve()
+    return ra == rb or ra in rb.parents or rb in ra.parents
+
+
+def _check_item(path: Path, k: int, raw: Any, base: Path, out: Path,
+                defaults: dict[str, Any]) -> tuple[BatchItem, ItemCheck]:
+    """One [[items]] entry resolved and checked (keys, option types, existing paths, the kind's
+    own rules); every problem an InputError naming the manifest and items[k]."""
+    where = f"items[{k}]"
+    if not isinstance(raw, dict):
+        raise InputError(path, f"{where} is not a table")
+    bad = sorted(set(raw) - {"kind", "name", "out", "inputs", "options"})
+    if bad:
+        raise InputError(path, f"{where}: unknown key '{bad[0]}' (kind, name, out, inputs, options)")
+    if not isinstance(raw.get("options", {}), dict):
+        raise InputError(path, f"{where}.options must be a table")
+    kind = raw.get("kind")
+    if kind not in KINDS:
+        known = ", ".join(sorted(KINDS)) or "none"
+        raise InputError(path, f"{where}: kind {kind!r} is not one of {known}")
+    inputs = raw.get("inputs", {})
+    if not isinstance(inputs, dict) or not inputs:
+        raise InputError(path, f"{where}: inputs must be a non-empty table")
+    for key, v in inputs.items():
+        if not (isinstance(v, str) or (isinstance(v, list) and v and all(isinstance(x, str) for x in v))):
+            raise InputError(path, f"{where}: inputs.{key} must be a path or a list of paths, not {v!r}")
+    for key in ("name", "out"):
+        if key in raw and not (isinstance(raw[key], str) and raw[key]):
+            raise InputError(path, f"{where}.{key} must be a non-empty string, not {raw[key]!r}")
+    options = dict(defaults.get(kind, {}))
+    options.update(raw.get("options", {}))
+    inputs = _resolve_inputs(inputs, base)
+    first = next(iter(inputs.values()))
+    first = first[0] if isinstance(first, list) else first
+    name = str(raw.get("name", raw.get("out", Path(str(first)).stem)))
+    item_out = out / str(raw.get("out", name))
+    if not item_out.resolve().is_relative_to(out.resolve()) or item_out.resolve() == out.resolve():
+        key = "out" if "out" in raw else "name"
+        raise InputError(path, f"{where}.{key}: {raw.get(key)!r} would write outside the batch's "
+                               f"result folder {out}")
+    if item_out.resolve().parts[len(out.resolve().parts)] in (COMBINED_DIR, BATCH_FILE, RESULT_MARKER):
+        key = "out" if "out" in raw else "name"
+        raise InputError(path, f"{where}.{key}: {raw.get(key)!r} is the batch's own {COMBINED_DIR}/ or "
+                               f"{BATCH_FILE}; give the item another out")
+    item = BatchItem(name, kind, inputs, options, item_out)
+    where = f"{where} ({name})"
+    try:
+        facts = CHECKS.get(kind, _generic_check)(item)
+        for p in item_paths(item):
+            if not p.exists():
+                raise InputError(None, f"input {p} not found")
+    except InputError as exc:
+        raise InputError(path, f"{where}: {exc}") from exc
+    return item, facts
+
+
 def load_manifest(path: Path) -> Manifest:
-    """Parse and check a manifest; every problem is an InputError naming the item."""
+    """Parse and check a whole manifest before anything runs: every problem (an option's type or
+    name, a missing input, a board that does not load, two items on one recording, scan items
+    with different grid bins) is an InputError naming the manifest and the item. Why: found at
+    the item's turn, earlier items had run for hours first, and batch.json was not written."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "manifest not found")
@@ -144,61 +306,91 @@ def load_manifest(path: Path) -> Manifest:
     defaults = data.get("defaults", {})
     if not isinstance(defaults, dict) or not all(isinstance(v, dict) for v in defaults.values()):
         raise InputError(path, "[defaults] must hold one table per kind ([defaults.scan], ...)")
+    for kind in defaults:
+        if kind not in KINDS:
+            close = difflib.get_close_matches(kind, KINDS, n=1)
+            hint = f"did you mean [defaults.{close[0]}]? " if close else ""
+            raise InputError(path, f"[defaults.{kind}]: no kind '{kind}' ({hint}kinds: "
+                                   f"{', '.join(sorted(KINDS))}); its options would apply to no item")
     raw_items = data.get("items", [])
     if not isinstance(raw_items, list) or not raw_items:
         raise InputError(path, "no [[items]] in the manifest")
-    items: list[BatchItem] = []
-    seen: set[Path] = set()
-    for k, raw in enumerate(raw_items):
-        where = f"items[{k}]"
-        if not isinstance(raw, dict):
-            raise InputError(path, f"{where} is not a table")
-        bad = sorted(set(raw) - {"kind", "name", "out", "inputs", "options"})
-        if bad:
-            raise InputError(path, f"{where}: unknown key '{bad[0]}' (kind, name, out, inputs, options)")
-        if not isinstance(raw.get("options", {}), dict):
-            raise InputError(path, f"{where}.options must be a table")
-        kind = raw.get("kind")
-        if kind not in KINDS:
-            known = ", ".join(sorted(KINDS)) or "none"
-            raise InputError(path, f"{where}: kind {kind!r} is not one of {known}")
-        inputs = raw.get("inputs", {})
-        if not isinstance(inputs, dict) or not inputs:
-            raise InputError(path, f"{where}: inputs must be a non-empty table")
-        options = dict(defaults.get(kind, {}))
-        options.update(raw.get("options", {}))
-        inputs = _resolve_inputs(inputs, base)
-        first = next(iter(inputs.values()))
-        first = first[0] if isinstance(first, list) else first
-        name = str(raw.get("name", raw.get("out", Path(str(first)).stem)))
-        item_out = out / str(raw.get("out", name))
-        if not item_out.resolve().is_relative_to(out.resolve()) or item_out.resolve() == out.resolve():
-            key = "out" if "out" in raw else "name"
-            raise InputError(path, f"{where}.{key}: {raw.get(key)!r} would write outside the batch's "
-                                   f"result folder {out}")
-        if item_out in seen:
-            raise InputError(path, f"{where}: out folder {item_out} is used by another item")
-        seen.add(item_out)
-        items.append(BatchItem(name, kind, inputs, options, item_out))
-    return Manifest(path, out, items)
+    checked = [_check_item(path, k, raw, base, out, defaults) for k, raw in enumerate(raw_items)]
+    for j, (b, fb) in enumerate(checked):
+        for i, (a, fa) in enumerate(checked[:j]):
+            wa, wb = f"items[{i}] ({a.name})", f"items[{j}] ({b.name})"
+            if a.out.resolve() == b.out.resolve() or _overlap(a.out, b.out):
+                raise InputError(path, f"{wb}: out folder {b.out} is (or holds, or lies in) the one of {wa}")
+            shared = next((x for x in fa.recordings for y in fb.recordings if _overlap(x, y)), None)
+            if a.kind == b.kind and shared is not None:
+                raise InputError(path, f"{wa} and {wb} both read {shared}: the combined result would count "
+                                       "its frames twice (double counts, too small U95); one item per "
+                                       "recording (to compare options on one recording, use separate "
+                                       "batches)")
+            if fa.bins is not None and fb.bins is not None and not all(
+                    math.isclose(x, y) for x, y in zip(fa.bins, fb.bins, strict=True)):
+                raise InputError(path, f"{wb}: grid bins {fb.bins} differ from those of {wa} {fa.bins} "
+                                       "(distance_bin_m, inclination_bin_deg, distance_max_m): their grids "
+                                       "cannot be combined; set them in [defaults.scan]")
+    return Manifest(path, out, [item for item, _ in checked])
 
 
 # -- running ---------------------------------------------------------------------------------------
+def _read_json(path: Path) -> dict[str, Any]:
+    """A JSON object from a file of ours, {} when missing or broken (then the item is redone)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
 def is_done(item: BatchItem) -> bool:
     """Finished = result.json present and the done marker names this item's fingerprint."""
     marker = item.out / DONE_MARKER
     if not (item.out / RESULT_FILE).is_file() or not marker.is_file():
         return False
-    try:
-        return bool(json.loads(marker.read_text()).get("fingerprint") == item.fingerprint())
-    except (json.JSONDecodeError, AttributeError):
-        return False
+    return bool(_read_json(marker).get("fingerprint") == item.fingerprint())
+
+
+def _what_changed(then: dict[str, Any], now: dict[str, Any]) -> str:
+    if not now.get("exists", True):
+        return "it is gone"
+    parts = [what for key, what in (("bytes", "size"), ("mtime_ns", "modification time"),
+                                    ("sha256_head_tail", "content"), ("files", "number of files"),
+                                    ("sha256_listing", "file names, sizes or times"))
+             if then.get(key) != now.get(key)]
+    return ", ".join(parts) or "fingerprint"
+
+
+def changed_inputs(item: BatchItem) -> list[tuple[str, str]]:
+    """(path, what changed) for each input of a finished item that differs from the fingerprint
+    taken when it ran. Why: the manifest text alone said 'finished' for an item whose recording
+    was replaced, and the combined result kept the old numbers. Cheap: size, time and the first
+    and last MiB (results.fingerprint), not the whole file. A marker from before the inputs were
+    kept in it falls back to result.json's input_fingerprints."""
+    stored = _read_json(item.out / DONE_MARKER).get("inputs")
+    if not isinstance(stored, list):
+        mine = {str(p) for p in item_paths(item)}
+        recorded = _read_json(item.out / RESULT_FILE).get("input_fingerprints")
+        stored = [f for f in recorded or [] if isinstance(f, dict) and f.get("path") in mine]
+    out: list[tuple[str, str]] = []
+    for then in stored:
+        if not isinstance(then, dict) or "path" not in then:
+            continue
+        now = fingerprint(then["path"])
+        if now != then:
+            out.append((str(then["path"]), _what_changed(then, now)))
+    return out
 
 
 def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None = None) -> Path | None:
     """Evaluate one item through the runner and write its folder; the done marker comes last."""
     marker = item.out / DONE_MARKER
     marker.unlink(missing_ok=True)
+    # taken before reading: an input that changes while the item runs is seen changed next time
+    inputs = [fingerprint(p) for p in item_paths(item)]
+    before = current_warnings()
     # the item's folder is written under a temporary name and replaces an unfinished one whole
     with result_folder(item.out, force=True, inputs=item_paths(item), kind=item.kind) as tmp:
         job = KINDS[item.kind](replace(item, out=tmp))
@@ -214,8 +406,25 @@ def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None =
         if not (tmp / RESULT_FILE).is_file():
             raise EvaluationError(f"{item.name}: the {item.kind} evaluation wrote no {RESULT_FILE}")
     grid_path = None if grid_name is None else item.out / Path(grid_name).name
-    write_json(marker, {"fingerprint": item.fingerprint(), "grid": grid_path})
+    own = [w.to_dict() for w in current_warnings() if w not in before]
+    write_json(marker, {"fingerprint": item.fingerprint(), "grid": grid_path, "inputs": inputs,
+                        "warnings": own})
     return grid_path
+
+
+def warn_again(item: BatchItem) -> int:
+    """The warnings a finished, skipped item had when it ran, warned again (how many). Why: a
+    rerun that only skips said nothing, so --strict passed and combined/result.json listed no
+    warning for numbers that carry one."""
+    recorded = _read_json(item.out / DONE_MARKER).get("warnings")
+    if not isinstance(recorded, list):  # a marker from before warnings were kept in it
+        recorded = _read_json(item.out / RESULT_FILE).get("warnings")
+    n = 0
+    for w in recorded if isinstance(recorded, list) else []:
+        if isinstance(w, dict) and isinstance(w.get("message"), str):
+            warn(w["message"], w.get("where"), str(w.get("code") or "general"))
+            n += 1
+    return n
 
 
 def _item_grid(item: BatchItem) -> Path | None:
@@ -226,8 +435,8 @@ def _item_grid(item: BatchItem) -> Path | None:
     return Path(g) if g else None
 
 
-def combine_grids(paths: Sequence[Path], out_dir: Path, inputs: Sequence[str]) -> Grid | None:
-    """Merge the items' grids (manifest order) into ``out_dir/grid.npz`` with its result.json."""
+def combine_grids(paths: Sequence[Path]) -> Grid | None:
+    """The items' grids (manifest order) merged into one (Chan), None without any."""
     grid: Grid | None = None
     for p in paths:
         g = Grid.load(p)
@@ -237,11 +446,6 @@ def combine_grids(paths: Sequence[Path], out_dir: Path, inputs: Sequence[str]) -
             raise InputError(p, "grid bins differ from the other items' (cannot combine)")
         else:
             grid.merge(g)
-    if grid is None:
-        return None
-    grid.save(out_dir / GRID_FILE)
-    write_result_info(out_dir, "combined-grid", [str(p) for p in paths], {"items": list(inputs)},
-                      extra={"summary": grid.summary()})
     return grid
 
 
@@ -265,6 +469,76 @@ def combine_tables(tables: Sequence[tuple[str, Path]], out: Path) -> Path:
     return out
 
 
+COMBINED_FILES = {GRID_FILE, STANDPOINTS_FILE, RESULT_FILE}
+
+
+def write_combined(man: Manifest) -> Path | None:
+    """``combined/``, always with its result.json: the merged grid of the finished scan items,
+    their standpoints tables in one, and every warning of the batch (skipped items' included).
+    Written whole under a temporary name (no stale grid from an earlier run stays). Returns the
+    combined grid's path, None without one."""
+    done = [it for it in man.items if is_done(it)]
+    grids = [(it.name, g) for it in done if (g := _item_grid(it)) is not None]
+    tables = [(it.name, it.out / STANDPOINTS_FILE) for it in done if (it.out / STANDPOINTS_FILE).is_file()]
+    grid = combine_grids([g for _, g in grids])
+    target = man.out / COMBINED_DIR
+    if (target.is_dir() and not (target / RESULT_MARKER).is_file()
+            and {p.name for p in target.iterdir()} <= COMBINED_FILES):
+        # combined/ of a batch run before it had a marker (a table-only one had no result.json)
+        (target / RESULT_MARKER).write_text(json.dumps({"kind": "combined"}) + "\n")
+    with result_folder(target, force=True) as tmp:
+        if grid is not None:
+            grid.save(tmp / GRID_FILE)
+        if tables:
+            combine_tables(tables, tmp / STANDPOINTS_FILE)
+        kind = "combined-grid" if grid is not None else "combined-standpoints" if tables else "combined"
+        write_result_info(tmp, kind, [str(g) for _, g in grids] + [str(t) for _, t in tables],
+                          {"items": [it.name for it in done], "grid_items": [n for n, _ in grids],
+                           "table_items": [n for n, _ in tables]},
+                          extra={"summary": grid.summary()} if grid is not None else None)
+    return None if grid is None else target / GRID_FILE
+
+
+BATCH_KIND = "batch"
+
+
+def claim_out(man: Manifest) -> None:
+    """Make sure ``out`` is this manifest's own batch folder (or empty), then mark it so.
+
+    Why: a batch writes batch.json, combined/ and the items' folders into ``out``; pointed at a
+    folder of the user's own files, or at another manifest's results, it overwrote them. Its own
+    earlier output (the marker naming this manifest, or a batch.json of a batch run before the
+    marker existed) is updated; anything else is refused before any item runs."""
+    out, mine = man.out, man.path.resolve()
+    if out.exists() and not out.is_dir():
+        raise InputError(out, f"the batch's out (in {man.path}) exists and is not a folder")
+    blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise InputError(out, f"cannot be made: {blocking} is a file, not a folder")
+    if out.is_dir() and any(out.iterdir()):
+        marker = _read_json(out / RESULT_MARKER)
+        legacy = _read_json(out / BATCH_FILE)
+        if marker:
+            if marker.get("kind") != BATCH_KIND:
+                raise InputError(out, f"holds an earlier '{marker.get('kind')}' result, not a batch's; "
+                                      f"give the batch in {man.path} another out")
+            theirs = Path(str(marker.get("manifest", "")))
+            # the same manifest: by its path, or by its place beside out (the campaign folder was
+            # copied or moved with its results); one that is gone was renamed or moved
+            moved = out.resolve() / str(marker.get("manifest_from_out", ""))
+            if theirs != mine and moved.resolve() != mine and theirs.is_file():
+                raise InputError(out, f"is the result folder of another manifest ({theirs}); two "
+                                      "manifests sharing one out overwrite each other's combined/ and "
+                                      f"batch.json: give the batch in {man.path} its own out")
+        elif not ({"manifest", "items"} <= set(legacy) and Path(str(legacy["manifest"])).name == mine.name):
+            raise InputError(out, f"holds files depthstation did not write (no {RESULT_MARKER}); a "
+                                  "batch updates only its own earlier output: give the batch in "
+                                  f"{man.path} another out")
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / RESULT_MARKER, {"kind": BATCH_KIND, "manifest": str(mine),
+                                     "manifest_from_out": os.path.relpath(mine, out.resolve())})
+
+
 @dataclass
 class BatchReport:
     out: Path
@@ -279,40 +553,42 @@ def batch(manifest: Path, cluster: str | None = None, workers: int = 1, *,
     """Run every unfinished item of the manifest, then merge all items' grids into ``combined/``.
 
     One pool (or one cluster connection) serves all items; the items run one after another and
-    each spreads its chunks over the workers. An item that fails is reported and the batch goes
-    on; an interruption (Ctrl-C, a killed process) leaves the unfinished items without their
-    done marker, so the next run does them and only them.
+    each spreads its chunks over the workers. An item that fails (an input error of its data
+    included) is reported, the batch goes on and ends with an EvaluationError (exit 1); an
+    interruption (Ctrl-C, a killed process) leaves the unfinished items without their done
+    marker, so the next run does them and only them.
     """
 
     man = load_manifest(manifest)
     say = log or (lambda s: None)
     report = BatchReport(man.out)
-    man.out.mkdir(parents=True, exist_ok=True)
+    claim_out(man)
     with ChunkRunner(workers, cluster) as runner:
         for item in man.items:
             if is_done(item):
-                report.skipped.append(item.name)
-                say(f"{item.name}: finished before, skipped")
-                continue
+                changed = changed_inputs(item)
+                if not changed:
+                    report.skipped.append(item.name)
+                    n = warn_again(item)
+                    said = f" ({n} warning(s) of its run)" if n else ""
+                    say(f"{item.name}: finished before, skipped{said}")
+                    continue
+                for path, what in changed:
+                    warn(f"changed since item '{item.name}' finished ({what}): the item is evaluated "
+                         "again", path, "batch-input-changed")
+                    say(f"{item.name}: input {path} changed ({what}), evaluated again")
             try:
                 with progress_bar(f"{item.name} ({item.kind})", progress) as prog:
                     run_item(item, runner, prog)
-            except InputError:
-                raise
             except DepthstationError as exc:
+                # the manifest was checked whole before: what fails now is this item's data (no
+                # usable frame, a board found nowhere), and the other items still have theirs
                 report.failed[item.name] = str(exc)
                 say(f"{item.name}: failed: {exc}")
                 continue
             report.done.append(item.name)
             say(f"{item.name}: done")
-    grids = [(it.name, g) for it in man.items if is_done(it) and (g := _item_grid(it)) is not None]
-    if grids:
-        combine_grids([g for _, g in grids], man.out / COMBINED_DIR, [n for n, _ in grids])
-        report.combined = man.out / COMBINED_DIR / GRID_FILE
-    tables = [(it.name, it.out / STANDPOINTS_FILE) for it in man.items
-              if is_done(it) and (it.out / STANDPOINTS_FILE).is_file()]
-    if tables:
-        combine_tables(tables, man.out / COMBINED_DIR / STANDPOINTS_FILE)
+    report.combined = write_combined(man)
     write_json(man.out / BATCH_FILE, {
         "manifest": str(man.path), "cluster": cluster, "workers": workers,
         "items": [{"name": it.name, "kind": it.kind, "out": str(it.out), "done": is_done(it),
@@ -386,5 +662,49 @@ def _prepare_scan(item: BatchItem) -> ItemJob:
                    decode=unpack_scan_result, description="frames")
 
 
-register_kind("scan", _prepare_scan)
-register_kind("checkerboard", _prepare_checkerboard)
+CHECKERBOARD_OPTIONS = {"frames": int, "reference": str}
+SCAN_PATHS = ("similarity", "pass_points", "intrinsics")
+
+
+def _check_checkerboard(item: BatchItem) -> ItemCheck:
+    """Inputs ``inputs`` (paths) and ``board`` (one, loadable); options typed, in range."""
+    _check_input_keys(item, ("inputs", "board"), lists=("inputs",))
+    _check_options(item.options, CHECKERBOARD_OPTIONS, "checkerboard")
+    frames = item.options.get("frames")
+    if frames is not None and frames < 1:
+        raise InputError(None, f"option frames must be at least 1, not {frames}")
+    if item.options.get("reference", "auto") not in REFERENCES:
+        raise InputError(None, f"option reference must be one of {', '.join(REFERENCES)}, "
+                               f"not {item.options['reference']!r}")
+    load_board(Path(item.inputs["board"]))
+    raw = item.inputs["inputs"]
+    paths = [Path(p) for p in (raw if isinstance(raw, list) else [raw])]
+    for j, b in enumerate(paths):
+        for a in paths[:j]:
+            if _overlap(a, b):
+                raise InputError(None, f"inputs.inputs names {b} and {a}: one recording twice would count "
+                                       "twice in the combined result")
+    return ItemCheck(tuple(paths))
+
+
+def _check_scan(item: BatchItem) -> ItemCheck:
+    """Inputs ``sequence``, ``poses``, ``reference`` and the optional paths; options typed as
+    ScanOptions' fields and checked as the command checks them."""
+    _check_input_keys(item, ("sequence", "poses", "reference"), SCAN_PATHS)
+    hints = typing.get_type_hints(ScanOptions)
+    names = {f.name for f in dataclasses.fields(ScanOptions)} - {"target", "workers", "cluster", "force"}
+    given_paths = sorted(set(item.options) & set(SCAN_PATHS))
+    if given_paths:
+        raise InputError(None, f"{given_paths[0]} is a path: give it in inputs (resolved against the "
+                               "manifest's folder), not in options")
+    _check_options(item.options, {k: hints[k] for k in names - set(SCAN_PATHS)}, "scan")
+    options = ScanOptions.from_mapping(item.options, _paths(item, SCAN_PATHS), None, item.name)
+    options.check()
+    if options.frames is not None and options.frames < 1:
+        raise InputError(None, f"option frames must be at least 1, not {options.frames}")
+    return ItemCheck((Path(item.inputs["sequence"]),),
+                     (options.distance_bin_m, options.inclination_bin_deg, options.distance_max_m))
+
+
+register_kind("scan", _prepare_scan, _check_scan)
+register_kind("checkerboard", _prepare_checkerboard, _check_checkerboard)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -19,10 +20,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from depthstation.app.cli import run_cli
 from depthstation.core.errors import InputError
 from depthstation.core.grid import GRID_FILE, Grid, pack_grid, unpack_grid
 from depthstation.core.parallel import FrameChunk, frame_chunks
 from depthstation.core.results import write_result_info
+from depthstation.core.run_warnings import collecting, warn
 from depthstation.evaluate import batch as batch_mod
 from depthstation.evaluate.batch import (
     DONE_MARKER,
@@ -202,6 +205,84 @@ def test_changed_item_is_redone(tmp_path: Path) -> None:
     assert batch(manifest).done == ["seq_a"]
 
 
+def test_item_whose_input_changed_is_redone_and_said(tmp_path: Path) -> None:
+    names = ["seq_a", "seq_b"]
+    datas = [make_samples(tmp_path / f"{n}.npy", seed=30 + i) for i, n in enumerate(names)]
+    manifest = write_manifest(tmp_path, names)
+    batch(manifest)
+    datas[0] = make_samples(tmp_path / "seq_a.npy", seed=99)  # the recording replaced, same size
+    lines: list[str] = []
+    with collecting() as found:
+        report = batch(manifest, log=lines.append)
+    assert report.done == ["seq_a"] and report.skipped == ["seq_b"]
+    assert [(w.code, w.where) for w in found] == [("batch-input-changed", str(tmp_path / "seq_a.npy"))]
+    assert any("seq_a.npy changed" in line for line in lines)
+    # the combined grid holds the new recording, not the old one
+    assert_grid_is_truth(tmp_path / "results" / "combined" / GRID_FILE, datas)
+    assert batch(manifest).skipped == names  # fingerprints taken again: nothing changed since
+
+
+def table_chunk(path: str) -> list[str]:
+    return Path(path).read_text().split()
+
+
+def prepare_table(item: BatchItem) -> ItemJob:
+    """A checkerboard-like item: a standpoints table, no grid, and a warning of its run."""
+    path = Path(item.inputs["samples"])
+
+    def finish(results: list[list[str]]) -> None:
+        warn("board not found in 1 of 3 frames", results[0][0], "board-not-found")
+        (item.out / "standpoints.csv").write_text("standpoint,distance_m\n" + f"{results[0][0]},1.5\n")
+        write_result_info(item.out, "checkerboard", [str(path)], {})
+
+    return ItemJob(table_chunk, [str(path)], finish)
+
+
+def test_warnings_of_finished_items_come_back_on_rerun(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(batch_mod.KINDS, "synthtable", prepare_table)
+    (tmp_path / "pose03.txt").write_text("pose03")
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('out = "res"\n[[items]]\nkind = "synthtable"\ninputs = { samples = "pose03.txt" }\n')
+    combined = tmp_path / "res" / "combined" / "result.json"
+    for run in ("first", "rerun"):
+        assert run_cli(["evaluate", "batch", str(manifest), "--quiet", "--strict"]) == 3, run
+        info = json.loads(combined.read_text())  # a table-only batch gets its result.json too
+        assert info["kind"] == "combined-standpoints", run
+        assert [(w["where"], w["code"]) for w in info["warnings"]] == [("pose03", "board-not-found")], run
+    assert json.loads((tmp_path / "res" / "batch.json").read_text())["skipped"] == ["pose03"]
+
+
+def test_batch_refuses_an_out_it_did_not_write(tmp_path: Path) -> None:
+    make_samples(tmp_path / "seq_a.npy", seed=1)
+    manifest = write_manifest(tmp_path, ["seq_a"])
+    mine = {tmp_path / "results" / "batch.json": "my notes\n",
+            tmp_path / "results" / "combined" / "standpoints.csv": "standpoint,distance_m\nmine,1.0\n"}
+    for path, text in mine.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    with pytest.raises(InputError, match="did not write"):
+        batch(manifest)
+    assert {p: p.read_text() for p in mine} == mine
+    assert not (tmp_path / "results" / "seq_a").exists() and calls(tmp_path) == []
+
+
+def test_two_manifests_sharing_one_out_are_refused(tmp_path: Path) -> None:
+    datas = [make_samples(tmp_path / f"{n}.npy", seed=i) for i, n in enumerate(["seq_a", "seq_b"])]
+    first = write_manifest(tmp_path, ["seq_a"])
+    batch(first)
+    second = tmp_path / "other.toml"
+    second.write_text(first.read_text().replace("seq_a", "seq_b"))
+    with pytest.raises(InputError, match="another manifest"):
+        batch(second)
+    assert not (tmp_path / "results" / "seq_b").exists()
+    assert_grid_is_truth(tmp_path / "results" / "combined" / GRID_FILE, datas[:1])
+    copy = tmp_path / "copy"  # the campaign folder copied with its results: still its own out
+    shutil.copytree(tmp_path, copy, ignore=shutil.ignore_patterns("copy"))
+    again = batch(copy / first.name)  # (its inputs' paths changed: the item is evaluated again)
+    assert again.done + again.skipped == ["seq_a"]
+
+
 def test_failed_item_is_reported_and_others_finish(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from depthstation.core.errors import EvaluationError
 
@@ -231,3 +312,80 @@ def test_bad_manifest_is_input_error(tmp_path: Path, text: str, match: str) -> N
     path.write_text(text)
     with pytest.raises(InputError, match=match):
         load_manifest(path)
+
+
+BOARD = Path(__file__).parents[1] / "protocols" / "demo-d455.toml"
+
+
+def scan_item(name: str, options: str = "", poses: bool = True) -> str:
+    p = f'poses = "{name}.txt", ' if poses else ""
+    return (f'[[items]]\nkind = "scan"\nname = "{name}"\n'
+            f'inputs = {{ sequence = "{name}.mcap", {p}reference = "room.ply" }}\n'
+            f'options = {{ {options} }}\n')
+
+
+def cb_item(name: str, options: str = "", inputs: str = '["sess"]', board: str = str(BOARD)) -> str:
+    return (f'[[items]]\nkind = "checkerboard"\nname = "{name}"\n'
+            f'inputs = {{ inputs = {inputs}, board = "{board}" }}\noptions = {{ {options} }}\n')
+
+
+def real_kinds_manifest(root: Path, text: str) -> Path:
+    """A manifest of scan and checkerboard items on placeholder files: loading checks them
+    without opening any recording."""
+    for name in ("s1.mcap", "s1.txt", "s2.mcap", "s2.txt", "room.ply", "sess/standpoint_01.mcap"):
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).touch()
+    path = root / "m.toml"
+    path.write_text('out = "res"\n' + text)
+    return path
+
+
+@pytest.mark.parametrize(("text", "match"), [
+    # the same recording in two items (or twice in one) would count twice in the combined result
+    (scan_item("s1") + scan_item("s1").replace('name = "s1"', 'name = "again"'),
+     r"items\[0\] \(s1\) and items\[1\] \(again\) both read .*s1.mcap"),
+    (cb_item("a") + cb_item("b", inputs='["sess/standpoint_01.mcap"]'),
+     r"items\[0\] \(a\) and items\[1\] \(b\) both read .*sess"),
+    (cb_item("a", inputs='["sess", "sess"]'), r"items\[0\] \(a\): inputs.inputs names .*sess.* twice"),
+    # a typo in a defaults table
+    ("[defaults.checkerbaord]\nframes = 3\n" + cb_item("a"), r"did you mean \[defaults.checkerboard\]"),
+    # option values of the wrong type, said instead of misread
+    (cb_item("a", "frames = true"), r"items\[0\] \(a\): option frames must be a whole number, not true"),
+    (cb_item("a", "frames = 2.7"), r"option frames must be a whole number, not 2.7"),
+    (cb_item("a", 'frames = "abc"'), r'option frames must be a whole number, not "abc"'),
+    (scan_item("s1", "distance_max_m = true"), r"option distance_max_m must be a number, not true"),
+    (scan_item("s1", 'icp = "false"'), r'option icp must be true or false, not "false"'),
+    (scan_item("s1", "chunk_frames = 2.5"), r"option chunk_frames must be a whole number"),
+    # the rest found before any item runs, naming the item
+    (cb_item("a", "frames = -1"), r"items\[0\] \(a\): option frames must be at least 1"),
+    (cb_item("a", 'reference = "avg"'), r"option reference must be one of auto, average, frame"),
+    (cb_item("a", "frame = 3"), r"unknown checkerboard option 'frame' \(did you mean 'frames'\?\)"),
+    (cb_item("a", board="nope.json"), r"items\[0\] \(a\): .*nope.json.*not found"),
+    (cb_item("a", inputs="5"), r"items\[0\]: inputs.inputs must be a path or a list of paths, not 5"),
+    (scan_item("s1", poses=False), r"items\[0\] \(s1\): a scan item needs inputs .* poses missing"),
+    (scan_item("s1") + scan_item("s2", "distance_bin_m = 0.01"),
+     r"items\[1\] \(s2\): grid bins .* differ from those of items\[0\] \(s1\)"),
+])
+def test_real_kinds_manifest_errors_name_manifest_and_item(tmp_path: Path, text: str, match: str) -> None:
+    path = real_kinds_manifest(tmp_path, text)
+    with pytest.raises(InputError, match=match) as exc:
+        load_manifest(path)
+    assert str(exc.value).startswith(f"{path}: ")
+
+
+def test_right_option_types_load(tmp_path: Path) -> None:
+    text = (scan_item("s1", "distance_max_m = 6, icp = false, chunk_frames = 2, icp_band_m = [0.5, 2]")
+            + cb_item("a", 'frames = 3, reference = "average"'))
+    items = load_manifest(real_kinds_manifest(tmp_path, text)).items
+    assert items[0].options == {"distance_max_m": 6, "icp": False, "chunk_frames": 2, "icp_band_m": [0.5, 2]}
+    assert items[1].options == {"frames": 3, "reference": "average"}
+
+
+def test_manifest_checked_whole_before_any_item_runs(tmp_path: Path) -> None:
+    make_samples(tmp_path / "seq_a.npy", seed=1)
+    manifest = write_manifest(tmp_path, ["seq_a"])
+    manifest.write_text(manifest.read_text()
+                        + '[[items]]\nkind = "synthgrid"\ninputs = { samples = "gone.npy" }\n')
+    with pytest.raises(InputError, match=r"campaign.toml: items\[1\] \(gone\): input .*gone.npy not found"):
+        batch(manifest)
+    assert calls(tmp_path) == [] and not (tmp_path / "results").exists()

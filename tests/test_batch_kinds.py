@@ -5,6 +5,7 @@ the combined table holds the checkerboard rows."""
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -73,3 +74,24 @@ def test_batch_of_scans_and_checkerboard(tmp_path: Path, charuco_dir: Path) -> N
     assert [(r["item"], r["standpoint"]) for r in rows] == [("d435", "pose03")]
     assert (out / "d435" / "standpoints.csv").is_file() and (out / "d435" / "result.json").is_file()
     assert batch(manifest, workers=2).skipped == ["room_a", "room_b", "d435"]
+
+
+def test_item_without_usable_frame_fails_alone(tmp_path: Path, charuco_dir: Path, d435_bag: Path) -> None:
+    """A recording with no board in it fails its item (exit 1 at the end, as docs/scale-out.md
+    says), and the item after it still runs."""
+    from depthstation.app.cli import run_cli
+
+    board = charuco_dir / "board.json"
+    manifest = tmp_path / "m.toml"
+    manifest.write_text(
+        f'out = "res"\n[defaults.checkerboard]\nframes = 2\n'
+        f'[[items]]\nkind = "checkerboard"\nname = "bag"\n'
+        f'inputs = {{ inputs = "{d435_bag}", board = "{board}" }}\n'
+        f'[[items]]\nkind = "checkerboard"\nname = "ok"\n'
+        f'inputs = {{ inputs = "{charuco_dir / "pose03"}", board = "{board}" }}\n')
+    assert run_cli(["evaluate", "batch", str(manifest), "--quiet"]) == 1
+    info = json.loads((tmp_path / "res" / "batch.json").read_text())
+    assert [(i["name"], i["done"]) for i in info["items"]] == [("bag", False), ("ok", True)]
+    assert "frame" in info["items"][0]["error"]
+    with (tmp_path / "res" / "combined" / "standpoints.csv").open() as f:
+        assert [(r["item"], r["standpoint"]) for r in csv.DictReader(f)] == [("ok", "pose03")]
