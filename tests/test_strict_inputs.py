@@ -238,3 +238,14 @@ def test_mcap_cut_before_its_first_chunk(tmp_path: Path, run: Callable[..., Ran]
     cut.write_bytes(data[: min(len(data) // 2, 2000)])
     r = run("capture", "info", str(cut))
     one_line_error(r, "cut.mcap", "cut short")
+
+
+def test_one_recording_under_two_names(small_session: Path, tmp_path: Path, run: Callable[..., Ran]) -> None:
+    """A copy of a standpoint's recording under another name counted twice (explain took the copies
+    for independent evidence and discovered a noise term in a null session)."""
+    copy = tmp_path / "again.mcap"
+    copy.write_bytes((small_session / "standpoint_01.mcap").read_bytes())
+    r = run("evaluate", "checkerboard", str(small_session), str(copy),
+            "--board", str(small_session.parent / "p.toml"), "--out", str(tmp_path / "o"), "--frames", "3")
+    one_line_error(r, "again.mcap", "same recording as", "standpoint_01.mcap")
+    assert not (tmp_path / "o").exists()
