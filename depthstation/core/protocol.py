@@ -236,6 +236,11 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
     return proto
 
 
+def drop_none(d: dict[str, Any]) -> dict[str, Any]:
+    """A stored protocol without its unset (null) keys, which the TOML form leaves out."""
+    return {k: drop_none(v) if isinstance(v, dict) else v for k, v in d.items() if v is not None}
+
+
 def load_protocol(path_or_name: str | Path) -> Protocol:
     """A protocol from a TOML path or the name of one in `protocols/` (e.g. 'checkerboard-d455')."""
     p = Path(path_or_name)

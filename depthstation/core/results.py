@@ -299,7 +299,7 @@ def disk_error(exc: OSError, where: Path) -> DepthstationError | OSError:
     return DepthstationError(f"{path}: cannot write ({what}); nothing was kept in {where}")
 
 
-def _is_recording_rrd(path: Path) -> bool:
+def is_recording_rrd(path: Path) -> bool:
     """An earlier rerun recording: what `new_file` (the only writer of .rrd files) may replace."""
     try:
         with path.open("rb") as fh:
@@ -316,7 +316,7 @@ def check_new_file(path: Path, *, force: bool = False) -> None:
         raise InputError(path, "is a folder; give a file name for the recording (e.g. run.rrd)")
     if path.exists() and not force:
         raise InputError(path, "exists; depthstation never overwrites a file (--force replaces it)")
-    if path.exists() and not _is_recording_rrd(path):
+    if path.exists() and not is_recording_rrd(path):
         raise InputError(path, "is not a rerun recording (.rrd); --force replaces only an earlier one, never "
                                "another file (a capture given as --rrd by mistake): choose another name")
 
