@@ -71,11 +71,12 @@ def warmup(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: Path =
            serve: bool = ServeOpt, seed: int = SeedOpt, real_time: bool = RealTimeOpt,
            interval: float = typer.Option(10.0, "--interval", help="seconds between temperature samples"),
            accelerate: float = typer.Option(1.0, "--accelerate",
-                                            help="simulated camera only: run the clock this much faster"),
+                                            help="simulated camera only: run the clock this much faster (>= 1)"),
            ) -> None:
     """Stream until the temperature settles (protocol's warm-up rule); the curve goes into the session."""
     target = _target(rrd, spawn, serve, resume)
-    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes))
+    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes),
+                 accelerate=accelerate, warmup_interval_s=interval)
     try:
         do_warmup(st, interval, accelerate, target)
     finally:
@@ -104,7 +105,8 @@ def capture(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: Path 
             ) -> None:
     """Guided standpoints: follow the instructions; each standpoint is recorded into one MCAP."""
     target = _target(rrd, spawn, serve, resume)
-    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes))
+    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes),
+                 max_guidance_s=max_guidance)
     try:
         do_capture(st, target, max_guidance)
     finally:
@@ -127,7 +129,9 @@ def session_cmd(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: P
     """Warm-up, calibration and capture in order, streaming throughout; with --resume, the steps
     done already are skipped."""
     target = _target(rrd, spawn, serve, resume)
-    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes))
+    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes),
+                 accelerate=accelerate, warmup_interval_s=None if skip_warmup else interval,
+                 max_guidance_s=max_guidance)
     try:
         # one rerun recording for the whole run: the warm-up and the capture go into the same .rrd
         with session_run_view(st, target) as rec:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import math
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -34,6 +35,7 @@ from depthstation.core.progress import progress, stderr_console
 from depthstation.core.protocol import Protocol, drop_none, load_protocol, protocol_from_dict
 from depthstation.core.rerun_bridge import RerunTarget, recording
 from depthstation.core.results import is_recording_rrd
+from depthstation.core.run_warnings import warn
 from depthstation.simulate.operator import SimulatedOperator, Stance
 
 DEFAULT_PROTOCOL = "checkerboard-d455"
@@ -51,10 +53,13 @@ class Station:
     """
 
     def __init__(self, camera: str, protocol: str | None, session: Path, resume: bool, seed: int,
-                 real_time: bool, confirm: Callable[[str], bool] | None = None) -> None:
+                 real_time: bool, confirm: Callable[[str], bool] | None = None, *,
+                 accelerate: float = 1.0, warmup_interval_s: float | None = None,
+                 max_guidance_s: float | None = None) -> None:
         self.spec = parse_camera(camera)
         if seed < 0:
             raise InputError(None, f"--seed must be 0 or more, got {seed}")
+        check_run_options(self.spec.kind, accelerate, warmup_interval_s, max_guidance_s)
         if session.exists() and not session.is_dir():
             raise InputError(session, "is a file, not a session folder: give a folder for --session")
         stored: dict[str, Any] | None = None
@@ -67,8 +72,12 @@ class Station:
                 raise InputError(session, "holds a session already: add --resume to continue it")
             if session.exists() and any(session.iterdir()):
                 raise InputError(session, "is not empty; a new session needs an empty or new folder")
-            self.protocol = load_protocol(protocol or DEFAULT_PROTOCOL)
+            self.protocol = load_protocol(DEFAULT_PROTOCOL if protocol is None else protocol)
             calibrated = False
+        if warmup_interval_s is not None and warmup_interval_s > self.protocol.warmup.max_minutes * 60.0:
+            raise InputError(None, f"--interval {warmup_interval_s:g} s is longer than the warm-up's maximum "
+                                   f"time ({self.protocol.warmup.max_minutes:g} min, warmup.max_minutes): "
+                                   "give a shorter interval")
         self.operator: SimulatedOperator | None = None
         options: dict[str, Any] = {}
         if self.spec.kind == "sim":
@@ -148,6 +157,20 @@ class Station:
         return on_guidance
 
 
+def check_run_options(kind: str, accelerate: float = 1.0, warmup_interval_s: float | None = None,
+                      max_guidance_s: float | None = None) -> None:
+    """Refuse option values that cannot mean anything, before a camera or session is touched."""
+    if not math.isfinite(accelerate) or accelerate < 1.0:
+        raise InputError(None, f"--accelerate must be a number of at least 1, got {accelerate}")
+    if accelerate != 1.0 and kind != "sim":
+        raise InputError(None, "--accelerate runs the simulated camera's clock faster; a recording or a "
+                               "live camera warms up in real time: leave --accelerate out")
+    if warmup_interval_s is not None and not (math.isfinite(warmup_interval_s) and warmup_interval_s > 0):
+        raise InputError(None, f"--interval must be a positive number of seconds, got {warmup_interval_s}")
+    if max_guidance_s is not None and not (math.isfinite(max_guidance_s) and max_guidance_s > 0):
+        raise InputError(None, f"--max-guidance must be a positive number of seconds, got {max_guidance_s}")
+
+
 def _who(identity: dict[str, Any]) -> str:
     """A camera in a few words: name, serial, stream sizes."""
     size = identity.get("depth_size")
@@ -161,7 +184,7 @@ def resumed_protocol(session: Session, protocol: str | None) -> Protocol:
     refused (a corrected plan cannot apply to standpoints recorded under the old one)."""
     stored = session.data.get("protocol")
     if not isinstance(stored, dict):
-        return load_protocol(protocol or DEFAULT_PROTOCOL)
+        return load_protocol(DEFAULT_PROTOCOL if protocol is None else protocol)
     used = protocol_from_dict(drop_none(stored), session.dir / SESSION_FILE)
     if protocol is not None:
         given = load_protocol(protocol)
@@ -275,8 +298,14 @@ def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTa
                     if s.depth_m is not None:
                         rec.log("warmup/centre_depth_m", rr.Scalars([s.depth_m]))
 
-            result = run_warmup(st.camera, rule, info.depth_units_m, interval_s=interval_s, clock=clock,
-                                sleep=sleep, on_sample=on_sample)
+            try:
+                result = run_warmup(st.camera, rule, info.depth_units_m, interval_s=interval_s, clock=clock,
+                                    sleep=sleep, on_sample=on_sample)
+            except EOFError as exc:
+                raise InputError(st.spec.path, f"the recording ended before the warm-up's minimum time "
+                                 f"({rule.min_minutes:g} min, warmup.min_minutes): a recording cannot warm a "
+                                 "camera up; leave the warm-up out (acquire capture, or acquire session, "
+                                 "which records none for a recording)") from exc
     except BaseException:
         st.close()
         raise
@@ -292,6 +321,10 @@ def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTa
         summary["device_events"] = events
     st.session.set("warmup", summary)
     say(f"warm-up done: {summary['reason']}")
+    if summary["has_temperature"] and not summary["settled"]:
+        warn(f"warm-up ended without the temperature settling ({summary['reason']}; tolerance "
+             f"{rule.max_slope_c_per_min:g} °C/min): depth may still drift during the capture",
+             str(st.session.dir), "warmup-unsettled")
     return summary
 
 
@@ -358,6 +391,10 @@ def do_capture(st: Station, target: RerunTarget | Any, max_guidance_s: float | N
         except EOFError:
             say("the recording ended: the standpoints done so far are in the session; "
                  "the rest stay open for --resume with another recording or a camera")
+            if not any(o.status == "complete" for o in cap.finished):
+                warn(f"the recording {st.spec.path} ended before any standpoint was recorded in this run "
+                     "(the board never held still in place long enough)", str(st.session.dir),
+                     "recording-ended")
         except KeyboardInterrupt as exc:
             open_ = [e["name"] for e in st.session.standpoints if e.get("status") == "partial"]
             msg = (f"interrupted: finished standpoints are safe in {st.session.dir}"

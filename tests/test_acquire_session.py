@@ -194,3 +194,49 @@ def test_a_failed_start_leaves_no_session(args: list[str], tmp_path: Path, tiny:
     assert code == 2 if args != ["--camera", "live"] else code in (1, 2), err
     assert "internal error" not in err and "Traceback" not in err and "Usage" not in err
     assert not (s / "session.json").exists()
+
+
+@pytest.mark.parametrize("args", [
+    ["warmup", "--accelerate", "-10"], ["warmup", "--accelerate", "nan"], ["warmup", "--interval", "-5"],
+    ["warmup", "--interval", "nan"], ["warmup", "--interval", "1e9", "--accelerate", "1000"],
+    ["capture", "--max-guidance", "-1"], ["capture", "--max-guidance", "nan"],
+    ["warmup", "--camera", "REC", "--accelerate", "10"], ["capture", "--session", "FILE"],
+])
+def test_bad_option_values_are_refused_before_any_work(args: list[str], tmp_path: Path, tiny: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    if "REC" in args:
+        from test_acquire_cli import make_recording
+
+        args[args.index("REC")] = str(make_recording(tmp_path / "rec.db3", n=3))
+    (tmp_path / "afile").write_text("x")
+    args = [str(tmp_path / "afile") if a == "FILE" else a for a in args]
+    code, err = acq(capsys, *args, "--protocol", str(tiny), *(["--session", str(tmp_path / "s")]
+                                                             if "--session" not in args else []))
+    assert code == 2, err
+    assert err.startswith("depthstation: error: ") and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "s").exists()
+
+
+def test_warmup_that_never_settles_is_a_warning(tmp_path: Path, tiny: Path,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """The simulated projector still climbs ~2 °C/min at the protocol's 1-min maximum (tolerance 0.1)."""
+    s = tmp_path / "s"
+    code, err = acq(capsys, "warmup", "--camera", "sim", "--protocol", str(tiny), "--session", str(s),
+                    "--accelerate", "1000", "--interval", "15", "--strict")
+    assert code == 3, err
+    assert "warm-up ended without the temperature settling" in err
+    w = json.loads((s / "session.json").read_text())["warmup"]
+    assert w["settled"] is False and w["final_slope_c_per_min"] > 0.1
+
+
+def test_recordings_that_end_too_soon_are_said(tmp_path: Path, tiny: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    from test_acquire_cli import make_recording
+
+    rec = make_recording(tmp_path / "rec.db3", n=3)
+    code, err = acq(capsys, "warmup", "--camera", str(rec), "--protocol", str(tiny), "--session",
+                    str(tmp_path / "w"), "--interval", "0.01")
+    assert code == 2 and f"{rec}: the recording ended before the warm-up's minimum time" in err
+    code, err = acq(capsys, "capture", "--camera", str(rec), "--protocol", str(tiny), "--session",
+                    str(tmp_path / "c"), "--strict")
+    assert code == 3 and "ended before any standpoint was recorded" in err
