@@ -32,7 +32,13 @@ from depthstation.core.device import CalibratableCamera
 from depthstation.core.errors import CameraError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress, stderr_console
-from depthstation.core.protocol import Protocol, drop_none, load_protocol, protocol_from_dict
+from depthstation.core.protocol import (
+    Protocol,
+    check_for_acquisition,
+    drop_none,
+    load_protocol,
+    protocol_from_dict,
+)
 from depthstation.core.rerun_bridge import RerunTarget, recording
 from depthstation.core.results import is_recording_rrd
 from depthstation.core.run_warnings import warn
@@ -74,6 +80,7 @@ class Station:
                 raise InputError(session, "is not empty; a new session needs an empty or new folder")
             self.protocol = load_protocol(DEFAULT_PROTOCOL if protocol is None else protocol)
             calibrated = False
+        check_for_acquisition(self.protocol)
         if warmup_interval_s is not None and warmup_interval_s > self.protocol.warmup.max_minutes * 60.0:
             raise InputError(None, f"--interval {warmup_interval_s:g} s is longer than the warm-up's maximum "
                                    f"time ({self.protocol.warmup.max_minutes:g} min, warmup.max_minutes): "

@@ -11,7 +11,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_acquire_session import TINY_TOML
 
 from depthstation.core.errors import ProtocolError
-from depthstation.core.protocol import MAX_STANDPOINTS, load_protocol
+from depthstation.core.protocol import MAX_STANDPOINTS, check_for_acquisition, load_protocol
 
 
 @pytest.mark.parametrize(("old", "new", "says"), [
@@ -19,7 +19,6 @@ from depthstation.core.protocol import MAX_STANDPOINTS, load_protocol
     ("max_distance_m = 1.8", "max_distance_m = 1e7", f"at most {MAX_STANDPOINTS}"),
     ("step_m = 0.8", "step_m = 1e-9", "check plan.step_m"),
     ("step_m = 0.8", "step_m = nan", "'plan.step_m' must be a finite number"),
-    ("fps = 30", "fps = 30\ncolor = false", "'streams.color' must be true"),
     ("fps = 30", "fps = 30\ndepth = false", "'streams.depth' must be true"),
     ("fps = 30", 'fps = 30\npreset = "HighAccuracyy"', "'streams.preset' 'HighAccuracyy' is no RealSense"),
     ("width = 640", "width = 100000", "beyond any RealSense stream"),
@@ -40,6 +39,15 @@ def test_known_presets_and_the_shipped_protocols_load(tmp_path: Path) -> None:
     assert load_protocol(p).streams.preset == "high_accuracy"
     for name in ("checkerboard-d455", "demo-d455"):
         assert load_protocol(name).plan.standpoints()
+
+
+def test_acquire_needs_colour(tmp_path: Path) -> None:
+    """Guidance finds the board in colour: acquire refuses a protocol without it (simulate may use one)."""
+    p = tmp_path / "depth_only.toml"
+    p.write_text(TINY_TOML.replace("fps = 30", "fps = 30\ncolor = false"))
+    proto = load_protocol(p)
+    with pytest.raises(ProtocolError, match=r"depth_only.toml: 'streams.color' must be true for acquire"):
+        check_for_acquisition(proto)
 
 
 def test_empty_protocol_name_is_said_plainly() -> None:

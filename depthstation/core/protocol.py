@@ -250,9 +250,6 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
                                     f"RealSense stream ({MAX_WIDTH}x{MAX_HEIGHT}, {MAX_FPS} fps at most)")
     if not st.depth:
         raise ProtocolError(source, "'streams.depth' must be true: depth is what the station measures")
-    if not st.color:
-        raise ProtocolError(source, "'streams.color' must be true: the guidance finds the board in the "
-                                    "colour image")
     if not preset_known(st.preset):
         raise ProtocolError(source, f"'streams.preset' {st.preset!r} is no RealSense D400 preset "
                                     f"({', '.join(D400_PRESETS)})")
@@ -274,6 +271,14 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
         raise ProtocolError(source, "'calibration.tare_distance_m' is missing: tare needs the target's "
                                     "distance from the camera's front glass (metres)")
     return proto
+
+
+def check_for_acquisition(proto: Protocol) -> None:
+    """What a guided capture needs beyond a valid protocol (a simulated session without colour is
+    fine): colour, since the guidance finds the board in the colour image."""
+    if not proto.streams.color:
+        raise ProtocolError(proto.source, "'streams.color' must be true for acquire: the guidance finds "
+                                          "the board in the colour image")
 
 
 def drop_none(d: dict[str, Any]) -> dict[str, Any]:
