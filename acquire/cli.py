@@ -13,18 +13,27 @@ from pathlib import Path
 
 import typer
 
-from depthstation.acquire.station import Station, do_calibrate, do_capture, do_warmup
+from depthstation.acquire.station import (
+    Station,
+    acquire_rrd,
+    do_calibrate,
+    do_capture,
+    do_warmup,
+    session_run_view,
+)
 from depthstation.core.rerun_bridge import RerunTarget
 
 app = typer.Typer(no_args_is_help=True, help="Warm-up, on-device calibration and guided capture.")
 
 CameraOpt = typer.Option("sim", "--camera", help="live, live:SERIAL, a .db3/.bag recording, or sim[:MODEL]")
-ProtocolOpt = typer.Option("checkerboard-d455", "--protocol",
-                           help="protocol name in protocols/ or a TOML path")
+ProtocolOpt = typer.Option(None, "--protocol",
+                           help="protocol name in protocols/ or a TOML path (default checkerboard-d455; "
+                                "--resume uses the session's stored one)")
 SessionOpt = typer.Option(..., "--session", help="session directory (created; or continued with --resume)")
 ResumeOpt = typer.Option(False, "--resume", help="continue an interrupted session")
 YesOpt = typer.Option(False, "--yes", "-y", help="answer yes to every question (scripts)")
-RrdOpt = typer.Option(None, "--rrd", help="write the live view to this .rrd file")
+RrdOpt = typer.Option(None, "--rrd", help="write the live view to this .rrd file (--resume with an "
+                      "existing one writes NAME.resume-N.rrd beside it)")
 SpawnOpt = typer.Option(False, "--spawn", help="open a rerun viewer")
 ServeOpt = typer.Option(False, "--serve", help="serve a local rerun web viewer")
 SeedOpt = typer.Option(0, "--seed", help="seed of the simulated camera and operator")
@@ -49,7 +58,10 @@ WriteOpt = typer.Option(False, "--write", help="also write an applied table to t
                         "(else it lives in RAM and is set again after every reconnect)")
 
 
-def _target(rrd: Path | None, spawn: bool, serve: bool) -> RerunTarget:
+def _target(rrd: Path | None, spawn: bool, serve: bool, resume: bool) -> RerunTarget:
+    """The rerun target, checked before any work; a resume never overwrites the earlier .rrd."""
+    if rrd is not None:
+        rrd = acquire_rrd(rrd, resume)
     return RerunTarget(rrd, spawn, serve)
 
 
@@ -59,12 +71,14 @@ def warmup(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: Path =
            serve: bool = ServeOpt, seed: int = SeedOpt, real_time: bool = RealTimeOpt,
            interval: float = typer.Option(10.0, "--interval", help="seconds between temperature samples"),
            accelerate: float = typer.Option(1.0, "--accelerate",
-                                            help="simulated camera only: run the clock this much faster"),
+                                            help="simulated camera only: run the clock this much faster (>= 1)"),
            ) -> None:
     """Stream until the temperature settles (protocol's warm-up rule); the curve goes into the session."""
-    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes))
+    target = _target(rrd, spawn, serve, resume)
+    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes),
+                 accelerate=accelerate, warmup_interval_s=interval)
     try:
-        do_warmup(st, interval, accelerate, _target(rrd, spawn, serve))
+        do_warmup(st, interval, accelerate, target)
     finally:
         st.close()
 
@@ -90,9 +104,11 @@ def capture(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: Path 
                                                       help="give up a standpoint after this many seconds")
             ) -> None:
     """Guided standpoints: follow the instructions; each standpoint is recorded into one MCAP."""
-    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes))
+    target = _target(rrd, spawn, serve, resume)
+    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes),
+                 max_guidance_s=max_guidance)
     try:
-        do_capture(st, _target(rrd, spawn, serve), max_guidance)
+        do_capture(st, target, max_guidance)
     finally:
         st.close()
 
@@ -112,16 +128,20 @@ def session_cmd(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: P
                 ) -> None:
     """Warm-up, calibration and capture in order, streaming throughout; with --resume, the steps
     done already are skipped."""
-    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes))
-    target = _target(rrd, spawn, serve)
+    target = _target(rrd, spawn, serve, resume)
+    st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes),
+                 accelerate=accelerate, warmup_interval_s=None if skip_warmup else interval,
+                 max_guidance_s=max_guidance)
     try:
-        if st.session.data.get("warmup") is None and not skip_warmup:
-            if st.spec.kind == "file":
-                st.session.set("warmup", {"done": False, "reason": "recording: no warm-up possible"})
-            else:
-                do_warmup(st, interval, accelerate, target)
-        if st.session.data.get("calibration") is None:
-            do_calibrate(st, yes, write=write, ask=_ask, ask_distance=_ask_distance)
-        do_capture(st, target, max_guidance)
+        # one rerun recording for the whole run: the warm-up and the capture go into the same .rrd
+        with session_run_view(st, target) as rec:
+            if st.session.data.get("warmup") is None and not skip_warmup:
+                if st.spec.kind == "file":
+                    st.session.set("warmup", {"done": False, "reason": "recording: no warm-up possible"})
+                else:
+                    do_warmup(st, interval, accelerate, rec)
+            if st.session.data.get("calibration") is None:
+                do_calibrate(st, yes, write=write, ask=_ask, ask_distance=_ask_distance)
+            do_capture(st, rec, max_guidance)
     finally:
         st.close()

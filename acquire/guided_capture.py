@@ -148,6 +148,7 @@ class GuidedCapture:
         self.dropped = 0
         self.retakes = 0  # takes discarded because the camera moved while recording
         self.faults: dict[str, int] = {}  # disconnects and stalls per standpoint
+        self.finished: list[StandpointOutcome] = []  # this run's outcomes so far (kept when cut short)
         self._t0_ns: int | None = None
         self._last_temp_ns = 0
 
@@ -266,6 +267,7 @@ class GuidedCapture:
                                   done=sorted(done), skipped=sorted(skipped))
                 out = self._standpoint(sp, state)
                 outcomes.append(out)
+                self.finished.append(out)
                 if out.status == "complete":
                     done.add(sp.name)
                 else:

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import math
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,21 +27,25 @@ from depthstation.acquire.guided_capture import (
 )
 from depthstation.acquire.views import BOARD_HELP, RerunView, TerminalPanel, blueprint
 from depthstation.acquire.warmup import WarmupDecision, WarmupSample, run_warmup
-from depthstation.core.capture.session import SESSION_FILE, Session
+from depthstation.core.capture.session import SESSION_FILE, Session, camera_identity, identity_differences
 from depthstation.core.device import CalibratableCamera
 from depthstation.core.errors import CameraError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress, stderr_console
-from depthstation.core.protocol import load_protocol, protocol_from_dict
+from depthstation.core.protocol import (
+    Protocol,
+    check_for_acquisition,
+    drop_none,
+    load_protocol,
+    protocol_from_dict,
+)
 from depthstation.core.rerun_bridge import RerunTarget, recording
+from depthstation.core.results import is_recording_rrd
+from depthstation.core.run_warnings import warn
 from depthstation.simulate.operator import SimulatedOperator, Stance
 
-
-def drop_none(d: dict[str, Any]) -> dict[str, Any]:
-    """A stored protocol without its unset (null) keys, which the TOML form leaves out."""
-    return {k: drop_none(v) if isinstance(v, dict) else v for k, v in d.items() if v is not None}
-
-
+DEFAULT_PROTOCOL = "checkerboard-d455"
+ACQUIRE_APP_ID = "depthstation-acquire"
 GuidanceHook = Callable[[Guidance, FrameSet, float], None]
 
 
@@ -53,20 +58,33 @@ class Station:
     mode. A resumed session whose calibration table lives only in the device's RAM has it set again.
     """
 
-    def __init__(self, camera: str, protocol: str, session: Path, resume: bool, seed: int,
-                 real_time: bool, confirm: Callable[[str], bool] | None = None) -> None:
+    def __init__(self, camera: str, protocol: str | None, session: Path, resume: bool, seed: int,
+                 real_time: bool, confirm: Callable[[str], bool] | None = None, *,
+                 accelerate: float = 1.0, warmup_interval_s: float | None = None,
+                 max_guidance_s: float | None = None) -> None:
         self.spec = parse_camera(camera)
+        if seed < 0:
+            raise InputError(None, f"--seed must be 0 or more, got {seed}")
+        check_run_options(self.spec.kind, accelerate, warmup_interval_s, max_guidance_s)
+        if session.exists() and not session.is_dir():
+            raise InputError(session, "is a file, not a session folder: give a folder for --session")
+        stored: dict[str, Any] | None = None
         if resume:
-            self.session = Session.open(session)
-            stored = self.session.data.get("protocol")
-            self.protocol = (protocol_from_dict(drop_none(stored), session / SESSION_FILE)
-                             if isinstance(stored, dict) else load_protocol(protocol))
+            opened = Session.open(session)
+            self.protocol = resumed_protocol(opened, protocol)
+            calibrated = opened.data.get("calibration") is not None
         else:
             if (session / SESSION_FILE).exists():
                 raise InputError(session, "holds a session already: add --resume to continue it")
-            self.protocol = load_protocol(protocol)
-            self.session = Session.create(session, protocol=self.protocol,
-                                          camera=self.spec.describe())
+            if session.exists() and any(session.iterdir()):
+                raise InputError(session, "is not empty; a new session needs an empty or new folder")
+            self.protocol = load_protocol(DEFAULT_PROTOCOL if protocol is None else protocol)
+            calibrated = False
+        check_for_acquisition(self.protocol)
+        if warmup_interval_s is not None and warmup_interval_s > self.protocol.warmup.max_minutes * 60.0:
+            raise InputError(None, f"--interval {warmup_interval_s:g} s is longer than the warm-up's maximum "
+                                   f"time ({self.protocol.warmup.max_minutes:g} min, warmup.max_minutes): "
+                                   "give a shorter interval")
         self.operator: SimulatedOperator | None = None
         options: dict[str, Any] = {}
         if self.spec.kind == "sim":
@@ -75,9 +93,37 @@ class Station:
             cal = self.protocol.calibration
             options = {"model": self.protocol.device.model, "consent": confirm,
                        "needs_advanced_mode": ("tare calibration (it runs with the High Accuracy preset)"
-                                               if cal.tare and self.session.data.get("calibration") is None
-                                               else None)}
+                                               if cal.tare and not calibrated else None)}
+        # the camera is opened and streams before the session is made: a camera that cannot
+        # (no device, no colour, an unknown model) leaves no session behind to block the retry
         self.camera = open_camera(self.spec, **options)
+        try:
+            info = self.camera.start(self.protocol.streams)
+            if self.spec.kind == "file":
+                self.camera.stop()  # the playback starts from its first frame again when used
+        except BaseException:
+            self.close()
+            raise
+        identity = camera_identity(info)
+        if resume:
+            self.session = opened
+            stored = opened.data.get("camera_identity")
+            if isinstance(stored, dict) and (diff := identity_differences(stored, identity)):
+                self.close()
+                raise InputError(session, f"was recorded with {opened.data.get('camera', 'another camera')} "
+                                          f"({_who(stored)}); --camera {camera} is {_who(identity)}: "
+                                          f"{'; '.join(diff)}. A session holds one camera's standpoints: "
+                                          "resume it with that camera, or start a new session")
+            if not isinstance(stored, dict):
+                self.session.set("camera_identity", identity)
+            self.session.verify_complete()
+        else:
+            try:
+                self.session = Session.create(session, protocol=self.protocol, camera=self.spec.describe(),
+                                              camera_identity=identity)
+            except BaseException:
+                self.close()
+                raise
         if self.spec.kind == "file" and real_time:
             self.camera.real_time = True
         self.seed = seed
@@ -118,13 +164,105 @@ class Station:
         return on_guidance
 
 
+def check_run_options(kind: str, accelerate: float = 1.0, warmup_interval_s: float | None = None,
+                      max_guidance_s: float | None = None) -> None:
+    """Refuse option values that cannot mean anything, before a camera or session is touched."""
+    if not math.isfinite(accelerate) or accelerate < 1.0:
+        raise InputError(None, f"--accelerate must be a number of at least 1, got {accelerate}")
+    if accelerate != 1.0 and kind != "sim":
+        raise InputError(None, "--accelerate runs the simulated camera's clock faster; a recording or a "
+                               "live camera warms up in real time: leave --accelerate out")
+    if warmup_interval_s is not None and not (math.isfinite(warmup_interval_s) and warmup_interval_s > 0):
+        raise InputError(None, f"--interval must be a positive number of seconds, got {warmup_interval_s}")
+    if max_guidance_s is not None and not (math.isfinite(max_guidance_s) and max_guidance_s > 0):
+        raise InputError(None, f"--max-guidance must be a positive number of seconds, got {max_guidance_s}")
+
+
+def _who(identity: dict[str, Any]) -> str:
+    """A camera in a few words: name, serial, stream sizes."""
+    size = identity.get("depth_size")
+    return (f"{identity.get('name') or 'unnamed device'} serial {identity.get('serial_number') or '?'}, "
+            f"depth {'x'.join(map(str, size)) if size else '?'}")
+
+
+def resumed_protocol(session: Session, protocol: str | None) -> Protocol:
+    """The protocol a resume runs: the one stored in the session (its plan made the standpoints
+    recorded so far). A --protocol given too must plan the same standpoints, else the resume is
+    refused (a corrected plan cannot apply to standpoints recorded under the old one)."""
+    stored = session.data.get("protocol")
+    if not isinstance(stored, dict):
+        return load_protocol(DEFAULT_PROTOCOL if protocol is None else protocol)
+    used = protocol_from_dict(drop_none(stored), session.dir / SESSION_FILE)
+    if protocol is not None:
+        given = load_protocol(protocol)
+        if given.plan != used.plan:
+            n_used, n_given = len(used.plan.standpoints()), len(given.plan.standpoints())
+            raise InputError(protocol, f"plans other standpoints ({n_given}) than the protocol stored in "
+                                       f"{session.dir / SESSION_FILE} ({n_used}), which a resume uses: leave "
+                                       "--protocol out to resume, or start a new session with this protocol")
+        if given.to_dict() != used.to_dict():
+            say(f"--protocol {protocol} differs from the stored protocol outside the plan: the stored one "
+                "is used (a resume keeps the session's protocol)")
+    say(f"resuming {session.dir} with the protocol stored in {SESSION_FILE} ({used.name})")
+    return used
+
+
 def say(text: str) -> None:
     """One line to the operator, on stderr."""
     stderr_console.print(text)
 
 
-def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTarget) -> dict[str, Any]:
-    """Stream until the protocol's warm-up rule holds; the curve goes into the session and rerun."""
+WARMUP_HELP = "Warm-up: device temperatures (degrees C) and the centre depth (m) over time (s)."
+SESSION_HELP = (f"{WARMUP_HELP} Then the guided capture: {BOARD_HELP}")
+
+
+def rerun_recording_id(session: Session) -> str:
+    """One rerun recording id per session: the .rrd files of its steps and resumes open as one."""
+    return f"depthstation-session-{session.data.get('created', '')}-{session.dir.resolve().name}"
+
+
+@contextlib.contextmanager
+def session_view(st: Station, target: RerunTarget | Any, description: str) -> Iterator[Any]:
+    """The rerun stream of a step: its own for a RerunTarget (one command, one step), else the
+    stream the caller opened for all the steps of one run (`acquire session`), or None."""
+    if isinstance(target, RerunTarget):
+        with recording(ACQUIRE_APP_ID, target, blueprint(), description=description,
+                       recording_id=rerun_recording_id(st.session)) as rec:
+            yield rec
+    else:
+        yield target
+
+
+@contextlib.contextmanager
+def session_run_view(st: Station, target: RerunTarget) -> Iterator[Any]:
+    """The one rerun stream (or None) that all the steps of an `acquire session` run write into."""
+    with recording(ACQUIRE_APP_ID, target, blueprint(), description=SESSION_HELP,
+                   recording_id=rerun_recording_id(st.session)) as rec:
+        yield rec
+
+
+def acquire_rrd(rrd: Path, resume: bool) -> Path:
+    """Where an acquire command's --rrd goes. A new session never overwrites a file. A resume
+    keeps the earlier run's recording and writes the next `NAME.resume-N.rrd` beside it: same
+    recording id, so `rerun NAME.rrd NAME.resume-1.rrd` shows the session as one recording."""
+    rrd = Path(rrd)
+    if not rrd.exists() or rrd.is_dir():
+        return rrd  # a folder is refused by RerunTarget
+    if not resume:
+        raise InputError(rrd, "exists; depthstation never overwrites a file: choose another name "
+                              "(a --resume of the session writes its recording beside it)")
+    if not is_recording_rrd(rrd):
+        raise InputError(rrd, "exists and is not a rerun recording (.rrd): choose another name")
+    n = 1
+    while (nxt := rrd.with_name(f"{rrd.stem}.resume-{n}{rrd.suffix}")).exists():
+        n += 1
+    say(f"{rrd} exists (an earlier run of the session): this run's recording goes to {nxt}")
+    return nxt
+
+
+def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTarget | Any) -> dict[str, Any]:
+    """Stream until the protocol's warm-up rule holds; the curve goes into the session and rerun
+    (`target`: a RerunTarget, or the stream of the whole run that `session_view` passes on)."""
     rule = st.protocol.warmup
     info = st.camera.start(st.protocol.streams)
     clock: Callable[[], float] = time.monotonic
@@ -146,9 +284,7 @@ def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTa
         if hasattr(st.camera, "set_clock"):
             st.camera.set_clock(clock)
     try:
-        with recording("depthstation-warmup", target, description="Warm-up: device temperatures "
-                       "(degrees C) and the centre depth (m) over time (s).") as rec, \
-                progress() as bar:
+        with session_view(st, target, WARMUP_HELP) as rec, progress() as bar:
             task = bar.add_task("warm-up", total=rule.max_minutes * 60.0, status="")
             said_no_temp = [False]
 
@@ -169,8 +305,14 @@ def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTa
                     if s.depth_m is not None:
                         rec.log("warmup/centre_depth_m", rr.Scalars([s.depth_m]))
 
-            result = run_warmup(st.camera, rule, info.depth_units_m, interval_s=interval_s, clock=clock,
-                                sleep=sleep, on_sample=on_sample)
+            try:
+                result = run_warmup(st.camera, rule, info.depth_units_m, interval_s=interval_s, clock=clock,
+                                    sleep=sleep, on_sample=on_sample)
+            except EOFError as exc:
+                raise InputError(st.spec.path, f"the recording ended before the warm-up's minimum time "
+                                 f"({rule.min_minutes:g} min, warmup.min_minutes): a recording cannot warm a "
+                                 "camera up; leave the warm-up out (acquire capture, or acquire session, "
+                                 "which records none for a recording)") from exc
     except BaseException:
         st.close()
         raise
@@ -186,6 +328,10 @@ def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTa
         summary["device_events"] = events
     st.session.set("warmup", summary)
     say(f"warm-up done: {summary['reason']}")
+    if summary["has_temperature"] and not summary["settled"]:
+        warn(f"warm-up ended without the temperature settling ({summary['reason']}; tolerance "
+             f"{rule.max_slope_c_per_min:g} °C/min): depth may still drift during the capture",
+             str(st.session.dir), "warmup-unsettled")
     return summary
 
 
@@ -220,11 +366,11 @@ def do_calibrate(st: Station, yes: bool, write: bool, ask: Callable[[str], bool]
     return record
 
 
-def do_capture(st: Station, target: RerunTarget, max_guidance_s: float | None) -> list[StandpointOutcome]:
+def do_capture(st: Station, target: RerunTarget | Any, max_guidance_s: float | None) -> list[StandpointOutcome]:
     """The guided loop with the panel and rerun; a recording's end stops it cleanly."""
     on_guidance = st.attach_operator()
     outcomes: list[StandpointOutcome] = []
-    with recording("depthstation-acquire", target, blueprint(), description=BOARD_HELP) as rec:
+    with session_view(st, target, BOARD_HELP) as rec:
         views: list[Any] = []
         panel = TerminalPanel() if sys.stderr.isatty() else None
         if panel is not None:
@@ -252,6 +398,10 @@ def do_capture(st: Station, target: RerunTarget, max_guidance_s: float | None) -
         except EOFError:
             say("the recording ended: the standpoints done so far are in the session; "
                  "the rest stay open for --resume with another recording or a camera")
+            if not any(o.status == "complete" for o in cap.finished):
+                warn(f"the recording {st.spec.path} ended before any standpoint was recorded in this run "
+                     "(the board never held still in place long enough)", str(st.session.dir),
+                     "recording-ended")
         except KeyboardInterrupt as exc:
             open_ = [e["name"] for e in st.session.standpoints if e.get("status") == "partial"]
             msg = (f"interrupted: finished standpoints are safe in {st.session.dir}"

@@ -125,6 +125,7 @@ def blueprint() -> Any:
                          rrb.Spatial2DView(origin="camera/depth", name="depth")),
             rrb.Vertical(rrb.TimeSeriesView(origin="measure", name="distance (m) / inclination (deg)"),
                          rrb.TextLogView(origin="guidance", name="guidance"),
+                         rrb.TimeSeriesView(origin="warmup", name="warm-up (°C, m)"),
                          rrb.TextDocumentView(origin="progress", name="progress")),
         ),
     )

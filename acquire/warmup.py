@@ -69,6 +69,7 @@ class WarmupDecision:
     resolution_c: float = 0.0  # step of the readings: 1.0 for whole degrees, 0.0 for fractions
     window_s: float | None = None  # the window the rule used (stretched for whole degrees)
     slope_bound_c_per_min: float | None = None  # upper bound on |slope now| (whole-degree readings)
+    settled: bool = False  # the temperature rule held (not the maximum time, not the time rule alone)
 
 
 def temperature_slope(t_s: np.ndarray[Any, Any], temp_c: np.ndarray[Any, Any],
@@ -140,8 +141,9 @@ def warmup_decision(samples: list[WarmupSample], rule: Warmup) -> WarmupDecision
         if q > 0:
             bound = temperature_slope_bound(arr[:, 0], arr[:, 1], window_s, q)
 
-    def decide(done: bool, why: str) -> WarmupDecision:
-        return WarmupDecision(done, why, elapsed, slope, has_temp, q, window_s if has_temp else None, bound)
+    def decide(done: bool, why: str, settled: bool = False) -> WarmupDecision:
+        return WarmupDecision(done, why, elapsed, slope, has_temp, q, window_s if has_temp else None, bound,
+                              settled)
 
     min_s, max_s = rule.min_minutes * 60.0, rule.max_minutes * 60.0
     if elapsed >= max_s:
@@ -160,14 +162,14 @@ def warmup_decision(samples: list[WarmupSample], rule: Warmup) -> WarmupDecision
                           f"{q:g} °C readings)")
         if bound <= tol:
             return decide(True, f"temperature settled: |slope| <= {bound:.3f} °C/min <= {tol:g} "
-                          f"(bound from {q:g} °C readings over {window_s / 60:g} min)")
+                          f"(bound from {q:g} °C readings over {window_s / 60:g} min)", settled=True)
         return decide(False, f"temperature drifting: |slope| up to {bound:.3f} °C/min > {tol:g} "
                       f"({q:g} °C readings over {window_s / 60:g} min)")
     if slope is None:
         return decide(False, "collecting the temperature window")
     if abs(slope) <= tol:
         return decide(True, f"temperature settled: slope {slope:+.3f} °C/min <= "
-                      f"{tol:g} over {rule.window_minutes:g} min")
+                      f"{tol:g} over {rule.window_minutes:g} min", settled=True)
     return decide(False, f"temperature drifting: slope {slope:+.3f} °C/min > {tol:g}")
 
 
@@ -181,6 +183,7 @@ class WarmupResult:
         d = self.decision
         return {
             "done": bool(d and d.done),
+            "settled": bool(d and d.settled),
             "reason": None if d is None else d.reason,
             "elapsed_s": None if d is None else d.elapsed_s,
             "final_slope_c_per_min": None if d is None else d.slope_c_per_min,

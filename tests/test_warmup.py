@@ -109,3 +109,17 @@ def test_whole_degree_readings_settle_only_below_the_tolerance() -> None:
         assert slope[settled] <= rule.max_slope_c_per_min, (tau_min, amp, sigma, slope[settled])
         ratios.append(slope[settled] / rule.max_slope_c_per_min)
     assert len(ratios) >= 36 and max(ratios) < 1.0
+
+
+def test_settled_only_when_the_temperature_rule_holds() -> None:
+    """`settled` (session.json's warmup.settled) is true for the slope rule, false at the maximum time."""
+    from depthstation.acquire.warmup import WarmupSample, warmup_decision
+    from depthstation.core.protocol import Warmup
+
+    rule = Warmup(min_minutes=1.0, max_slope_c_per_min=0.1, window_minutes=1.0, max_minutes=3.0)
+    flat = [WarmupSample(t, {"projector": 40.25}) for t in range(0, 121, 10)]
+    d = warmup_decision(flat, rule)
+    assert d.done and d.settled
+    rising = [WarmupSample(t, {"projector": 30.25 + t / 30}) for t in range(0, 181, 10)]
+    d = warmup_decision(rising, rule)
+    assert d.done and not d.settled and "maximum time" in d.reason

@@ -14,6 +14,20 @@ from depthstation.core.text_files import read_text
 from depthstation.core.tomlcompat import tomllib
 
 PROTOCOL_DIR = Path(__file__).resolve().parent.parent / "protocols"
+# librealsense's D400 visual presets (rs2_rs400_visual_preset), as the device names them
+D400_PRESETS = ("Custom", "Default", "Hand", "High Accuracy", "High Density", "Medium Density",
+                "Remove IR Pattern")
+# a plan is walked by an operator: the paper's is 65 standpoints; thousands are a typo (a step in
+# millimetres, a range in millimetres) and would take memory and days
+MAX_STANDPOINTS = 1000
+MAX_FRAMES_PER_STANDPOINT = 100_000  # an hour at 30 fps
+MAX_WIDTH, MAX_HEIGHT, MAX_FPS = 1920, 1080, 300  # above any RealSense D400 stream profile
+
+
+def preset_known(name: str) -> bool:
+    """Whether `name` is a D400 visual preset, spelt as the device compares it (case, '_' for ' ')."""
+    wanted = name.strip().lower().replace("_", " ")
+    return any(wanted == p.lower() for p in D400_PRESETS)
 
 
 @dataclass(frozen=True)
@@ -207,8 +221,12 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
         device=_table(Device, data.get("device"), "device", source),
     )
     p = proto.plan
-    if p.frames_per_standpoint < 1:
-        raise ProtocolError(source, "'plan.frames_per_standpoint' must be at least 1")
+    if not 1 <= p.frames_per_standpoint <= MAX_FRAMES_PER_STANDPOINT:
+        raise ProtocolError(source, f"'plan.frames_per_standpoint' must lie in 1.."
+                                    f"{MAX_FRAMES_PER_STANDPOINT}, got {p.frames_per_standpoint}")
+    for key in ("start_distance_m", "step_m", "max_distance_m"):
+        if not math.isfinite(getattr(p, key)):
+            raise ProtocolError(source, f"'plan.{key}' must be a finite number, got {getattr(p, key)}")
     if p.step_m <= 0:
         raise ProtocolError(source, "'plan.step_m' must be positive")
     if not 0 < p.start_distance_m <= p.max_distance_m:
@@ -217,8 +235,24 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
         raise ProtocolError(source, "'plan.inclinations_deg' must list angles in [0, 90)")
     if p.side not in ("left", "right"):
         raise ProtocolError(source, "'plan.side' must be 'left' or 'right'")
-    if proto.streams.width <= 0 or proto.streams.height <= 0 or proto.streams.fps <= 0:
+    per_trajectory = math.floor((p.max_distance_m - p.start_distance_m + 1e-9) / p.step_m) + 1
+    if per_trajectory * len(p.inclinations_deg) > MAX_STANDPOINTS:
+        raise ProtocolError(source, f"'plan' expands to {per_trajectory * len(p.inclinations_deg):.3g} "
+                                    f"standpoints ({p.start_distance_m:g} to {p.max_distance_m:g} m by "
+                                    f"{p.step_m:g} m, {len(p.inclinations_deg)} inclinations); at most "
+                                    f"{MAX_STANDPOINTS}, an operator walks each one: check plan.step_m and "
+                                    "plan.max_distance_m (metres)")
+    st = proto.streams
+    if st.width <= 0 or st.height <= 0 or st.fps <= 0:
         raise ProtocolError(source, "'streams.width', 'streams.height' and 'streams.fps' must be positive")
+    if st.width > MAX_WIDTH or st.height > MAX_HEIGHT or st.fps > MAX_FPS:
+        raise ProtocolError(source, f"'streams' {st.width}x{st.height} at {st.fps} fps is beyond any "
+                                    f"RealSense stream ({MAX_WIDTH}x{MAX_HEIGHT}, {MAX_FPS} fps at most)")
+    if not st.depth:
+        raise ProtocolError(source, "'streams.depth' must be true: depth is what the station measures")
+    if not preset_known(st.preset):
+        raise ProtocolError(source, f"'streams.preset' {st.preset!r} is no RealSense D400 preset "
+                                    f"({', '.join(D400_PRESETS)})")
     _positive(source, proto.tolerances, "tolerances", ("distance_m", "inclination_deg", "still_seconds",
                                                        "still_translation_m", "still_rotation_deg"))
     if not 0 < proto.tolerances.end_fill_rate <= 1:
@@ -232,17 +266,38 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
                                     f"({w.min_minutes})")
     c = proto.calibration
     _positive(source, c, "calibration", ("tare_distance_m",))
-    _positive(source, c, "calibration", ("min_health",), allow_zero=True)
+    _positive(source, c, "calibration", ("min_health", "tare_min_error"), allow_zero=True)
+    if c.tare and c.tare_distance_m is None:
+        raise ProtocolError(source, "'calibration.tare_distance_m' is missing: tare needs the target's "
+                                    "distance from the camera's front glass (metres)")
     return proto
+
+
+def check_for_acquisition(proto: Protocol) -> None:
+    """What a guided capture needs beyond a valid protocol (a simulated session without colour is
+    fine): colour, since the guidance finds the board in the colour image."""
+    if not proto.streams.color:
+        raise ProtocolError(proto.source, "'streams.color' must be true for acquire: the guidance finds "
+                                          "the board in the colour image")
+
+
+def drop_none(d: dict[str, Any]) -> dict[str, Any]:
+    """A stored protocol without its unset (null) keys, which the TOML form leaves out."""
+    return {k: drop_none(v) if isinstance(v, dict) else v for k, v in d.items() if v is not None}
 
 
 def load_protocol(path_or_name: str | Path) -> Protocol:
     """A protocol from a TOML path or the name of one in `protocols/` (e.g. 'checkerboard-d455')."""
+    if not str(path_or_name).strip():
+        raise ProtocolError(None, "--protocol is empty: give a protocol name (as checkerboard-d455) or a "
+                                  "TOML path")
     p = Path(path_or_name)
     if not p.exists() and not p.suffix:
         candidate = PROTOCOL_DIR / f"{path_or_name}.toml"
         if candidate.exists():
             p = candidate
+    if p.is_dir():
+        raise ProtocolError(p, "is a folder, not a protocol TOML")
     if not p.is_file():
         raise ProtocolError(p, "protocol file not found")
     try:

@@ -126,19 +126,20 @@ def _announce(text: str) -> None:
 
 @contextmanager
 def recording(app_id: str, target: RerunTarget, blueprint: Any = None,
-              description: str | None = None) -> Iterator[Any]:
+              description: str | None = None, recording_id: str | None = None) -> Iterator[Any]:
     """Yield a rerun RecordingStream (or None when no target is set); flushed and closed on exit.
 
     rerun is imported only when a target is set, so commands without `--rrd` never pay for it.
     The web viewer binds to localhost only. The description goes to the entity `description` as a
-    markdown TextDocument (every recording should explain itself).
+    markdown TextDocument (every recording should explain itself). The same `recording_id` in
+    several .rrd files makes the viewer show them as one recording (a resumed session).
     """
     if not target.enabled:
         yield None
         return
     import rerun as rr
 
-    rec = rr.RecordingStream(app_id)
+    rec = rr.RecordingStream(app_id, recording_id=recording_id)
     sinks: list[Any] = []
     partial: Path | None = None
     if target.rrd is not None:  # written under a temporary name, renamed when complete

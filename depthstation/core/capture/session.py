@@ -25,6 +25,7 @@ from depthstation.core.capture.mcap_reader import McapRecording, open_mcap
 from depthstation.core.capture.mcap_writer import CAPTURE_COMPRESSION, McapFileWriter
 from depthstation.core.errors import CaptureError, InputError
 from depthstation.core.frames import FrameSet
+from depthstation.core.protocol import drop_none, protocol_from_dict
 from depthstation.core.results import _jsonable
 from depthstation.core.run_warnings import warn
 from depthstation.core.text_files import read_text
@@ -35,6 +36,25 @@ SESSION_FILE = "session.json"
 SESSION_FORMAT = "depthstation-session"
 SESSION_VERSION = 1
 STATUSES = ("recording", "complete", "partial", "discarded")
+IDENTITY_KEYS = ("name", "serial_number", "baseline_m", "depth_size", "color_size")
+
+
+def camera_identity(info: StreamInfo) -> dict[str, Any]:
+    """What makes the standpoints of one session comparable: the device (model name, serial,
+    baseline) and the stream sizes. Stored at creation; a resume with another camera is refused."""
+
+    def size(i: Any) -> list[int] | None:
+        return None if i is None else [int(i.width), int(i.height)]
+
+    dev = info.device or {}
+    return {"name": dev.get("name"), "serial_number": dev.get("serial_number"),
+            "baseline_m": None if info.baseline_m is None else round(float(info.baseline_m), 5),
+            "depth_size": size(info.depth_intrinsics), "color_size": size(info.color_intrinsics)}
+
+
+def identity_differences(stored: dict[str, Any], now: dict[str, Any]) -> list[str]:
+    """The identity keys on which two cameras differ, as 'key: stored vs now'."""
+    return [f"{k} {stored.get(k)!r} vs {now.get(k)!r}" for k in IDENTITY_KEYS if stored.get(k) != now.get(k)]
 
 
 def _now() -> str:
@@ -137,6 +157,7 @@ class Session:
                 e["note"] = "interrupted while recording"
                 changed = True
         known = {e["file"] for e in entries}
+        plan = self._plan_names()
         for p in sorted(d.glob("*.mcap.partial")):
             if p.name not in known:
                 entries.append({"name": p.name.split(".")[0], "file": p.name, "status": "partial",
@@ -149,6 +170,9 @@ class Session:
             if any(e["name"] == name and e.get("status") == "complete" for e in entries):
                 continue
             entry: dict[str, Any] = {"name": name, "file": p.name, "status": "partial"}
+            if plan is not None and name not in plan:
+                self._refuse(p, "its name is no standpoint of the session's plan")
+                continue
             if self._adopt(entry, p):
                 entries.append(entry)
                 changed = True
@@ -163,12 +187,68 @@ class Session:
             return False
         if rec.frame_count is None or rec.frame_count < 1:
             return False
+        stored = self.data.get("camera_identity")
+        if isinstance(stored, dict) and (diff := identity_differences(stored, camera_identity(rec.info))):
+            self._refuse(path, "it was recorded by another camera (" + "; ".join(diff) + ")")
+            return False
         indices = [fs.index for fs in rec.frames()]
         entry.update(status="complete", file=path.name, frames=rec.frame_count,
                      first_index=indices[0] if indices else None,
                      last_index=indices[-1] if indices else None, adopted=_now(),
                      note="finished file adopted after a crash (session.json had not recorded it)")
         return True
+
+    def _refuse(self, path: Path, why: str) -> None:
+        """A finished MCAP in the folder that is not the session's: left alone, said on a resume."""
+        if self.read_only:
+            log.info("%s: not adopted (%s)", path, why)
+        else:
+            warn(f"{path.name} is not adopted into the session: {why}; it is left as it is",
+                 str(self.dir), "foreign-recording")
+
+    def _plan_names(self) -> set[str] | None:
+        """The standpoint names of the stored protocol's plan (None: no usable protocol stored)."""
+        stored = self.data.get("protocol")
+        if not isinstance(stored, dict):
+            return None
+        try:
+            proto = protocol_from_dict(drop_none(stored), self.dir / SESSION_FILE)
+        except InputError:
+            return None
+        return {sp.name for sp in proto.plan.standpoints()}
+
+    def verify_complete(self) -> list[str]:
+        """Check the standpoints listed complete against the disk before a resume trusts them: a
+        missing file or one cut short (a copy gone wrong, a full disk) is re-recorded, the damaged
+        file kept aside (renamed, never deleted), each with a warning. The names to re-record."""
+        redo = []
+        for e in self.data.get("standpoints", []):
+            if e.get("status") != "complete":
+                continue
+            path = self.dir / e["file"]
+            if not path.is_file():
+                e.update(status="discarded", reason="recording missing from the disk at resume",
+                         discarded=_now())
+                warn(f"standpoint {e['name']} is listed complete but {e['file']} is missing: it is recorded "
+                     "again", str(self.dir), "missing-recording")
+                redo.append(e["name"])
+                continue
+            try:
+                rec = open_mcap(path)
+                problem = ("it is cut short (no MCAP summary)" if rec.truncated
+                           else None if rec.frame_count == e.get("frames", rec.frame_count)
+                           else f"it holds {rec.frame_count} frames, {e.get('frames')} were recorded")
+            except (InputError, OSError) as exc:
+                problem = f"it cannot be read ({exc})"
+            if problem is not None:
+                self.discard(e["name"], f"damaged at resume: {problem}")
+                warn(f"standpoint {e['name']}: {path.name} is damaged ({problem}): "
+                     f"kept aside as {e['file']}, the standpoint is recorded again", str(self.dir),
+                     "damaged-recording")
+                redo.append(e["name"])
+        if redo:
+            self._save()
+        return redo
 
     def _save(self) -> None:
         if self.read_only:

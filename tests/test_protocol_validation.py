@@ -1,0 +1,55 @@
+"""Protocol values that cannot make a plan are refused at load, one line naming the file and key."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_acquire_session import TINY_TOML
+
+from depthstation.core.errors import ProtocolError
+from depthstation.core.protocol import MAX_STANDPOINTS, check_for_acquisition, load_protocol
+
+
+@pytest.mark.parametrize(("old", "new", "says"), [
+    ("max_distance_m = 1.8", "max_distance_m = inf", "'plan.max_distance_m' must be a finite number"),
+    ("max_distance_m = 1.8", "max_distance_m = 1e7", f"at most {MAX_STANDPOINTS}"),
+    ("step_m = 0.8", "step_m = 1e-9", "check plan.step_m"),
+    ("step_m = 0.8", "step_m = nan", "'plan.step_m' must be a finite number"),
+    ("fps = 30", "fps = 30\ndepth = false", "'streams.depth' must be true"),
+    ("fps = 30", 'fps = 30\npreset = "HighAccuracyy"', "'streams.preset' 'HighAccuracyy' is no RealSense"),
+    ("width = 640", "width = 100000", "beyond any RealSense stream"),
+    ("on_chip = true", "on_chip = true\ntare = true", "'calibration.tare_distance_m' is missing"),
+])
+def test_bad_plan_values_are_refused_at_load(tmp_path: Path, old: str, new: str, says: str) -> None:
+    p = tmp_path / "bad.toml"
+    assert old in TINY_TOML
+    p.write_text(TINY_TOML.replace(old, new))
+    with pytest.raises(ProtocolError) as exc:
+        load_protocol(p)
+    assert str(exc.value).startswith(f"{p}: ") and says in str(exc.value)
+
+
+def test_known_presets_and_the_shipped_protocols_load(tmp_path: Path) -> None:
+    p = tmp_path / "ok.toml"
+    p.write_text(TINY_TOML.replace("fps = 30", 'fps = 30\npreset = "high_accuracy"'))
+    assert load_protocol(p).streams.preset == "high_accuracy"
+    for name in ("checkerboard-d455", "demo-d455"):
+        assert load_protocol(name).plan.standpoints()
+
+
+def test_acquire_needs_colour(tmp_path: Path) -> None:
+    """Guidance finds the board in colour: acquire refuses a protocol without it (simulate may use one)."""
+    p = tmp_path / "depth_only.toml"
+    p.write_text(TINY_TOML.replace("fps = 30", "fps = 30\ncolor = false"))
+    proto = load_protocol(p)
+    with pytest.raises(ProtocolError, match=r"depth_only.toml: 'streams.color' must be true for acquire"):
+        check_for_acquisition(proto)
+
+
+def test_empty_protocol_name_is_said_plainly() -> None:
+    with pytest.raises(ProtocolError, match="--protocol is empty"):
+        load_protocol("")
