@@ -229,6 +229,25 @@ def test_warmup_that_never_settles_is_a_warning(tmp_path: Path, tiny: Path,
     assert w["settled"] is False and w["final_slope_c_per_min"] > 0.1
 
 
+def test_every_study_of_an_unsettled_session_says_so(tmp_path: Path) -> None:
+    """The warm-up's warning was printed once, at acquisition; the session keeps `settled`, and
+    reading its standpoints for a study (checkerboard, explain, compare of its results) says it again."""
+    s = Session.create(tmp_path / "s", device={"name": "sim"})
+    s.set("warmup", {"has_temperature": True, "settled": False, "final_slope_c_per_min": 1.4,
+                     "reason": "maximum time of 1 min reached"})
+    with collecting() as found:
+        s.recordings()
+    assert [w.code for w in found] == ["warmup-unsettled"] and "+1.400" in found[0].message
+    s.set("warmup", {"has_temperature": True, "settled": True, "final_slope_c_per_min": 0.01})
+    with collecting() as found:
+        s.recordings()
+    assert found == []
+    s.set("warmup", {"has_temperature": False, "settled": False})  # no sensor: the time rule, no word
+    with collecting() as found:
+        s.recordings()
+    assert found == []
+
+
 def test_recordings_that_end_too_soon_are_said(tmp_path: Path, tiny: Path,
                                                capsys: pytest.CaptureFixture[str]) -> None:
     from test_acquire_cli import make_recording

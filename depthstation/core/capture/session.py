@@ -272,7 +272,14 @@ class Session:
         self._save()
 
     def recordings(self, statuses: tuple[str, ...] = ("complete",)) -> list[McapRecording]:
-        """Readers for the standpoints of the given statuses, in capture order."""
+        """Readers for the standpoints of the given statuses, in capture order. A warm-up that
+        never settled is said again (`warmup-unsettled`): every study of the session inherits it."""
+        warm = self.data.get("warmup")
+        if isinstance(warm, dict) and warm.get("has_temperature") and warm.get("settled") is False:
+            slope = warm.get("final_slope_c_per_min")
+            warn(f"the session's warm-up ended without the temperature settling ({warm.get('reason', '?')}"
+                 f"{f'; final slope {slope:+.3f} °C/min' if isinstance(slope, (int, float)) else ''}): "
+                 "depth may drift across its standpoints", str(self.dir), "warmup-unsettled")
         out = []
         for e in self.data.get("standpoints", []):
             if e.get("status") not in statuses:
