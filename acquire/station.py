@@ -101,6 +101,7 @@ class Station:
             info = self.camera.start(self.protocol.streams)
             if self.spec.kind == "file":
                 self.camera.stop()  # the playback starts from its first frame again when used
+                say_recording_misfits(info, self.protocol, self.spec.path)
         except BaseException:
             self.close()
             raise
@@ -258,6 +259,29 @@ def acquire_rrd(rrd: Path, resume: bool) -> Path:
         n += 1
     say(f"{rrd} exists (an earlier run of the session): this run's recording goes to {nxt}")
     return nxt
+
+
+def recording_misfits(info: Any, protocol: Protocol) -> list[str]:
+    """How a recording played as the camera differs from what the protocol asks (another camera
+    model, size or stream set): a live camera would refuse such a profile, a recording cannot."""
+    out = []
+    d = info.depth_intrinsics
+    want = protocol.streams
+    if (d.width, d.height) != (want.width, want.height):
+        out.append(f"depth {d.width}x{d.height}, the protocol asks {want.width}x{want.height}")
+    if want.infrared and info.infrared_intrinsics is None:
+        out.append("no infrared stream, the protocol asks for one")
+    name = str((info.device or {}).get("name") or "")
+    if name and protocol.device.model.lower() not in name.lower():
+        out.append(f"recorded by {name}, the protocol is for a {protocol.device.model}")
+    return out
+
+
+def say_recording_misfits(info: Any, protocol: Protocol, path: Path | None) -> None:
+    """Warn once per run; the standpoints are captured as recorded (`recording-mismatch`)."""
+    if misfits := recording_misfits(info, protocol):
+        warn(f"the recording does not fit the protocol ({'; '.join(misfits)}): its standpoints are "
+             "captured as recorded", str(path), "recording-mismatch")
 
 
 def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTarget | Any) -> dict[str, Any]:

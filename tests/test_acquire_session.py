@@ -248,6 +248,24 @@ def test_every_study_of_an_unsettled_session_says_so(tmp_path: Path) -> None:
     assert found == []
 
 
+def test_a_recording_that_does_not_fit_the_protocol_is_said(tmp_path: Path, tiny: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """A D435 recording of another size played for a D455 protocol was captured without a word (a
+    live camera refuses such a profile; a recording can only be taken as it is)."""
+    from dataclasses import replace
+
+    from depthstation.core.capture.sample_recordings import sample_frames, sample_info
+
+    info = replace(sample_info(64, 48), device={"name": "Intel RealSense D435"})
+    rec = tmp_path / "d435.db3"
+    write_realsense_recording(rec, info, list(sample_frames(info, 3, seed=2)))
+    code, err = acq(capsys, "capture", "--camera", str(rec), "--protocol", str(tiny), "--session",
+                    str(tmp_path / "c"), "--strict")
+    assert code == 3, err
+    assert "does not fit the protocol" in err and "depth 64x48, the protocol asks 640x360" in err
+    assert "recorded by Intel RealSense D435, the protocol is for a D455" in err
+
+
 def test_recordings_that_end_too_soon_are_said(tmp_path: Path, tiny: Path,
                                                capsys: pytest.CaptureFixture[str]) -> None:
     from test_acquire_cli import make_recording

@@ -119,6 +119,6 @@ def test_standpoints_of_two_cameras_are_warned(session: Path, tmp_path: Path,
     assert code == 3, err
     said = [w["message"] for w in info["warnings"] if w["code"] == "mixed-cameras"]
     assert len(said) == 1 and "standpoint_01" in said[0] and "standpoint_02" in said[0]
-    assert "baseline_mm 95" in said[0] and "baseline_mm 50" in said[0]
+    assert "baseline_m 0.095" in said[0] and "baseline_m 0.05" in said[0]
     code, err, info = _strict(session, session.parent / "p.toml", tmp_path / "o2", capsys)
     assert code == 0 and not info["warnings"], err  # one camera: no word

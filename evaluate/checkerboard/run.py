@@ -17,6 +17,7 @@ import numpy as np
 from depthstation.core.board import Board, load_board
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs
+from depthstation.core.capture.session import camera_identity as session_camera_identity
 from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
@@ -135,14 +136,13 @@ def check_distinct(recs: list[Recording]) -> None:
 
 
 def camera_identity(rec: Recording) -> dict[str, Any]:
-    """What makes two standpoints the same camera in the same mode: device name and serial,
-    stereo baseline, depth resolution and depth units (what `result.json` reports as one device)."""
+    """The session's camera identity (`session.camera_identity`: device name and serial, baseline,
+    stream sizes) of a recording, its metadata's device where the stream info has none, and its depth
+    units: what `result.json` reports as one device."""
     dev = dict(rec.metadata.get("device") or rec.info.device or {})
-    i = rec.info.depth_intrinsics
-    baseline = rec.info.baseline_m
-    return {"device": dev.get("name") or dev.get("model"), "serial": dev.get("serial_number"),
-            "baseline_mm": None if baseline is None else round(1e3 * baseline, 2),
-            "depth": f"{i.width}x{i.height}", "depth_units_m": rec.info.depth_units_m}
+    ident = session_camera_identity(replace(rec.info, device=dev))
+    ident["depth_units_m"] = rec.info.depth_units_m
+    return ident
 
 
 def check_one_camera(recs: list[Recording]) -> None:
