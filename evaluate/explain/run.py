@@ -148,7 +148,8 @@ def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, ba
     Standpoints go out as tasks on a ChunkRunner: each is read and evaluated by the worker that
     gets it, local processes (`workers`) or a Dask scheduler (`cluster`).
     """
-    probe = prepare_checkerboard(list(paths), board, StandpointOptions(frames=frames, topics=topics))
+    probe = prepare_checkerboard(list(paths), board, StandpointOptions(frames=frames, topics=topics),
+                                 one_camera=True)
     info = probe.recordings[0].info
     options = StandpointOptions(frames=frames, collect_samples=True, sample_stride=_stride(info),
                                 reference=REFERENCE, topics=topics)
