@@ -61,5 +61,48 @@ def test_mixed_resolutions_refused(small: Path, tmp_path: Path, capsys: pytest.C
     code, err = _explain(capsys, str(small / "s" / "standpoint_01.mcap"), str(big / "far.mcap"),
                          "--board", str(small / "p_320.toml"), "--out", str(tmp_path / "e"))
     assert code == 2, err
-    assert "more than one camera" in err and "standpoint_01: depth 320x180" in err and "far: depth 640x360" in err
+    assert "more than one camera" in err
+    assert "standpoint_01: depth 320x180" in err and "far: depth 640x360" in err
     assert "Traceback" not in err and not (tmp_path / "e").exists()
+
+
+def test_frames_below_three_refused(small: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, err = _explain(capsys, str(small / "s"), "--board", str(small / "p_320.toml"),
+                         "--out", str(tmp_path / "e"), "--frames", "2")
+    assert code == 2 and "--frames must be at least 3" in err and "Traceback" not in err
+
+
+def test_two_frame_standpoint_left_out_of_noise_tests(small: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """A standpoint of 2 frames among 3-frame ones: warned, and no false noise mismatch (its temporal
+    variance has no scatter over frames: t ~ 1e5 before)."""
+    short = tmp_path / "short"
+    assert run_cli(["simulate", "checkerboard", "-p", str(small / "p_320.toml"), "--out", str(short),
+                    "--frames", "2", "--standpoint", "standpoint_02", "--seed", "5"]) == 0
+    out = tmp_path / "e"
+    code, err = _explain(capsys, str(small / "s" / "standpoint_01.mcap"), str(short / "standpoint_02.mcap"),
+                         "--board", str(small / "p_320.toml"), "--out", str(out), "--frames", "3",
+                         "--no-resimulate", "--no-discover")
+    assert code == 0, err
+    result = json.loads((out / "result.json").read_text())
+    short_w = [w for w in result["warnings"] if w["code"] == "explain-short-standpoint"]
+    assert [w["where"] for w in short_w] == ["standpoint_02"]
+    data = json.loads((out / "explain.json").read_text())
+    by_stand = {(t["kind"], t["label"]) for t in data["tests"] if t["family"] == "standpoint"}
+    assert ("bias", "standpoint_02") in by_stand and ("noise", "standpoint_01") in by_stand
+    assert ("noise", "standpoint_02") not in by_stand   # its bias is tested, its noise is not
+
+
+def test_report_handles_a_remaining_term_without_fit_figures() -> None:
+    """window_noise is named for a correlation region from the noise's structure, without delta BIC or
+    Wald p: the report said `internal error: KeyError: 'delta_bic'`."""
+    from depthstation.evaluate.explain.report import _discovered_md
+
+    data = {"discovered": [], "discovery": {}, "mismatch": {"significant": True},
+            "remaining_after": [{"family": "correlation_u", "kind": "noise", "label": "u lag 1 px",
+                                 "term": "window_noise", "why_not_selected": "more correlated"},
+                                {"family": "distance", "kind": "bias", "label": "1-1.5 m", "term": "poly_z",
+                                 "delta_bic": -3.0, "wald_p": 0.2, "why_not_selected": "BIC"}]}
+    text = "\n".join(_discovered_md(data, []))
+    assert "| `window_noise` | more correlated |" in text
+    assert "`poly_z` (delta BIC -3.0, Wald p 0.2)" in text

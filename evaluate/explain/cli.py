@@ -64,6 +64,9 @@ def explain(
     if out.exists() and any(out.iterdir()) and not force:
         raise InputError(out, "is not empty; explain never overwrites results (--force replaces it)")
     topics = topic_choice(depth_topic, color_topic, infrared_topic)
+    if frames < 3:
+        raise InputError(None, f"--frames must be at least 3, not {frames} (the noise tests need a temporal "
+                               "variance over 3 frames or more)")
     if scan:
         mode = ScanOptions(register=register, icp=icp).register_mode
         _explain_scan(real, poses, reference, model, out, frames, seed, similarity, mode, block_frames,
@@ -73,8 +76,6 @@ def explain(
         raise InputError(None, "--board is needed for checkerboard sessions")
     if workers < 1:
         raise InputError(None, "--workers must be at least 1")
-    if frames < 2:
-        raise InputError(None, "--frames must be at least 2 (noise needs several frames)")
     mdl = load_model(model)
 
     def tick(msg: str) -> None:

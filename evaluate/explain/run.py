@@ -30,7 +30,13 @@ from depthstation.evaluate.explain.attribute import Attribution, attribute
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
 from depthstation.evaluate.explain.discover import Discovery, discover, remaining
 from depthstation.evaluate.explain.library import library
-from depthstation.evaluate.explain.locate import FAMILY_AXES, LocateResult, locate
+from depthstation.evaluate.explain.locate import (
+    FAMILY_AXES,
+    MIN_NOISE_FRAMES,
+    LocateResult,
+    locate,
+    short_standpoints,
+)
 from depthstation.evaluate.explain.report import write_outputs
 from depthstation.evaluate.explain.rerun_log import log_explanation
 from depthstation.evaluate.explain.samples import Samples, board_edge_px, concat, thin, unpaired_standpoints
@@ -209,6 +215,14 @@ def warn_unpaired(real: Samples, sim: Samples, what: str) -> None:
              "real-vs-simulated test", name, "explain-unpaired-standpoint")
 
 
+def warn_short(real: Samples, sim: Samples) -> None:
+    """A standpoint with board pixels in fewer than 3 frames has no usable temporal variance: it is
+    left out of the noise tests (its bias is still tested), and the user must know."""
+    for name in sorted(set(short_standpoints(real)) | set(short_standpoints(sim))):
+        warn(f"board pixels in fewer than {MIN_NOISE_FRAMES} frames: left out of the noise tests (a "
+             "temporal variance needs 3 frames or more)", name, "explain-short-standpoint")
+
+
 def present_effects(model: SensorModel) -> dict[str, dict[str, float]]:
     """The model's effects and their parameters: refitting one of these is calibration."""
     return {e.name: dict(e.params) for e in model.effects}
@@ -276,6 +290,7 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     again."""
     present = present_effects(model)
     warn_unpaired(real.samples, sim.samples, "simulation")
+    warn_short(real.samples, sim.samples)
     if tick:
         tick("locate")
     structures = (decompose(real.samples), decompose(sim.samples))
