@@ -4,6 +4,7 @@ that disagree with the recording, and bad options, each refused or warned in one
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -106,3 +107,37 @@ def test_report_handles_a_remaining_term_without_fit_figures() -> None:
     text = "\n".join(_discovered_md(data, []))
     assert "| `window_noise` | more correlated |" in text
     assert "`poly_z` (delta BIC -3.0, Wald p 0.2)" in text
+
+
+def _rewrite(src: Path, dst: Path, **info_changes: object) -> Path:
+    """A copy of one recording with its stream info changed (a recording made without calibration)."""
+    from depthstation.core.capture.mcap_writer import write_mcap
+    from depthstation.core.capture.registry import open_inputs
+
+    (rec,) = open_inputs([src])
+    meta = dict(rec.metadata)
+    device = dict(meta.get("device") or {})
+    for k in info_changes:
+        device.pop(k, None)
+    meta["device"] = device
+    write_mcap(dst, replace(rec.info, **info_changes), list(rec.frames()), meta)
+    return dst
+
+
+def test_recording_without_baseline_takes_the_models_with_a_warning(
+        small: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """No baseline in the recording: the model's is assumed and said (was 95 mm hard-coded in the scan
+    form, the model's silently here)."""
+    real = tmp_path / "real"
+    real.mkdir()
+    for name in ("standpoint_01", "standpoint_02"):
+        _rewrite(small / "s" / f"{name}.mcap", real / f"{name}.mcap", baseline_m=None)
+    model = tmp_path / "m.toml"
+    model.write_text('[camera]\npreset = "d455"\nbaseline_m = 0.05\n')
+    out = tmp_path / "e"
+    code, err = _explain(capsys, str(real), "--board", str(small / "p_320.toml"), "--out", str(out),
+                         "--frames", "3", "--model", str(model), "--no-resimulate", "--no-discover")
+    assert code == 0, err
+    result = json.loads((out / "result.json").read_text())
+    (w,) = [w for w in result["warnings"] if w["code"] == "assumed-baseline"]
+    assert "50 mm assumed from model 'm'" in w["message"]

@@ -142,13 +142,25 @@ def _side(results: Sequence[Any], info: StreamInfo, baseline_m: float, t0_ns: in
     return Side(samples_from_results(ok, info, baseline_m, t0_ns, true_poses), poses, clocks, info, figures)
 
 
+def known_baseline(info: StreamInfo, baseline_m: float, source: str, where: str) -> StreamInfo:
+    """`info` with a stereo baseline: the recording's, else `baseline_m` (the model's), warned with the
+    value and where it came from. Why: disparity-domain effects (lr_focal_mismatch, disparity_offset)
+    scale with f B; a wrong B moves them by the same factor without a word."""
+    if info.baseline_m:
+        return info
+    warn(f"the recording gives no stereo baseline: {1e3 * baseline_m:g} mm assumed from {source}; "
+         "disparity-domain figures (disparity offset, focal mismatch) scale with it", where,
+         "assumed-baseline")
+    return replace(info, baseline_m=baseline_m)
+
+
 def _stride(info: StreamInfo) -> int:
     return max(1, round(info.depth_intrinsics.width / 320))
 
 
 def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, baseline_m: float,
                   tick: Progress | None = None, workers: int = 1, cluster: str | None = None,
-                  topics: TopicChoice | None = None) -> Side:
+                  topics: TopicChoice | None = None, baseline_source: str = "the model") -> Side:
     """The checkerboard study of the real inputs (its one prepare/run path), with per-pixel samples.
 
     Standpoints go out as tasks on a ChunkRunner: each is read and evaluated by the worker that
@@ -156,7 +168,8 @@ def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, ba
     """
     probe = prepare_checkerboard(list(paths), board, StandpointOptions(frames=frames, topics=topics),
                                  one_camera=True)
-    info = probe.recordings[0].info
+    info = known_baseline(probe.recordings[0].info, baseline_m, baseline_source,
+                          str(probe.recordings[0].path))
     options = StandpointOptions(frames=frames, collect_samples=True, sample_stride=_stride(info),
                                 reference=REFERENCE, topics=topics)
     job = replace(probe, options=options)
@@ -168,7 +181,7 @@ def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, ba
     with ChunkRunner(workers, cluster) as runner:
         results = run_standpoints(job.recordings, job.board, job.options, runner, progress=progress)
     say_warnings(results)   # a standpoint with no usable frame is named here, and absent from the tests
-    return _side(results, info, info.baseline_m or baseline_m)
+    return _side(results, info, float(info.baseline_m))
 
 
 def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0,
@@ -346,7 +359,8 @@ def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, 
                  discovery: bool = True) -> dict[str, Any]:
     brd = board if isinstance(board, Board) else load_board(board)
     real_side = evaluate_real(real, brd, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
-                              workers=workers, cluster=cluster, topics=topics)
+                              workers=workers, cluster=cluster, topics=topics,
+                              baseline_source=f"model '{model.name}' ([camera] baseline_m)")
     sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
     ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, discovery=discovery,
                        tick=tick)

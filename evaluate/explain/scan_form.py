@@ -33,7 +33,7 @@ from depthstation.evaluate.explain.basis import Candidate, module_candidates
 from depthstation.evaluate.explain.discover import Discovery, select_table
 from depthstation.evaluate.explain.figures import residual_grid_figure
 from depthstation.evaluate.explain.library import library
-from depthstation.evaluate.explain.run import present_effects
+from depthstation.evaluate.explain.run import known_baseline, present_effects
 from depthstation.evaluate.explain.samples import FloatArray, Samples
 from depthstation.evaluate.scan.chunks import chunk_ranges
 from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, make_renderer
@@ -229,7 +229,7 @@ def _pseudo_samples(bc: BlockCells, info: StreamInfo, albedo: float) -> Samples:
     """Block-cells as samples at the cell centres (principal point: the grid has no pixel position)."""
     intr = info.stereo
     return Samples.build(names=["sequence"], fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy,
-                         baseline_m=float(info.baseline_m or 0.095), standpoint=0, frame=bc.block,
+                         baseline_m=float(info.baseline_m), standpoint=0, frame=bc.block,
                          u=intr.ppx, v=intr.ppy, z_ref_m=bc.z_m, err_m=bc.bias_m,
                          inclination_deg=bc.inclination_deg, albedo=albedo, temperature_c=40.0,
                          time_s=bc.time_s)
@@ -470,7 +470,8 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
     if tick:
         tick(f"evaluate real ({n_frames} frames, blocks of {block})")
     real = block_grids(_Limited(), mesh_path, posed, block, tolerance_s)
-    info = source.info
+    info = known_baseline(source.info, model.camera.baseline_m, f"model '{model.name}' ([camera] baseline_m)",
+                          str(sequence))
 
     def side(mdl: SensorModel, s: int) -> list[Grid]:
         seq = SimulatedSequence(mesh_path, mdl, info, posed, clock, seed=s, tolerance_s=tolerance_s)
