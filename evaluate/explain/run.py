@@ -181,7 +181,7 @@ def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, ba
     with ChunkRunner(workers, cluster) as runner:
         results = run_standpoints(job.recordings, job.board, job.options, runner, progress=progress)
     say_warnings(results)   # a standpoint with no usable frame is named here, and absent from the tests
-    return _side(results, info, float(info.baseline_m))
+    return _side(results, info, float(info.baseline_m or baseline_m))
 
 
 def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0,

@@ -228,8 +228,9 @@ def locate_cells(bc: BlockCells, shape: tuple[int, int]) -> dict[str, Any]:
 def _pseudo_samples(bc: BlockCells, info: StreamInfo, albedo: float) -> Samples:
     """Block-cells as samples at the cell centres (principal point: the grid has no pixel position)."""
     intr = info.stereo
+    baseline = np.nan if info.baseline_m is None else float(info.baseline_m)   # known_baseline set it
     return Samples.build(names=["sequence"], fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy,
-                         baseline_m=float(info.baseline_m), standpoint=0, frame=bc.block,
+                         baseline_m=baseline, standpoint=0, frame=bc.block,
                          u=intr.ppx, v=intr.ppy, z_ref_m=bc.z_m, err_m=bc.bias_m,
                          inclination_deg=bc.inclination_deg, albedo=albedo, temperature_c=40.0,
                          time_s=bc.time_s)
