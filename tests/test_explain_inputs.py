@@ -141,3 +141,26 @@ def test_recording_without_baseline_takes_the_models_with_a_warning(
     result = json.loads((out / "result.json").read_text())
     (w,) = [w for w in result["warnings"] if w["code"] == "assumed-baseline"]
     assert "50 mm assumed from model 'm'" in w["message"]
+
+
+def test_model_camera_differing_from_the_recording_is_warned(
+        small: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Model baseline 50 mm / units 0.1 mm on D455 data, and a D435 model: warned (they are never
+    simulated: the recording's camera is); the recording's device is in result.json."""
+    model = tmp_path / "m.toml"
+    model.write_text('[camera]\npreset = "d455"\nbaseline_m = 0.05\ndepth_units_m = 1e-4\n')
+    runs = {"m": str(model), "d435": "d435", "d455": "d455"}
+    said = {}
+    for key, mdl in runs.items():
+        out = tmp_path / key
+        code, err = _explain(capsys, str(small / "s"), "--board", str(small / "p_320.toml"),
+                             "--out", str(out), "--frames", "3", "--model", mdl, "--no-resimulate",
+                             "--no-discover")
+        assert code == 0, err
+        result = json.loads((out / "result.json").read_text())
+        said[key] = [w["message"] for w in result["warnings"] if w["code"] == "model-camera"]
+        assert "D455" in result["device"]["name"]
+    assert len(said["m"]) == 1 and "baseline 50 mm (the recording's 95 mm)" in said["m"][0]
+    assert "depth units 0.0001 m (the recording's 0.001 m)" in said["m"][0]
+    assert len(said["d435"]) == 1 and "camera D435" in said["d435"][0]
+    assert said["d455"] == []

@@ -343,6 +343,6 @@ def write_outputs(ex: Explanation, out: Path, inputs: list[str], parameters: dic
     (out / "model.toml").write_text(ex.new_model.to_toml())
     figs = figures(ex, out) + discovered_figures(ex, out)
     (out / "report.md").write_text(report_md(ex, data, figs))
-    write_result_info(out, "explain", inputs, parameters,
+    write_result_info(out, "explain", inputs, parameters, ex.real.device,
                       extra={"selected": data["selected"], "significant": data["mismatch"]["significant"]})
     return data

@@ -8,7 +8,7 @@ checkerboard study (contract 3), so both sides share every step but the sensor.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -73,6 +73,7 @@ class Side:
     clocks: dict[str, FrameClock]
     info: StreamInfo
     figures: dict[str, dict[str, float]]
+    device: dict[str, Any] = field(default_factory=dict)   # the recording's, for result.json
 
 
 def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: float,
@@ -154,13 +155,33 @@ def known_baseline(info: StreamInfo, baseline_m: float, source: str, where: str)
     return replace(info, baseline_m=baseline_m)
 
 
+def check_model_camera(model: SensorModel, info: StreamInfo, device: dict[str, Any], where: str) -> None:
+    """Warn where the model's [camera] differs from the recording's camera. Why: the simulation renders
+    the recording's geometry (baseline, depth units, intrinsics), so a model camera that differs is
+    never simulated, yet model.toml keeps it, and a D455 model on D435 data compares the wrong noise."""
+    cam, src = model.camera, f"model '{model.name}'"
+    said = []
+    if info.baseline_m and abs(cam.baseline_m - info.baseline_m) > 1e-3 * info.baseline_m:
+        said.append(f"baseline {1e3 * cam.baseline_m:g} mm (the recording's {1e3 * info.baseline_m:g} mm)")
+    if info.depth_units_m and abs(cam.depth_units_m - info.depth_units_m) > 1e-6 * info.depth_units_m:
+        said.append(f"depth units {cam.depth_units_m:g} m (the recording's {info.depth_units_m:g} m)")
+    name = str(device.get("name") or device.get("model") or "")
+    if name and cam.product.lower() not in name.lower() and cam.name.lower() not in name.lower():
+        said.append(f"camera {cam.product} (the recording's '{name}')")
+    if said:
+        warn(f"{src} [camera] differs from the recording: {'; '.join(said)}; the simulation renders the "
+             "recording's camera, so the model's values were not simulated (model.toml keeps them): give a "
+             "model of this camera", where, "model-camera")
+
+
 def _stride(info: StreamInfo) -> int:
     return max(1, round(info.depth_intrinsics.width / 320))
 
 
 def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, baseline_m: float,
                   tick: Progress | None = None, workers: int = 1, cluster: str | None = None,
-                  topics: TopicChoice | None = None, baseline_source: str = "the model") -> Side:
+                  topics: TopicChoice | None = None, baseline_source: str = "the model",
+                  model: SensorModel | None = None) -> Side:
     """The checkerboard study of the real inputs (its one prepare/run path), with per-pixel samples.
 
     Standpoints go out as tasks on a ChunkRunner: each is read and evaluated by the worker that
@@ -170,6 +191,9 @@ def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, ba
                                  one_camera=True)
     info = known_baseline(probe.recordings[0].info, baseline_m, baseline_source,
                           str(probe.recordings[0].path))
+    device = probe.device
+    if model is not None:
+        check_model_camera(model, info, device, str(probe.recordings[0].path))
     options = StandpointOptions(frames=frames, collect_samples=True, sample_stride=_stride(info),
                                 reference=REFERENCE, topics=topics)
     job = replace(probe, options=options)
@@ -181,7 +205,7 @@ def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, ba
     with ChunkRunner(workers, cluster) as runner:
         results = run_standpoints(job.recordings, job.board, job.options, runner, progress=progress)
     say_warnings(results)   # a standpoint with no usable frame is named here, and absent from the tests
-    return _side(results, info, float(info.baseline_m or baseline_m))
+    return replace(_side(results, info, float(info.baseline_m or baseline_m)), device=device)
 
 
 def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0,
@@ -360,7 +384,7 @@ def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, 
     brd = board if isinstance(board, Board) else load_board(board)
     real_side = evaluate_real(real, brd, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
                               workers=workers, cluster=cluster, topics=topics,
-                              baseline_source=f"model '{model.name}' ([camera] baseline_m)")
+                              baseline_source=f"model '{model.name}' ([camera] baseline_m)", model=model)
     sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
     ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, discovery=discovery,
                        tick=tick)

@@ -33,7 +33,7 @@ from depthstation.evaluate.explain.basis import Candidate, module_candidates
 from depthstation.evaluate.explain.discover import Discovery, select_table
 from depthstation.evaluate.explain.figures import residual_grid_figure
 from depthstation.evaluate.explain.library import library
-from depthstation.evaluate.explain.run import known_baseline, present_effects
+from depthstation.evaluate.explain.run import check_model_camera, known_baseline, present_effects
 from depthstation.evaluate.explain.samples import FloatArray, Samples
 from depthstation.evaluate.scan.chunks import chunk_ranges
 from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, make_renderer
@@ -431,6 +431,7 @@ class ScanExplanation:
     before: BlockCells
     after: BlockCells | None
     shape: tuple[int, int]
+    device: dict[str, Any] = field(default_factory=dict)   # the recording's, for result.json
 
 
 def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorModel, out: Path, *,
@@ -473,6 +474,7 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
     real = block_grids(_Limited(), mesh_path, posed, block, tolerance_s)
     info = known_baseline(source.info, model.camera.baseline_m, f"model '{model.name}' ([camera] baseline_m)",
                           str(sequence))
+    check_model_camera(model, info, dict(source.info.device or {}), str(sequence))
 
     def side(mdl: SensorModel, s: int) -> list[Grid]:
         seq = SimulatedSequence(mesh_path, mdl, info, posed, clock, seed=s, tolerance_s=tolerance_s)
@@ -534,7 +536,7 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
                         + "; discovery looks along distance, disparity, inclination and the blocks' time "
                           "(the scan study keeps no pixel positions: u, v, radius, tile need per-pixel data)",
     }
-    return ScanExplanation(data, new_model, bc, after_bc, shape)
+    return ScanExplanation(data, new_model, bc, after_bc, shape, dict(source.info.device or {}))
 
 
 def residual_map(bc: BlockCells, shape: tuple[int, int]) -> FloatArray:
@@ -584,5 +586,5 @@ def write_scan_outputs(ex: ScanExplanation, out: Path, inputs: list[str],
     lines += ["", f"Not testable on this grid: {data['not_testable']}.", "",
               "![residual grid](residual_grid.png)", ""]
     (out / "report.md").write_text("\n".join(lines))
-    write_result_info(out, "explain-scan", inputs, options, extra={"explain": "explain.json"})
+    write_result_info(out, "explain-scan", inputs, options, ex.device, extra={"explain": "explain.json"})
     return data
