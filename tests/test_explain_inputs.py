@@ -164,3 +164,22 @@ def test_model_camera_differing_from_the_recording_is_warned(
     assert "depth units 0.0001 m (the recording's 0.001 m)" in said["m"][0]
     assert len(said["d435"]) == 1 and "camera D435" in said["d435"][0]
     assert said["d455"] == []
+
+
+def test_force_keeps_the_model_inside_out(small: Path, tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """The model TOML and the board are inputs: listed in result.json, and `--force` refuses to replace a
+    folder that holds one (it deleted the model before)."""
+    out = tmp_path / "e"
+    model = tmp_path / "m.toml"
+    model.write_text('[camera]\npreset = "d455"\n')
+    args = ["--board", str(small / "p_320.toml"), "--frames", "3", "--no-resimulate", "--no-discover"]
+    code, err = _explain(capsys, str(small / "s"), "--out", str(out), "--model", str(model), *args)
+    assert code == 0, err
+    inputs = json.loads((out / "result.json").read_text())["inputs"]
+    assert inputs == [str(small / "s"), str(small / "p_320.toml"), str(model)]
+    kept = out / "mine.toml"
+    kept.write_text(model.read_text())
+    code, err = _explain(capsys, str(small / "s"), "--out", str(out), "--model", str(kept), "--force", *args)
+    assert code == 2 and f"holds the input {kept}" in err
+    assert kept.is_file()

@@ -85,11 +85,18 @@ def explain(
                        workers=workers, cluster=cluster, topics=topics, discovery=discover,
                        parameters={"board": str(board), "model": model, "frames": frames, "seed": seed,
                                    "workers": workers, "cluster": cluster, "discover": discover},
-                       target=RerunTarget(rrd, spawn, serve, force), tick=tick, force=force)
+                       target=RerunTarget(rrd, spawn, serve, force), tick=tick, force=force,
+                       model_file=model_file(model))
     verdict = ("significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch")
     typer.echo(f"{verdict}; selected: {', '.join(data['selected']) or 'nothing'}; "
                f"missing physics: {', '.join(data['missing_physics']) or 'none'}; "
                f"discovered: {_discovered_text(data)}; results in {out}")
+
+
+def model_file(model: str) -> Path | None:
+    """The model TOML a --model names (None for a preset name): an input of the run."""
+    p = Path(model)
+    return p if p.is_file() else None
 
 
 def _discovered_text(data: dict[str, object]) -> str:
@@ -118,12 +125,13 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
     def tick(msg: str) -> None:
         stderr_console.print(f"[bold]explain --scan[/]: {msg}")
 
-    inputs = [*real, poses, reference, *([similarity] if similarity else [])]
+    given = model_file(model)
+    inputs = [*real, poses, reference, *([similarity] if similarity else []), *([given] if given else [])]
     with result_folder(out, force=force, inputs=inputs, kind="explain-scan") as tmp:
         ex = explain_scan(real[0], poses, reference, mdl, tmp, frames=frames, block_frames=block_frames,
                           seed=seed, register=register, similarity=similarity, resimulate=resimulate,
                           discovery=discover, tick=tick, topics=topics)
-        data = write_scan_outputs(ex, tmp, [str(real[0]), str(poses), str(reference)],
+        data = write_scan_outputs(ex, tmp, [str(p) for p in inputs],
                                   {"model": model, "frames": frames, "seed": seed, "register": register,
                                    "block_frames": block_frames, "discover": discover,
                                    "similarity": str(similarity) if similarity else None})

@@ -365,22 +365,23 @@ def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, o
                 seed: int = 0, resimulate: bool = True, workers: int = 1, cluster: str | None = None,
                 discovery: bool = True, parameters: dict[str, Any] | None = None,
                 target: RerunTarget | None = None, tick: Progress | None = None, force: bool = False,
-                topics: TopicChoice | None = None) -> dict[str, Any]:
+                topics: TopicChoice | None = None, model_file: Path | None = None) -> dict[str, Any]:
     """`depthstation explain` of checkerboard captures: evaluate the real standpoints, simulate them
     with `model`, locate, attribute, refit, check, and write the result folder (whole or not at
-    all; a non-empty `out` only with `force`); its explain.json."""
-    inputs = [*real, *([board] if isinstance(board, Path) else [])]
+    all; a non-empty `out` only with `force`); its explain.json. The board and `model_file` (the model
+    TOML it was read from) are inputs: `--force` never deletes them, result.json lists them."""
+    inputs = [*real, *([board] if isinstance(board, Path) else []), *([model_file] if model_file else [])]
     with result_folder(out, force=force, inputs=inputs, kind="explain") as tmp:
         return _run_explain(real, board, model, tmp, frames, seed, resimulate, workers, cluster,
                             parameters, None if target is None else target.within(out, tmp), tick, topics,
-                            discovery)
+                            discovery, inputs)
 
 
 def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, frames: int,
                  seed: int, resimulate: bool, workers: int, cluster: str | None,
                  parameters: dict[str, Any] | None, target: RerunTarget | None,
                  tick: Progress | None, topics: TopicChoice | None = None,
-                 discovery: bool = True) -> dict[str, Any]:
+                 discovery: bool = True, inputs: Sequence[Path] = ()) -> dict[str, Any]:
     brd = board if isinstance(board, Board) else load_board(board)
     real_side = evaluate_real(real, brd, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
                               workers=workers, cluster=cluster, topics=topics,
@@ -388,7 +389,7 @@ def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, 
     sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
     ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, discovery=discovery,
                        tick=tick)
-    data = write_outputs(ex, out, [str(p) for p in real], dict(parameters or {}))
+    data = write_outputs(ex, out, [str(p) for p in (inputs or real)], dict(parameters or {}))
     if target is not None and target.enabled:
         log_explanation(ex, target)
     return data
