@@ -183,3 +183,33 @@ def test_force_keeps_the_model_inside_out(small: Path, tmp_path: Path,
     code, err = _explain(capsys, str(small / "s"), "--out", str(out), "--model", str(kept), "--force", *args)
     assert code == 2 and f"holds the input {kept}" in err
     assert kept.is_file()
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A simulated room walk: 24 frames of 256x144, its trajectory and mesh."""
+    from depthstation.simulate.scan_sequence import simulate_scan
+
+    out = tmp_path_factory.mktemp("room") / "sim"
+    return simulate_scan("room", "walk", "d455", out, frames=24, width=256, height=144, color=False, seed=5)
+
+
+def test_scan_frames_without_pose_are_counted(room: Path, tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """Poses for the first 12 of 24 frames: warned, and the report says 12 frames (it said 24 in 6
+    blocks); result.json carries the recording's device."""
+    lines = [x for x in (room / "trajectory.txt").read_text().splitlines() if x and not x.startswith("#")]
+    half = tmp_path / "half.txt"
+    half.write_text("\n".join(lines[:12]) + "\n")
+    out = tmp_path / "e"
+    code, err = _explain(capsys, "--scan", str(room / "sequence.mcap"), "--poses", str(half),
+                         "--reference", str(room / "scene.ply"), "--out", str(out), "--block-frames", "4",
+                         "--frames", "24", "--no-resimulate", "--no-discover")
+    assert code == 0, err
+    data = json.loads((out / "explain.json").read_text())
+    assert (data["frames"], data["frames_read"], data["skipped_no_pose"], data["blocks"]) == (12, 24, 12, 3)
+    result = json.loads((out / "result.json").read_text())
+    (w,) = [w for w in result["warnings"] if w["code"] == "frames-without-pose"]
+    assert "12 of 24 frames have no pose" in w["message"] and w["where"] == str(half)
+    assert "D455" in result["device"]["name"]
+    assert "12 frames in 3 blocks" in (out / "report.md").read_text()

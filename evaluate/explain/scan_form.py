@@ -24,10 +24,11 @@ from scipy.special import stdtr
 
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture.topics import TopicChoice
-from depthstation.core.errors import EvaluationError
+from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSet, FrameSource
 from depthstation.core.grid import Grid
 from depthstation.core.results import write_json, write_result_info
+from depthstation.core.run_warnings import warn
 from depthstation.evaluate.explain.attribute import CandidateFit, Table, gls
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
 from depthstation.evaluate.explain.discover import Discovery, select_table
@@ -457,6 +458,17 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
         raise EvaluationError(f"{len(clock.index)} frames: too few for frame blocks (need {MIN_BLOCKS * 2})")
     block = max(1, min(block_frames, len(clock.index) // MIN_BLOCKS))
     n_frames = len(clock.index)
+    # frames without a pose are skipped by both sides' study: say so, and count what is used
+    posed_at = [posed.match(ts * 1e-9, tolerance_s) is not None for ts in clock.timestamp_ns]
+    n_posed = int(sum(posed_at))
+    blocks_used = sum(any(posed_at[a:a + n]) for a, n in chunk_ranges(n_frames, block))
+    if n_posed < n_frames:
+        warn(f"{n_frames - n_posed} of {n_frames} frames have no pose within {tolerance_s:g} s in the "
+             f"trajectory and are left out: {n_posed} frames in {blocks_used} blocks are compared",
+             str(poses), "frames-without-pose")
+    if n_posed == 0:
+        raise InputError(poses, f"no pose within {tolerance_s:g} s of any of the {n_frames} frames' time "
+                                "stamps (another sequence's trajectory, or another clock?)")
 
     class _Limited:
         """The real source cut to the frames used."""
@@ -470,7 +482,7 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
             return source.frames(limit=lim, start=start)
 
     if tick:
-        tick(f"evaluate real ({n_frames} frames, blocks of {block})")
+        tick(f"evaluate real ({n_posed} frames with a pose, blocks of {block})")
     real = block_grids(_Limited(), mesh_path, posed, block, tolerance_s)
     info = known_baseline(source.info, model.camera.baseline_m, f"model '{model.name}' ([camera] baseline_m)",
                           str(sequence))
@@ -520,7 +532,8 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
     data = {
         "kind": "scan",
         "inputs": {"sequence": str(sequence), "poses": str(poses), "reference": str(reference)},
-        "registration": reg_info, "frames": n_frames, "block_frames": block, "blocks": len(real),
+        "registration": reg_info, "frames": n_posed, "frames_read": n_frames,
+        "skipped_no_pose": n_frames - n_posed, "block_frames": block, "blocks": blocks_used,
         "grid": {"distance_bin_m": DISTANCE_BIN_M, "inclination_bin_deg": INCLINATION_BIN_DEG,
                  "min_cell_count": MIN_CELL_COUNT},
         "mismatch": before, "mismatch_after": after, "candidates": candidates, "selected": selected,
