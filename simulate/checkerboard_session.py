@@ -16,12 +16,12 @@ from depthstation.core.board import Board
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture.rs_writer import write_realsense_recording
 from depthstation.core.capture.session import Session
-from depthstation.core.errors import InputError
+from depthstation.core.errors import InputError, SimulationError
 from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress
 from depthstation.core.protocol import Protocol, Standpoint, load_protocol
 from depthstation.core.results import write_json
-from depthstation.simulate.model import SensorModel, load_model
+from depthstation.simulate.model import SensorModel, check_seed, load_model
 from depthstation.simulate.poses import standpoint_pose, standpoint_truth
 from depthstation.simulate.scene import Scene, board_scene
 from depthstation.simulate.view_renderer import ViewRenderer
@@ -70,6 +70,10 @@ def _select(protocol: Protocol, standpoints: Sequence[str | Standpoint] | None) 
         return plan
     by_name = {s.name: s for s in plan}
     out = []
+    names = [s if isinstance(s, str) else s.name for s in standpoints]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:   # one standpoint rendered twice would write its recording twice
+        raise InputError(None, f"--standpoint {twice[0]} is given more than once")
     for s in standpoints:
         if isinstance(s, Standpoint):
             out.append(s)
@@ -114,7 +118,12 @@ def simulate_checkerboard(protocol: Protocol | str | Path, model: SensorModel | 
     n_frames = frames if frames is not None else proto.plan.frames_per_standpoint
     if n_frames < 1:
         raise InputError(None, "--frames must be at least 1")
-    info = stream_info_for(proto, mdl)
+    check_seed(seed)
+    try:
+        info = stream_info_for(proto, mdl)
+    except SimulationError as exc:   # a mode the camera lacks: say which file asked for it
+        raise InputError(Path(proto.source) if proto.source else None,
+                         f"[streams] width/height: {exc}") from exc
     sc = scene or board_scene(proto.board)
     renderer = ViewRenderer(sc, mdl, info, seed=seed, infrared=proto.streams.infrared,
                             color=proto.streams.color)

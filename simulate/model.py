@@ -196,6 +196,12 @@ def model_from_dict(data: dict[str, Any], name: str, source: Path | None = None)
     return SensorModel(name, camera, effects, cam)
 
 
+def check_seed(seed: int) -> None:
+    """The noise generators take seeds of 0 and up (numpy refuses a negative one mid-run)."""
+    if seed < 0:
+        raise InputError(None, f"--seed must be 0 or more, not {seed}")
+
+
 def load_model(name_or_path: str | Path | SensorModel = "d455") -> SensorModel:
     """A model from a preset name ('d455', 'd435', 'd415' -> simulate/models/<name>.toml) or a TOML path."""
     if isinstance(name_or_path, SensorModel):

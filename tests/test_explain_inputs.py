@@ -213,3 +213,23 @@ def test_scan_frames_without_pose_are_counted(room: Path, tmp_path: Path,
     assert "12 of 24 frames have no pose" in w["message"] and w["where"] == str(half)
     assert "D455" in result["device"]["name"]
     assert "12 frames in 3 blocks" in (out / "report.md").read_text()
+
+
+@pytest.mark.parametrize(("extra", "said"), [
+    (["--seed", "-1"], "--seed must be 0 or more, not -1"),
+    (["--cluster", "notanaddress"], "--cluster 'notanaddress' is not a Dask scheduler address"),
+])
+def test_bad_explain_options(small: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                             extra: list[str], said: str) -> None:
+    """Internal errors before (the cluster one after a 40 s wait)."""
+    code, err = _explain(capsys, str(small / "s"), "--board", str(small / "p_320.toml"),
+                         "--out", str(tmp_path / "e"), "--frames", "3", *extra)
+    assert code == 2 and said in err, err
+
+
+def test_out_that_is_a_file(small: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "afile.txt"
+    out.write_text("mine\n")
+    code, err = _explain(capsys, str(small / "s"), "--board", str(small / "p_320.toml"), "--out", str(out),
+                         "--frames", "3")
+    assert code == 2 and f"{out}: is a file" in err and out.read_text() == "mine\n"

@@ -8,13 +8,14 @@ import typer
 
 from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, TopicChoice, topic_choice
 from depthstation.core.errors import InputError
+from depthstation.core.parallel import check_cluster_address
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.core.results import ForceOption, result_folder
 from depthstation.evaluate.explain.run import run_explain
 from depthstation.evaluate.explain.scan_form import explain_scan, write_scan_outputs
 from depthstation.evaluate.scan.run import ScanOptions
-from depthstation.simulate.model import load_model
+from depthstation.simulate.model import check_seed, load_model
 
 
 def register(app: typer.Typer) -> None:
@@ -61,6 +62,11 @@ def explain(
     for p in real:
         if not p.exists():
             raise InputError(p, "not found")
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file: --out names the result folder")
+    check_seed(seed)
+    if cluster is not None:
+        check_cluster_address(cluster)
     if out.exists() and any(out.iterdir()) and not force:
         raise InputError(out, "is not empty; explain never overwrites results (--force replaces it)")
     topics = topic_choice(depth_topic, color_topic, infrared_topic)
