@@ -21,7 +21,13 @@ from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress as make_progress
 from depthstation.core.protocol import Streams
 from depthstation.core.results import write_json
-from depthstation.simulate.checkerboard_session import START_NS, TRUTH_FILE, WARM_TEMPERATURE_C
+from depthstation.simulate.checkerboard_session import (
+    START_NS,
+    TRUTH_FILE,
+    WARM_TEMPERATURE_C,
+    DepthTally,
+    model_label,
+)
 from depthstation.simulate.model import SensorModel, check_seed, load_model
 from depthstation.simulate.poses import read_tum, walk_around, write_tum
 from depthstation.simulate.scene import Scene, load_scene
@@ -128,8 +134,10 @@ def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: Sens
                                    metadata={"simulation": {"seed": seed, "model": mdl.name}},
                                    color_encoding=color_encoding) as w:
         w.write_temperature(START_NS, {"asic": WARM_TEMPERATURE_C, "projector": WARM_TEMPERATURE_C})
-        for fs in gen():
+        tally = DepthTally()
+        for fs in tally.watch(gen()):
             w.write(fs)
+    tally.warn_if_empty(model_label(model, mdl), SEQUENCE_NAME)
     write_json(out / TRUTH_FILE, {
         "kind": "simulated-scan", "seed": seed, "frames": len(poses), "stream_info": info.to_dict(),
         "model_name": mdl.name, "model": mdl.to_toml(), "scene": sc.meta, "mesh_file": MESH_FILE,

@@ -127,3 +127,21 @@ def test_model_camera_values_of_the_wrong_shape(tmp_path: Path, line: str, said:
     r = subprocess.run([str(EXE), "simulate", "model", str(model)], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 2 and f"{model}: model: [camera] {said}" in r.stderr, r.stderr
+
+
+def test_a_model_that_renders_no_depth_is_warned(tmp_path: Path) -> None:
+    """Depth units of 1e-9 m put every z beyond 16 bits: every pixel 0, exit 0 and no word before."""
+    model = tmp_path / "tiny.toml"
+    model.write_text('[camera]\npreset = "d455"\ndepth_units_m = 1e-9\n')
+    r = _run("checkerboard", "--protocol", "demo-d455", "-m", str(model), "--out", str(tmp_path / "c"),
+             "--frames", "1", "--standpoint", "standpoint_01")
+    assert r.returncode == 0 and "standpoint_01: the simulation holds no depth" in r.stderr
+    assert f"model '{model}'" in r.stderr
+    r = _run("scan", "-m", str(model), "--out", str(tmp_path / "s"), "--frames", "2", "--width", "256",
+             "--height", "144")
+    assert r.returncode == 0 and "sequence: the simulation holds no depth in any of its 2 frames" in r.stderr
+    codes = [w["code"] for w in json.loads((tmp_path / "s" / "result.json").read_text())["warnings"]]
+    assert codes == ["no-depth"]
+    r = _run("checkerboard", "--protocol", "demo-d455", "--out", str(tmp_path / "ok"), "--frames", "1",
+             "--standpoint", "standpoint_01")
+    assert r.returncode == 0 and "no depth" not in r.stderr

@@ -41,6 +41,7 @@ from depthstation.evaluate.explain.report import write_outputs
 from depthstation.evaluate.explain.rerun_log import log_explanation
 from depthstation.evaluate.explain.samples import Samples, board_edge_px, concat, thin, unpaired_standpoints
 from depthstation.evaluate.explain.structure import decompose
+from depthstation.simulate.checkerboard_session import DepthTally
 from depthstation.simulate.effects import PixelContext
 from depthstation.simulate.effects.base import CorrelatedJitter
 from depthstation.simulate.model import SensorModel
@@ -223,6 +224,7 @@ def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0
             tick(f"simulate {name}")
         renderer.set_pose(np.linalg.inv(pose))
         clock = real.clocks[name]
+        tally = DepthTally()
 
         def frames(clock: FrameClock = clock, t0: int = t0, k: int = k) -> Any:
             for i, (idx, ts, temp) in enumerate(zip(clock.index, clock.timestamp_ns, clock.temperature_c,
@@ -234,9 +236,10 @@ def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0
                     fs.metadata.pop("temperature_c", None)
                 yield fs
 
-        results.append(evaluate_frames(name, frames(), info, board, frames_requested=len(clock.index),
-                                       collect_samples=True, sample_stride=_stride(info),
-                                       reference=REFERENCE))
+        results.append(evaluate_frames(name, tally.watch(frames()), info, board,
+                                       frames_requested=len(clock.index), collect_samples=True,
+                                       sample_stride=_stride(info), reference=REFERENCE))
+        tally.warn_if_empty(f"'{model.name}'", name)
     return _side(results, info, info.baseline_m or model.camera.baseline_m, t0, true_poses=real.poses)
 
 
