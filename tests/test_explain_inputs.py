@@ -233,3 +233,20 @@ def test_out_that_is_a_file(small: Path, tmp_path: Path, capsys: pytest.CaptureF
     code, err = _explain(capsys, str(small / "s"), "--board", str(small / "p_320.toml"), "--out", str(out),
                          "--frames", "3")
     assert code == 2 and f"{out}: is a file" in err and out.read_text() == "mine\n"
+
+
+def test_no_board_pixels_names_the_board_or_the_model(small: Path, tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """'no standpoint gave board pixels to compare' was exit 1 naming nothing: a board found in no frame
+    names the board file; a model whose simulation has no depth names the model (and warns no-depth)."""
+    board = tmp_path / "board.json"
+    board.write_text('{"type": "checkerboard", "squares_x": 9, "squares_y": 6, "square_length_m": 0.095}')
+    code, err = _explain(capsys, str(small / "s"), "--board", str(board), "--out", str(tmp_path / "a"),
+                         "--frames", "3")
+    assert code == 2 and f"{board}: the board was found in no frame" in err, err
+    model = tmp_path / "neg.toml"
+    model.write_text('[camera]\npreset = "d455"\n[effects.depth_scale]\nscale_error = -1.5\n')
+    code, err = _explain(capsys, str(small / "s"), "--board", str(small / "p_320.toml"),
+                         "--model", str(model), "--out", str(tmp_path / "b"), "--frames", "3")
+    assert code == 2 and f"{model}: model 'neg': its simulation of the real standpoints gave no board" in err
+    assert "standpoint_01: the simulation holds no depth in any of its 3 frames" in err

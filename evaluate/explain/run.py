@@ -17,14 +17,14 @@ import numpy as np
 from depthstation.core.board import Board, load_board
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture.topics import TopicChoice
-from depthstation.core.errors import EvaluationError
+from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.core.results import result_folder
 from depthstation.core.run_warnings import warn
 from depthstation.evaluate.checkerboard.chunks import StandpointOptions, run_standpoints
-from depthstation.evaluate.checkerboard.run import prepare_checkerboard, say_warnings
+from depthstation.evaluate.checkerboard.run import check_usable, prepare_checkerboard, say_warnings
 from depthstation.evaluate.checkerboard.study import evaluate_frames
 from depthstation.evaluate.explain.attribute import Attribution, attribute
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
@@ -206,7 +206,13 @@ def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, ba
     with ChunkRunner(workers, cluster) as runner:
         results = run_standpoints(job.recordings, job.board, job.options, runner, progress=progress)
     say_warnings(results)   # a standpoint with no usable frame is named here, and absent from the tests
-    return replace(_side(results, info, float(info.baseline_m or baseline_m)), device=device)
+    check_usable(job, results)   # none at all: the board file or the recordings are the cause (exit 2)
+    try:
+        side = _side(results, info, float(info.baseline_m or baseline_m))
+    except EvaluationError as exc:   # usable frames, yet no black or white board pixel with depth
+        raise InputError(None, f"{exc} in the recordings ({', '.join(str(p) for p in paths)}): their board "
+                               "shows no depth (depth stream empty, or the board out of range?)") from exc
+    return replace(side, device=device)
 
 
 def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0,
@@ -377,19 +383,25 @@ def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, o
     with result_folder(out, force=force, inputs=inputs, kind="explain") as tmp:
         return _run_explain(real, board, model, tmp, frames, seed, resimulate, workers, cluster,
                             parameters, None if target is None else target.within(out, tmp), tick, topics,
-                            discovery, inputs)
+                            discovery, inputs, model_file)
 
 
 def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, frames: int,
                  seed: int, resimulate: bool, workers: int, cluster: str | None,
                  parameters: dict[str, Any] | None, target: RerunTarget | None,
                  tick: Progress | None, topics: TopicChoice | None = None,
-                 discovery: bool = True, inputs: Sequence[Path] = ()) -> dict[str, Any]:
+                 discovery: bool = True, inputs: Sequence[Path] = (),
+                 model_file: Path | None = None) -> dict[str, Any]:
     brd = board if isinstance(board, Board) else load_board(board)
-    real_side = evaluate_real(real, brd, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
+    real_side = evaluate_real(real, board, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
                               workers=workers, cluster=cluster, topics=topics,
                               baseline_source=f"model '{model.name}' ([camera] baseline_m)", model=model)
-    sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
+    try:
+        sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
+    except EvaluationError as exc:   # the real side has board pixels: the model is the cause
+        raise InputError(model_file, f"model '{model.name}': its simulation of the real standpoints gave no "
+                                     "board pixels to compare (frames without depth, or the board not found in "
+                                     "them): check the model's [camera] and effects") from exc
     ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, discovery=discovery,
                        tick=tick)
     data = write_outputs(ex, out, [str(p) for p in (inputs or real)], dict(parameters or {}))
