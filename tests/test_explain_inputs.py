@@ -4,6 +4,9 @@ that disagree with the recording, and bad options, each refused or warned in one
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -250,3 +253,22 @@ def test_no_board_pixels_names_the_board_or_the_model(small: Path, tmp_path: Pat
                          "--model", str(model), "--out", str(tmp_path / "b"), "--frames", "3")
     assert code == 2 and f"{model}: model 'neg': its simulation of the real standpoints gave no board" in err
     assert "standpoint_01: the simulation holds no depth in any of its 3 frames" in err
+
+
+def test_help_keeps_square_brackets_and_pass_points_is_refused(
+        room: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Rich took `[board]` for markup ('a protocol TOML with .'); explain offered --register pass-points
+    but has no --pass-points option."""
+    env = {**os.environ, "COLUMNS": "250"}
+    exe = Path(sys.executable).with_name("depthstation")
+
+    def helptext(*cmd: str) -> str:
+        return subprocess.run([str(exe), *cmd, "--help"], capture_output=True, text=True, env=env).stdout
+
+    text = helptext("explain")
+    assert "a protocol TOML with [board]." in text and "pass-points" not in text
+    assert "'fx fy cx cy [w h] [factor]'" in helptext("evaluate", "scan")
+    code, err = _explain(capsys, "--scan", str(room / "sequence.mcap"), "--poses",
+                         str(room / "trajectory.txt"), "--reference", str(room / "scene.ply"),
+                         "--out", str(tmp_path / "e"), "--register", "pass-points")
+    assert code == 2 and "explain --scan registers with none, rigid or similarity" in err

@@ -26,7 +26,7 @@ def register(app: typer.Typer) -> None:
 def explain(
     real: list[Path] = typer.Argument(..., help="Real captures: sessions, MCAP/.bag/.db3, PNG sets "
                                       "(with --scan: the one sequence)."),
-    board: Path | None = typer.Option(None, "--board", help="board.json or a protocol TOML with [board]."),
+    board: Path | None = typer.Option(None, "--board", help="board.json or a protocol TOML with \\[board]."),
     model: str = typer.Option("d455", "--model", help="Preset (d455, d435, d415) or a model TOML."),
     out: Path = typer.Option(..., "--out", help="Result folder (must be new or empty)."),
     frames: int = typer.Option(30, "--frames", help="Frames per standpoint to use."),
@@ -37,8 +37,8 @@ def explain(
     reference: Path | None = typer.Option(None, "--reference", help="--scan: reference mesh or cloud."),
     similarity: Path | None = typer.Option(None, "--similarity", help="--scan: 4x4 trajectory-to-reference."),
     register: str = typer.Option("none", "--register",
-                                 help="--scan: none (trajectory as given), rigid, similarity (its scale is "
-                                      "reported as the depth-scale error it absorbs) or pass-points."),
+                                 help="--scan: none (trajectory as given), rigid or similarity (its scale "
+                                      "is reported as the depth-scale error it absorbs)."),
     icp: bool | None = typer.Option(None, "--icp/--no-icp", help="--scan, deprecated: --icp is --register "
                                                                  "similarity, --no-icp --register none."),
     block_frames: int = typer.Option(8, "--block-frames",
@@ -75,6 +75,10 @@ def explain(
                                "variance over 3 frames or more)")
     if scan:
         mode = ScanOptions(register=register, icp=icp).register_mode
+        if mode == "pass-points":   # evaluate scan's --pass-points has no counterpart here
+            raise InputError(None, "explain --scan registers with none, rigid or similarity; pass-points "
+                                   "registration is evaluate scan's (--pass-points FILE): give the trajectory "
+                                   "in the reference frame, or --similarity M")
         _explain_scan(real, poses, reference, model, out, frames, seed, similarity, mode, block_frames,
                       not no_resimulate, force, topics, discover)
         return
