@@ -109,6 +109,10 @@ class CameraPreset:
             v = getattr(self, name)
             if not 1.0 < v < 179.0:
                 raise ValueError(f"{name} must be a field of view in degrees (1 to 179), got {v}")
+        t = self.depth_to_color_translation_m
+        if not all(np.isfinite(t)) or float(np.linalg.norm(t)) > 1.0:   # millimetres typed as metres
+            raise ValueError(f"depth_to_color_translation_m must be in metres (at most 1 m between the "
+                             f"imagers), got {list(t)}")
         for name in ("max_range_m", "max_disparity_px", "depth_units_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")

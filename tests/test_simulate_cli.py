@@ -120,6 +120,7 @@ def test_protocol_mode_error_names_the_protocol(tmp_path: Path) -> None:
     ("depth_to_color_translation_m = [0.1]", "depth_to_color_translation_m must be a list of 3 numbers"),
     ("depth_to_color_translation_m = 5", "depth_to_color_translation_m must be a list of 3 numbers"),
     ('baseline_m = "abc"', "baseline_m must be a number, got 'abc'"),
+    ("depth_to_color_translation_m = [-59, 0, 0]", "depth_to_color_translation_m must be in metres"),
 ])
 def test_model_camera_values_of_the_wrong_shape(tmp_path: Path, line: str, said: str) -> None:
     model = tmp_path / "m.toml"
@@ -127,6 +128,36 @@ def test_model_camera_values_of_the_wrong_shape(tmp_path: Path, line: str, said:
     r = subprocess.run([str(EXE), "simulate", "model", str(model)], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 2 and f"{model}: model: [camera] {said}" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize(("table", "said"), [
+    ("[effects.term_noise_frame_common]\nc = -1.0", "[effects.term_noise_frame_common] is a variance (px^2) "
+                                                     "below zero everywhere (c = -1)"),
+    ("[effects.term_noise_distance_poly1]\nc1 = -0.5", "[effects.term_noise_distance_poly1] is a variance"),
+    ("[effects.term_noise_frame_common]", "missing key 'effects.term_noise_frame_common.c'"),
+    ("[effects.term_bias_time_poly1]\nc1 = 0.1", "missing key 'effects.term_bias_time_poly1.ref_time_s'"),
+    ("[effects.quantization]\ndisparity_step_px = 0.03125\ndepth_unit_m = 0.0001",
+     "'effects.quantization.depth_unit_m' = 0.0001 m differs from the camera's depth units 0.001 m"),
+])
+def test_model_effects_checked(tmp_path: Path, table: str, said: str) -> None:
+    """Each was accepted: a negative variance clipped to nothing, a missing coefficient taken as 0, a
+    quantisation unit the camera's units override."""
+    model = tmp_path / "m.toml"
+    model.write_text(f'[camera]\npreset = "d455"\n{table}\n')
+    r = subprocess.run([str(EXE), "simulate", "model", str(model)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 2 and f"{model}: model: {said}" in r.stderr, r.stderr
+
+
+def test_model_with_positive_and_sign_changing_terms_loads(tmp_path: Path) -> None:
+    """The checks refuse only what is wrong: a time term's negative slope is a variance that grows
+    towards earlier times, and every parameter given loads."""
+    model = tmp_path / "m.toml"
+    model.write_text('[camera]\npreset = "d455"\n[effects.term_noise_time_poly1]\nc1 = -0.001\n'
+                     'ref_time_s = 100.0\n[effects.term_noise_frame_common]\nc = 0.01\n')
+    r = subprocess.run([str(EXE), "simulate", "model", str(model)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0 and "[effects.term_noise_time_poly1]" in r.stdout, r.stderr
 
 
 def test_a_model_that_renders_no_depth_is_warned(tmp_path: Path) -> None:
