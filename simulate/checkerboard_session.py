@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import json
 from collections import deque
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -16,12 +17,13 @@ from depthstation.core.board import Board
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture.rs_writer import write_realsense_recording
 from depthstation.core.capture.session import Session
-from depthstation.core.errors import InputError
+from depthstation.core.errors import InputError, SimulationError
 from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress
 from depthstation.core.protocol import Protocol, Standpoint, load_protocol
 from depthstation.core.results import write_json
-from depthstation.simulate.model import SensorModel, load_model
+from depthstation.core.run_warnings import warn
+from depthstation.simulate.model import SensorModel, check_seed, load_model
 from depthstation.simulate.poses import standpoint_pose, standpoint_truth
 from depthstation.simulate.scene import Scene, board_scene
 from depthstation.simulate.view_renderer import ViewRenderer
@@ -30,6 +32,34 @@ FORMATS = ("mcap", "db3")
 TRUTH_FILE = "truth.json"
 START_NS = 1_700_000_000_000_000_000  # fixed epoch origin so simulations are reproducible
 WARM_TEMPERATURE_C = 40.0
+
+
+@dataclass
+class DepthTally:
+    """Counts simulated frames and those holding any depth, as they pass to the writer. Why: a model
+    whose scale or depth units put every z out of range renders empty frames, and nothing downstream
+    says the simulation, not the scene, is empty."""
+
+    frames: int = 0
+    with_depth: int = 0
+
+    def watch(self, frames: Iterable[FrameSet]) -> Iterator[FrameSet]:
+        for fs in frames:
+            self.frames += 1
+            if fs.depth is not None and bool(np.any(fs.depth)):
+                self.with_depth += 1
+            yield fs
+
+    def warn_if_empty(self, model: str, where: str) -> None:
+        if self.frames and not self.with_depth:
+            warn(f"the simulation holds no depth in any of its {self.frames} frames: model {model} renders "
+                 "nothing here (a depth scale, depth units or range that put every z out of range?)",
+                 where, "no-depth")
+
+
+def model_label(given: SensorModel | str | Path, mdl: SensorModel) -> str:
+    """How a warning names the model: the file or preset given, else its name."""
+    return f"'{mdl.name}'" if isinstance(given, SensorModel) else f"'{given}'"
 
 
 def stream_info_for(protocol: Protocol, model: SensorModel) -> StreamInfo:
@@ -70,6 +100,10 @@ def _select(protocol: Protocol, standpoints: Sequence[str | Standpoint] | None) 
         return plan
     by_name = {s.name: s for s in plan}
     out = []
+    names = [s if isinstance(s, str) else s.name for s in standpoints]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:   # one standpoint rendered twice would write its recording twice
+        raise InputError(None, f"--standpoint {twice[0]} is given more than once")
     for s in standpoints:
         if isinstance(s, Standpoint):
             out.append(s)
@@ -114,7 +148,12 @@ def simulate_checkerboard(protocol: Protocol | str | Path, model: SensorModel | 
     n_frames = frames if frames is not None else proto.plan.frames_per_standpoint
     if n_frames < 1:
         raise InputError(None, "--frames must be at least 1")
-    info = stream_info_for(proto, mdl)
+    check_seed(seed)
+    try:
+        info = stream_info_for(proto, mdl)
+    except SimulationError as exc:   # a mode the camera lacks: say which file asked for it
+        raise InputError(Path(proto.source) if proto.source else None,
+                         f"[streams] width/height: {exc}") from exc
     sc = scene or board_scene(proto.board)
     renderer = ViewRenderer(sc, mdl, info, seed=seed, infrared=proto.streams.infrared,
                             color=proto.streams.color)
@@ -139,6 +178,8 @@ def simulate_checkerboard(protocol: Protocol | str | Path, model: SensorModel | 
         start_ns = START_NS + k * 60_000_000_000
         frames_it = render_frames(renderer, n_frames, seed=seed * 100003 + k, start_ns=start_ns, fps=fps)
         frames_it = _ticking(frames_it, bar)
+        tally = DepthTally()
+        frames_it = tally.watch(frames_it)
         meta = {"name": sp.name, "trajectory": sp.trajectory,
                 "target": {"distance_m": sp.distance_m, "inclination_deg": sp.inclination_deg,
                            "side": sp.side},
@@ -154,6 +195,7 @@ def simulate_checkerboard(protocol: Protocol | str | Path, model: SensorModel | 
 
             write_realsense_recording(out / f"{sp.name}.db3", info, frames_it)
             rec["file"] = f"{sp.name}.db3"
+        tally.warn_if_empty(model_label(model, mdl), sp.name)
         truth["standpoints"].append(rec)
         write_json(out / TRUTH_FILE, truth)
     if bar is not None:

@@ -15,7 +15,7 @@ from depthstation.core.text_files import read_text
 from depthstation.core.tomlcompat import tomllib
 from depthstation.simulate.effects import EFFECTS
 from depthstation.simulate.effects.base import Array, Effect, PixelContext
-from depthstation.simulate.effects.generic import term_class
+from depthstation.simulate.effects.generic import never_positive, term_class, term_spec
 from depthstation.simulate.fastpath import FusedSampler, fusable
 from depthstation.simulate.presets import PRESETS, CameraPreset
 
@@ -177,7 +177,11 @@ def model_from_dict(data: dict[str, Any], name: str, source: Path | None = None)
     for ename, params in effects_data.items():
         if not isinstance(params, dict):
             raise InputError(source, f"model: [effects.{ename}] must be a table")
-        spec = EFFECTS[ename].PARAMS if ename in EFFECTS else {}
+        try:
+            cls = EFFECTS.get(ename) or term_class(ename)
+        except SimulationError as exc:   # a term name whose basis and axes do not go together
+            raise InputError(source, f"model: {exc}") from exc
+        spec = cls.PARAMS if cls is not None else {}   # generic terms too: every parameter required
         unknown = [k for k in params if k not in spec]
         if spec and unknown:  # a misspelt name first: else it would read as the right one missing
             raise InputError(source, f"model: unknown parameter 'effects.{ename}.{unknown[0]}' "
@@ -193,7 +197,32 @@ def model_from_dict(data: dict[str, Any], name: str, source: Path | None = None)
             effects.append(make_effect(ename, params))
         except SimulationError as exc:
             raise InputError(source, f"model: {exc}") from exc
+        _check_effect(effects[-1], camera, source)
     return SensorModel(name, camera, effects, cam)
+
+
+def _check_effect(effect: Effect, camera: CameraPreset, source: Path | None) -> None:
+    """What a single effect's own check cannot see: a noise term that is a negative variance
+    wherever it is evaluated (clipped to nothing without a word), and a quantisation unit the
+    camera's depth units override."""
+    spec = term_spec(effect)
+    if spec is not None and spec.quantity == "noise" and never_positive(spec, effect.params):
+        coefs = ", ".join(f"{c} = {effect.params[c]:g}" for c in spec.coefficients)
+        raise InputError(source, f"model: [effects.{effect.name}] is a variance ({spec.unit}) below zero "
+                                 f"everywhere ({coefs}): a noise term adds variance, its value must be >= 0")
+    if effect.name == "quantization":
+        unit = effect.params["depth_unit_m"]
+        if abs(unit - camera.depth_units_m) > 1e-9 * camera.depth_units_m:
+            raise InputError(source, f"model: 'effects.quantization.depth_unit_m' = {unit:g} m differs from "
+                                     f"the camera's depth units {camera.depth_units_m:g} m ([camera] "
+                                     "depth_units_m, the preset's unless set): depth is written in the "
+                                     "camera's units, so give both the same value")
+
+
+def check_seed(seed: int) -> None:
+    """The noise generators take seeds of 0 and up (numpy refuses a negative one mid-run)."""
+    if seed < 0:
+        raise InputError(None, f"--seed must be 0 or more, not {seed}")
 
 
 def load_model(name_or_path: str | Path | SensorModel = "d455") -> SensorModel:

@@ -94,7 +94,8 @@ def read_tum(path: Path) -> tuple[NDArray[np.float64], list[Pose]]:
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "trajectory not found")
-    stamps, poses = [], []
+    stamps: list[float] = []
+    poses: list[Pose] = []
     for n, line in enumerate(read_text(p, "TUM trajectory").splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
@@ -106,11 +107,20 @@ def read_tum(path: Path) -> tuple[NDArray[np.float64], list[Pose]]:
             vals = [float(x) for x in parts]
         except ValueError as exc:
             raise InputError(p, f"line {n}: {exc}") from exc
+        if not all(np.isfinite(vals)):
+            raise InputError(p, f"line {n}: a value is not finite")
+        q = np.array(vals[4:8])
+        if np.linalg.norm(q) < 1e-9:   # no rotation at all: it rendered NaN poses
+            raise InputError(p, f"line {n}: zero quaternion (qx qy qz qw all 0)")
+        if stamps and vals[0] <= stamps[-1]:   # the frame clock would repeat or run back
+            raise InputError(p, f"line {n}: time stamp {vals[0]:.9f} does not follow the previous one "
+                                f"({stamps[-1]:.9f}); a trajectory's times must increase")
         pose = np.eye(4)
-        pose[:3, :3] = quaternion_to_matrix(np.array(vals[4:8]))
+        pose[:3, :3] = quaternion_to_matrix(q / np.linalg.norm(q))
         pose[:3, 3] = vals[1:4]
         stamps.append(vals[0])
         poses.append(pose)
-    if not poses:
-        raise InputError(p, "trajectory holds no poses")
+    if len(poses) < 2:
+        raise InputError(p, f"trajectory holds {len(poses)} pose(s); a sequence needs 2 or more (its frame "
+                            "rate comes from their times)")
     return np.asarray(stamps), poses

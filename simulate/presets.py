@@ -97,7 +97,7 @@ class CameraPreset:
             if k not in self.__dataclass_fields__ or k == "name":
                 raise KeyError(k)
             cur = getattr(self, k)
-            conv[k] = tuple(float(x) for x in v) if isinstance(cur, tuple) else type(cur)(v)
+            conv[k] = _converted(k, cur, v)
         return replace(self, **conv)
 
     def check(self) -> CameraPreset:
@@ -109,6 +109,10 @@ class CameraPreset:
             v = getattr(self, name)
             if not 1.0 < v < 179.0:
                 raise ValueError(f"{name} must be a field of view in degrees (1 to 179), got {v}")
+        t = self.depth_to_color_translation_m
+        if not all(np.isfinite(t)) or float(np.linalg.norm(t)) > 1.0:   # millimetres typed as metres
+            raise ValueError(f"depth_to_color_translation_m must be in metres (at most 1 m between the "
+                             f"imagers), got {list(t)}")
         for name in ("max_range_m", "max_disparity_px", "depth_units_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
@@ -117,6 +121,25 @@ class CameraPreset:
     def to_dict(self) -> dict[str, Any]:
         return {k: (list(v) if isinstance(v, tuple) else v)
                 for k, v in self.__dict__.items()}
+
+
+def _converted(key: str, current: Any, value: Any) -> Any:
+    """A [camera] value in the preset field's type; ValueError naming the key when it is not one
+    (a list of the wrong length, a string for a number)."""
+    if isinstance(current, tuple):
+        if (not isinstance(value, (list, tuple)) or len(value) != len(current)
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)):
+            raise ValueError(f"{key} must be a list of {len(current)} numbers, got {value!r}")
+        return tuple(float(x) for x in value)
+    if isinstance(current, float):
+        if not isinstance(value, (int, float)) or isinstance(value, bool):
+            raise ValueError(f"{key} must be a number, got {value!r}")
+        return float(value)
+    if isinstance(value, int) and not isinstance(value, bool):   # a serial number written as a number
+        return str(value)
+    if not isinstance(value, str):
+        raise ValueError(f"{key} must be a string, got {value!r}")
+    return value
 
 
 PRESETS: dict[str, CameraPreset] = {

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 from collections import deque
 from collections.abc import Iterator
@@ -15,13 +16,19 @@ from numpy.typing import NDArray
 
 from depthstation.core.capture.mcap_writer import SIMULATION_COLOR_ENCODING, SIMULATION_COMPRESSION
 from depthstation.core.capture.session import Session
-from depthstation.core.errors import InputError
+from depthstation.core.errors import InputError, SimulationError
 from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress as make_progress
 from depthstation.core.protocol import Streams
 from depthstation.core.results import write_json
-from depthstation.simulate.checkerboard_session import START_NS, TRUTH_FILE, WARM_TEMPERATURE_C
-from depthstation.simulate.model import SensorModel, load_model
+from depthstation.simulate.checkerboard_session import (
+    START_NS,
+    TRUTH_FILE,
+    WARM_TEMPERATURE_C,
+    DepthTally,
+    model_label,
+)
+from depthstation.simulate.model import SensorModel, check_seed, load_model
 from depthstation.simulate.poses import read_tum, walk_around, write_tum
 from depthstation.simulate.scene import Scene, load_scene
 from depthstation.simulate.scene_render import SceneRaster
@@ -65,8 +72,16 @@ def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: Sens
         raise InputError(out, "is not empty; simulations never overwrite captures")
     if frames is not None and frames < 1:
         raise InputError(None, "--frames must be at least 1")
+    check_seed(seed)
+    if not (math.isfinite(fps) and fps > 0):
+        raise InputError(None, f"--fps must be a positive number of frames per second, not {fps}")
+    if width < 1 or height < 1:
+        raise InputError(None, f"--width and --height must be positive pixel counts, not {width}x{height}")
     stamps, poses = scan_trajectory(trajectory, sc, fps, frames)
-    info = mdl.camera.stream_info(width, height, fps)
+    try:
+        info = mdl.camera.stream_info(width, height, fps)
+    except SimulationError as exc:
+        raise InputError(None, f"--width/--height: {exc}") from exc
     if not color:
 
         info = replace(info, color_intrinsics=None)
@@ -119,8 +134,10 @@ def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: Sens
                                    metadata={"simulation": {"seed": seed, "model": mdl.name}},
                                    color_encoding=color_encoding) as w:
         w.write_temperature(START_NS, {"asic": WARM_TEMPERATURE_C, "projector": WARM_TEMPERATURE_C})
-        for fs in gen():
+        tally = DepthTally()
+        for fs in tally.watch(gen()):
             w.write(fs)
+    tally.warn_if_empty(model_label(model, mdl), SEQUENCE_NAME)
     write_json(out / TRUTH_FILE, {
         "kind": "simulated-scan", "seed": seed, "frames": len(poses), "stream_info": info.to_dict(),
         "model_name": mdl.name, "model": mdl.to_toml(), "scene": sc.meta, "mesh_file": MESH_FILE,

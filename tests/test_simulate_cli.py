@@ -64,3 +64,115 @@ def test_scan_writes_sequence_trajectory_and_mesh(tmp_path: Path) -> None:
     world = pts @ poses[1][:3, :3].T + poses[1][:3, 3]
     dist = rc.compute_distance(o3d.core.Tensor(world.astype(np.float32))).numpy()
     assert np.median(dist) < 0.02  # within the sensor noise at room scale
+
+
+def _tum(path: Path, rows: list[tuple[float, ...]]) -> Path:
+    body = "".join(" ".join(map(str, r)) + "\n" for r in rows)
+    path.write_text("# timestamp tx ty tz qx qy qz qw\n" + body)
+    return path
+
+
+@pytest.mark.parametrize(("args", "said"), [
+    (["checkerboard", "--seed", "-1"], "--seed must be 0 or more, not -1"),
+    (["scan", "--seed", "-1"], "--seed must be 0 or more, not -1"),
+    (["scan", "--fps", "0"], "--fps must be a positive number"),
+    (["scan", "--fps", "nan"], "--fps must be a positive number"),
+    (["scan", "--fps", "-30"], "--fps must be a positive number"),
+    (["scan", "--width", "0", "--height", "0"], "--width and --height must be positive"),
+    (["scan", "--width", "333", "--height", "180"], "--width/--height: d455: no 333x180 mode"),
+    (["checkerboard", "--standpoint", "standpoint_01", "--standpoint", "standpoint_01"],
+     "--standpoint standpoint_01 is given more than once"),
+])
+def test_bad_options_are_bad_input(tmp_path: Path, args: list[str], said: str) -> None:
+    """Each was an internal error (exit 1, or a NaN/negative-time output with exit 0) before."""
+    r = _run(*args, "--out", str(tmp_path / "o"), "--frames", "2")
+    assert r.returncode == 2 and said in r.stderr and "internal error" not in r.stderr, r.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_bad_trajectories_name_the_file_and_line(tmp_path: Path) -> None:
+    q = (0.0, 0.0, 0.0, 1.0)
+    a, b, c = (0.0, 0, 0, 0, *q), (0.1, 0, 0, 0, *q), (0.2, 0, 0, 0, *q)
+    cases = {"one.txt": ([a], "trajectory holds 1 pose(s)"),
+             "repeat.txt": ([a, b, b], "line 4: time stamp"),
+             "back.txt": ([a, c, b], "line 4: time stamp"),
+             "zeroq.txt": ([a, (0.1, 0, 0, 0, 0, 0, 0, 0)], "line 3: zero quaternion")}
+    for name, (rows, said) in cases.items():
+        traj = _tum(tmp_path / name, rows)
+        r = _run("scan", "--trajectory", str(traj), "--out", str(tmp_path / f"o_{name}"), "--width", "256",
+                 "--height", "144")
+        assert r.returncode == 2 and f"{traj}: {said}" in r.stderr, (name, r.stderr)
+
+
+def test_protocol_mode_error_names_the_protocol(tmp_path: Path) -> None:
+    proto = tmp_path / "p.toml"
+    proto.write_text('name = "odd"\n[board]\ntype = "checkerboard"\nsquares_x = 7\nsquares_y = 5\n'
+                     'square_length_m = 0.095\n[streams]\nwidth = 333\nheight = 180\nfps = 30\n[plan]\n'
+                     'frames_per_standpoint = 1\nstart_distance_m = 1.0\nstep_m = 0.5\nmax_distance_m = 1.0\n'
+                     'inclinations_deg = [0.0]\n')
+    r = _run("checkerboard", "--protocol", str(proto), "--out", str(tmp_path / "o"), "--frames", "1")
+    assert r.returncode == 2, r.stderr
+    assert f"{proto}: [streams] width/height: d455: no 333x180 mode" in r.stderr
+
+
+@pytest.mark.parametrize(("line", "said"), [
+    ("depth_pp_offset_px = [1]", "depth_pp_offset_px must be a list of 2 numbers"),
+    ("depth_to_color_translation_m = [0.1]", "depth_to_color_translation_m must be a list of 3 numbers"),
+    ("depth_to_color_translation_m = 5", "depth_to_color_translation_m must be a list of 3 numbers"),
+    ('baseline_m = "abc"', "baseline_m must be a number, got 'abc'"),
+    ("depth_to_color_translation_m = [-59, 0, 0]", "depth_to_color_translation_m must be in metres"),
+])
+def test_model_camera_values_of_the_wrong_shape(tmp_path: Path, line: str, said: str) -> None:
+    model = tmp_path / "m.toml"
+    model.write_text(f'[camera]\npreset = "d455"\n{line}\n')
+    r = subprocess.run([str(EXE), "simulate", "model", str(model)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 2 and f"{model}: model: [camera] {said}" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize(("table", "said"), [
+    ("[effects.term_noise_frame_common]\nc = -1.0", "[effects.term_noise_frame_common] is a variance (px^2) "
+                                                     "below zero everywhere (c = -1)"),
+    ("[effects.term_noise_distance_poly1]\nc1 = -0.5", "[effects.term_noise_distance_poly1] is a variance"),
+    ("[effects.term_noise_frame_common]", "missing key 'effects.term_noise_frame_common.c'"),
+    ("[effects.term_bias_time_poly1]\nc1 = 0.1", "missing key 'effects.term_bias_time_poly1.ref_time_s'"),
+    ("[effects.quantization]\ndisparity_step_px = 0.03125\ndepth_unit_m = 0.0001",
+     "'effects.quantization.depth_unit_m' = 0.0001 m differs from the camera's depth units 0.001 m"),
+])
+def test_model_effects_checked(tmp_path: Path, table: str, said: str) -> None:
+    """Each was accepted: a negative variance clipped to nothing, a missing coefficient taken as 0, a
+    quantisation unit the camera's units override."""
+    model = tmp_path / "m.toml"
+    model.write_text(f'[camera]\npreset = "d455"\n{table}\n')
+    r = subprocess.run([str(EXE), "simulate", "model", str(model)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 2 and f"{model}: model: {said}" in r.stderr, r.stderr
+
+
+def test_model_with_positive_and_sign_changing_terms_loads(tmp_path: Path) -> None:
+    """The checks refuse only what is wrong: a time term's negative slope is a variance that grows
+    towards earlier times, and every parameter given loads."""
+    model = tmp_path / "m.toml"
+    model.write_text('[camera]\npreset = "d455"\n[effects.term_noise_time_poly1]\nc1 = -0.001\n'
+                     'ref_time_s = 100.0\n[effects.term_noise_frame_common]\nc = 0.01\n')
+    r = subprocess.run([str(EXE), "simulate", "model", str(model)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0 and "[effects.term_noise_time_poly1]" in r.stdout, r.stderr
+
+
+def test_a_model_that_renders_no_depth_is_warned(tmp_path: Path) -> None:
+    """Depth units of 1e-9 m put every z beyond 16 bits: every pixel 0, exit 0 and no word before."""
+    model = tmp_path / "tiny.toml"
+    model.write_text('[camera]\npreset = "d455"\ndepth_units_m = 1e-9\n')
+    r = _run("checkerboard", "--protocol", "demo-d455", "-m", str(model), "--out", str(tmp_path / "c"),
+             "--frames", "1", "--standpoint", "standpoint_01")
+    assert r.returncode == 0 and "standpoint_01: the simulation holds no depth" in r.stderr
+    assert f"model '{model}'" in r.stderr
+    r = _run("scan", "-m", str(model), "--out", str(tmp_path / "s"), "--frames", "2", "--width", "256",
+             "--height", "144")
+    assert r.returncode == 0 and "sequence: the simulation holds no depth in any of its 2 frames" in r.stderr
+    codes = [w["code"] for w in json.loads((tmp_path / "s" / "result.json").read_text())["warnings"]]
+    assert codes == ["no-depth"]
+    r = _run("checkerboard", "--protocol", "demo-d455", "--out", str(tmp_path / "ok"), "--frames", "1",
+             "--standpoint", "standpoint_01")
+    assert r.returncode == 0 and "no depth" not in r.stderr

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import re
 import sys
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -122,12 +123,25 @@ def _mp_context() -> Any:
     return mp.get_context("spawn")
 
 
+_CLUSTER_ADDRESS = re.compile(r"^(?:(?:tcp|tls|ucx|ws|wss)://)?[A-Za-z0-9_.\-]+:\d{1,5}$"
+                              r"|^(?:tcp|tls|ucx|ws|wss|inproc)://\S+$")
+
+
+def check_cluster_address(address: str) -> None:
+    """A Dask scheduler address is `[tcp://]host:port`: anything else is refused before any work (Dask
+    took 'notanaddress' for a host, waited its timeout and failed with a traceback)."""
+    if not _CLUSTER_ADDRESS.match(address):
+        raise InputError(None, f"--cluster '{address}' is not a Dask scheduler address (tcp://host:port)")
+
+
 class ChunkRunner(AbstractContextManager["ChunkRunner"]):
     """Holds a process pool or a Dask client open across several runs (a whole batch)."""
 
     def __init__(self, workers: int = 1, cluster: str | None = None) -> None:
         if workers < 1:
             raise InputError(None, f"--workers must be at least 1, got {workers}")
+        if cluster is not None:
+            check_cluster_address(cluster)
         self.workers = workers
         self.cluster = cluster
         self._pool: ProcessPoolExecutor | None = None
@@ -283,7 +297,7 @@ def _dask_client(address: str) -> Any:
     try:
         return Client(address, timeout=int(os.environ.get("DEPTHSTATION_CLUSTER_TIMEOUT", "20")),
                       set_as_default=False)
-    except (OSError, TimeoutError) as exc:
+    except (OSError, TimeoutError, ValueError) as exc:
         raise InputError(None, f"cannot reach the Dask scheduler at {address} ({exc})") from exc
 
 

@@ -84,9 +84,11 @@ class CheckerboardJob:
 
 
 def prepare_checkerboard(inputs: list[Path], board: Path | Board,
-                         options: StandpointOptions | None = None) -> CheckerboardJob:
+                         options: StandpointOptions | None = None, *,
+                         one_camera: bool = False) -> CheckerboardJob:
     """Load the board (a board JSON or protocol TOML, or a Board), expand the inputs into
-    standpoints and open each one once."""
+    standpoints and open each one once. With `one_camera`, standpoints of different cameras or
+    modes are refused instead of warned (explain simulates every standpoint as one camera)."""
     opt = options or StandpointOptions()
     if opt.reference not in REFERENCES:
         raise InputError(None, f"--reference must be auto, average or frame, not '{opt.reference}'")
@@ -114,7 +116,7 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
         seen[r.name] = r.path
     check_distinct(recs)
     check_recorded_board(brd, recs, source)
-    check_one_camera(recs)
+    check_one_camera(recs, refuse=one_camera)
     return CheckerboardJob(list(inputs), source, brd, recs, opt)
 
 
@@ -145,10 +147,11 @@ def camera_identity(rec: Recording) -> dict[str, Any]:
     return ident
 
 
-def check_one_camera(recs: list[Recording]) -> None:
+def check_one_camera(recs: list[Recording], *, refuse: bool = False) -> None:
     """Warn when the standpoints come from different cameras or modes (a session resumed with another
     camera, another camera's recording dropped into a session). Why: noise grows with z^2 / (f B), so
-    standpoints of a D435 among D455 ones bend every fitted curve, and `result.json` names one device."""
+    standpoints of a D435 among D455 ones bend every fitted curve, and `result.json` names one device.
+    With `refuse` it is bad input: explain would simulate them all as the first one's camera."""
     ids = [camera_identity(r) for r in recs]
     differ = sorted(k for k in ids[0] if any(x[k] != ids[0][k] for x in ids[1:]
                                              if x[k] is not None and ids[0][k] is not None))
@@ -158,6 +161,10 @@ def check_one_camera(recs: list[Recording]) -> None:
     for r, x in zip(recs, ids, strict=True):
         groups.setdefault(", ".join(f"{k} {x[k]}" for k in differ), []).append(r.name)
     listing = "; ".join(f"{', '.join(names)}: {what}" for what, names in groups.items())
+    if refuse:
+        raise InputError(recs[0].path.parent, f"the standpoints come from more than one camera or mode "
+                                              f"({listing}); explain simulates one camera: explain each "
+                                              "camera's standpoints separately")
     warn(f"the standpoints come from more than one camera or mode ({listing}); the result names the first "
          "one: evaluate each camera separately", str(recs[0].path.parent), "mixed-cameras")
 

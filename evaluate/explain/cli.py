@@ -8,13 +8,14 @@ import typer
 
 from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, TopicChoice, topic_choice
 from depthstation.core.errors import InputError
+from depthstation.core.parallel import check_cluster_address
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.core.results import ForceOption, result_folder
 from depthstation.evaluate.explain.run import run_explain
 from depthstation.evaluate.explain.scan_form import explain_scan, write_scan_outputs
 from depthstation.evaluate.scan.run import ScanOptions
-from depthstation.simulate.model import load_model
+from depthstation.simulate.model import check_seed, load_model
 
 
 def register(app: typer.Typer) -> None:
@@ -25,7 +26,7 @@ def register(app: typer.Typer) -> None:
 def explain(
     real: list[Path] = typer.Argument(..., help="Real captures: sessions, MCAP/.bag/.db3, PNG sets "
                                       "(with --scan: the one sequence)."),
-    board: Path | None = typer.Option(None, "--board", help="board.json or a protocol TOML with [board]."),
+    board: Path | None = typer.Option(None, "--board", help="board.json or a protocol TOML with \\[board]."),
     model: str = typer.Option("d455", "--model", help="Preset (d455, d435, d415) or a model TOML."),
     out: Path = typer.Option(..., "--out", help="Result folder (must be new or empty)."),
     frames: int = typer.Option(30, "--frames", help="Frames per standpoint to use."),
@@ -36,8 +37,8 @@ def explain(
     reference: Path | None = typer.Option(None, "--reference", help="--scan: reference mesh or cloud."),
     similarity: Path | None = typer.Option(None, "--similarity", help="--scan: 4x4 trajectory-to-reference."),
     register: str = typer.Option("none", "--register",
-                                 help="--scan: none (trajectory as given), rigid, similarity (its scale is "
-                                      "reported as the depth-scale error it absorbs) or pass-points."),
+                                 help="--scan: none (trajectory as given), rigid or similarity (its scale "
+                                      "is reported as the depth-scale error it absorbs)."),
     icp: bool | None = typer.Option(None, "--icp/--no-icp", help="--scan, deprecated: --icp is --register "
                                                                  "similarity, --no-icp --register none."),
     block_frames: int = typer.Option(8, "--block-frames",
@@ -61,11 +62,23 @@ def explain(
     for p in real:
         if not p.exists():
             raise InputError(p, "not found")
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is a file: --out names the result folder")
+    check_seed(seed)
+    if cluster is not None:
+        check_cluster_address(cluster)
     if out.exists() and any(out.iterdir()) and not force:
         raise InputError(out, "is not empty; explain never overwrites results (--force replaces it)")
     topics = topic_choice(depth_topic, color_topic, infrared_topic)
+    if frames < 3:
+        raise InputError(None, f"--frames must be at least 3, not {frames} (the noise tests need a temporal "
+                               "variance over 3 frames or more)")
     if scan:
         mode = ScanOptions(register=register, icp=icp).register_mode
+        if mode == "pass-points":   # evaluate scan's --pass-points has no counterpart here
+            raise InputError(None, "explain --scan registers with none, rigid or similarity; pass-points "
+                                   "registration is evaluate scan's (--pass-points FILE): give the trajectory "
+                                   "in the reference frame, or --similarity M")
         _explain_scan(real, poses, reference, model, out, frames, seed, similarity, mode, block_frames,
                       not no_resimulate, force, topics, discover)
         return
@@ -73,8 +86,6 @@ def explain(
         raise InputError(None, "--board is needed for checkerboard sessions")
     if workers < 1:
         raise InputError(None, "--workers must be at least 1")
-    if frames < 2:
-        raise InputError(None, "--frames must be at least 2 (noise needs several frames)")
     mdl = load_model(model)
 
     def tick(msg: str) -> None:
@@ -84,11 +95,18 @@ def explain(
                        workers=workers, cluster=cluster, topics=topics, discovery=discover,
                        parameters={"board": str(board), "model": model, "frames": frames, "seed": seed,
                                    "workers": workers, "cluster": cluster, "discover": discover},
-                       target=RerunTarget(rrd, spawn, serve, force), tick=tick, force=force)
+                       target=RerunTarget(rrd, spawn, serve, force), tick=tick, force=force,
+                       model_file=model_file(model))
     verdict = ("significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch")
     typer.echo(f"{verdict}; selected: {', '.join(data['selected']) or 'nothing'}; "
                f"missing physics: {', '.join(data['missing_physics']) or 'none'}; "
                f"discovered: {_discovered_text(data)}; results in {out}")
+
+
+def model_file(model: str) -> Path | None:
+    """The model TOML a --model names (None for a preset name): an input of the run."""
+    p = Path(model)
+    return p if p.is_file() else None
 
 
 def _discovered_text(data: dict[str, object]) -> str:
@@ -117,12 +135,13 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
     def tick(msg: str) -> None:
         stderr_console.print(f"[bold]explain --scan[/]: {msg}")
 
-    inputs = [*real, poses, reference, *([similarity] if similarity else [])]
+    given = model_file(model)
+    inputs = [*real, poses, reference, *([similarity] if similarity else []), *([given] if given else [])]
     with result_folder(out, force=force, inputs=inputs, kind="explain-scan") as tmp:
         ex = explain_scan(real[0], poses, reference, mdl, tmp, frames=frames, block_frames=block_frames,
                           seed=seed, register=register, similarity=similarity, resimulate=resimulate,
                           discovery=discover, tick=tick, topics=topics)
-        data = write_scan_outputs(ex, tmp, [str(real[0]), str(poses), str(reference)],
+        data = write_scan_outputs(ex, tmp, [str(p) for p in inputs],
                                   {"model": model, "frames": frames, "seed": seed, "register": register,
                                    "block_frames": block_frames, "discover": discover,
                                    "similarity": str(similarity) if similarity else None})

@@ -320,10 +320,18 @@ def _discovered_md(data: dict[str, Any], figs: list[str]) -> list[str]:
                   "| family | quantity | group | term that would explain it | why it is not in the model |",
                   "|---|---|---|---|---|"]
         for r in rest:
-            term = (f"`{r['term']}` (delta BIC {r['delta_bic']:.1f}, Wald p {r['wald_p']:.2g})"
-                    if r.get("term") else "none")
+            term = f"`{r['term']}`{_fit_note(r)}" if r.get("term") else "none"
             lines.append(f"| {r['family']} | {r['kind']} | {r['label']} | {term} | {r['why_not_selected']} |")
     return lines
+
+
+def _fit_note(r: dict[str, Any]) -> str:
+    """The fit figures of a remaining region's term where it has them (a term named from the noise's
+    structure, window_noise, has no fit: no delta BIC, no Wald p)."""
+    parts = [f"delta BIC {r['delta_bic']:.1f}" if r.get("delta_bic") is not None else "",
+             f"Wald p {r['wald_p']:.2g}" if r.get("wald_p") is not None else ""]
+    shown = ", ".join(x for x in parts if x)
+    return f" ({shown})" if shown else ""
 
 
 def write_outputs(ex: Explanation, out: Path, inputs: list[str], parameters: dict[str, Any]
@@ -335,6 +343,6 @@ def write_outputs(ex: Explanation, out: Path, inputs: list[str], parameters: dic
     (out / "model.toml").write_text(ex.new_model.to_toml())
     figs = figures(ex, out) + discovered_figures(ex, out)
     (out / "report.md").write_text(report_md(ex, data, figs))
-    write_result_info(out, "explain", inputs, parameters,
+    write_result_info(out, "explain", inputs, parameters, ex.real.device,
                       extra={"selected": data["selected"], "significant": data["mismatch"]["significant"]})
     return data

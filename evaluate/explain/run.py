@@ -8,7 +8,7 @@ checkerboard study (contract 3), so both sides share every step but the sensor.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -17,24 +17,31 @@ import numpy as np
 from depthstation.core.board import Board, load_board
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture.topics import TopicChoice
-from depthstation.core.errors import EvaluationError
+from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.core.results import result_folder
 from depthstation.core.run_warnings import warn
 from depthstation.evaluate.checkerboard.chunks import StandpointOptions, run_standpoints
-from depthstation.evaluate.checkerboard.run import prepare_checkerboard, say_warnings
+from depthstation.evaluate.checkerboard.run import check_usable, prepare_checkerboard, say_warnings
 from depthstation.evaluate.checkerboard.study import evaluate_frames
 from depthstation.evaluate.explain.attribute import Attribution, attribute
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
 from depthstation.evaluate.explain.discover import Discovery, discover, remaining
 from depthstation.evaluate.explain.library import library
-from depthstation.evaluate.explain.locate import FAMILY_AXES, LocateResult, locate
+from depthstation.evaluate.explain.locate import (
+    FAMILY_AXES,
+    MIN_NOISE_FRAMES,
+    LocateResult,
+    locate,
+    short_standpoints,
+)
 from depthstation.evaluate.explain.report import write_outputs
 from depthstation.evaluate.explain.rerun_log import log_explanation
 from depthstation.evaluate.explain.samples import Samples, board_edge_px, concat, thin, unpaired_standpoints
 from depthstation.evaluate.explain.structure import decompose
+from depthstation.simulate.checkerboard_session import DepthTally
 from depthstation.simulate.effects import PixelContext
 from depthstation.simulate.effects.base import CorrelatedJitter
 from depthstation.simulate.model import SensorModel
@@ -67,6 +74,7 @@ class Side:
     clocks: dict[str, FrameClock]
     info: StreamInfo
     figures: dict[str, dict[str, float]]
+    device: dict[str, Any] = field(default_factory=dict)   # the recording's, for result.json
 
 
 def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: float,
@@ -136,20 +144,57 @@ def _side(results: Sequence[Any], info: StreamInfo, baseline_m: float, t0_ns: in
     return Side(samples_from_results(ok, info, baseline_m, t0_ns, true_poses), poses, clocks, info, figures)
 
 
+def known_baseline(info: StreamInfo, baseline_m: float, source: str, where: str) -> StreamInfo:
+    """`info` with a stereo baseline: the recording's, else `baseline_m` (the model's), warned with the
+    value and where it came from. Why: disparity-domain effects (lr_focal_mismatch, disparity_offset)
+    scale with f B; a wrong B moves them by the same factor without a word."""
+    if info.baseline_m:
+        return info
+    warn(f"the recording gives no stereo baseline: {1e3 * baseline_m:g} mm assumed from {source}; "
+         "disparity-domain figures (disparity offset, focal mismatch) scale with it", where,
+         "assumed-baseline")
+    return replace(info, baseline_m=baseline_m)
+
+
+def check_model_camera(model: SensorModel, info: StreamInfo, device: dict[str, Any], where: str) -> None:
+    """Warn where the model's [camera] differs from the recording's camera. Why: the simulation renders
+    the recording's geometry (baseline, depth units, intrinsics), so a model camera that differs is
+    never simulated, yet model.toml keeps it, and a D455 model on D435 data compares the wrong noise."""
+    cam, src = model.camera, f"model '{model.name}'"
+    said = []
+    if info.baseline_m and abs(cam.baseline_m - info.baseline_m) > 1e-3 * info.baseline_m:
+        said.append(f"baseline {1e3 * cam.baseline_m:g} mm (the recording's {1e3 * info.baseline_m:g} mm)")
+    if info.depth_units_m and abs(cam.depth_units_m - info.depth_units_m) > 1e-6 * info.depth_units_m:
+        said.append(f"depth units {cam.depth_units_m:g} m (the recording's {info.depth_units_m:g} m)")
+    name = str(device.get("name") or device.get("model") or "")
+    if name and cam.product.lower() not in name.lower() and cam.name.lower() not in name.lower():
+        said.append(f"camera {cam.product} (the recording's '{name}')")
+    if said:
+        warn(f"{src} [camera] differs from the recording: {'; '.join(said)}; the simulation renders the "
+             "recording's camera, so the model's values were not simulated (model.toml keeps them): give a "
+             "model of this camera", where, "model-camera")
+
+
 def _stride(info: StreamInfo) -> int:
     return max(1, round(info.depth_intrinsics.width / 320))
 
 
 def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, baseline_m: float,
                   tick: Progress | None = None, workers: int = 1, cluster: str | None = None,
-                  topics: TopicChoice | None = None) -> Side:
+                  topics: TopicChoice | None = None, baseline_source: str = "the model",
+                  model: SensorModel | None = None) -> Side:
     """The checkerboard study of the real inputs (its one prepare/run path), with per-pixel samples.
 
     Standpoints go out as tasks on a ChunkRunner: each is read and evaluated by the worker that
     gets it, local processes (`workers`) or a Dask scheduler (`cluster`).
     """
-    probe = prepare_checkerboard(list(paths), board, StandpointOptions(frames=frames, topics=topics))
-    info = probe.recordings[0].info
+    probe = prepare_checkerboard(list(paths), board, StandpointOptions(frames=frames, topics=topics),
+                                 one_camera=True)
+    info = known_baseline(probe.recordings[0].info, baseline_m, baseline_source,
+                          str(probe.recordings[0].path))
+    device = probe.device
+    if model is not None:
+        check_model_camera(model, info, device, str(probe.recordings[0].path))
     options = StandpointOptions(frames=frames, collect_samples=True, sample_stride=_stride(info),
                                 reference=REFERENCE, topics=topics)
     job = replace(probe, options=options)
@@ -161,7 +206,13 @@ def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, ba
     with ChunkRunner(workers, cluster) as runner:
         results = run_standpoints(job.recordings, job.board, job.options, runner, progress=progress)
     say_warnings(results)   # a standpoint with no usable frame is named here, and absent from the tests
-    return _side(results, info, info.baseline_m or baseline_m)
+    check_usable(job, results)   # none at all: the board file or the recordings are the cause (exit 2)
+    try:
+        side = _side(results, info, float(info.baseline_m or baseline_m))
+    except EvaluationError as exc:   # usable frames, yet no black or white board pixel with depth
+        raise InputError(None, f"{exc} in the recordings ({', '.join(str(p) for p in paths)}): their board "
+                               "shows no depth (depth stream empty, or the board out of range?)") from exc
+    return replace(side, device=device)
 
 
 def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0,
@@ -179,6 +230,7 @@ def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0
             tick(f"simulate {name}")
         renderer.set_pose(np.linalg.inv(pose))
         clock = real.clocks[name]
+        tally = DepthTally()
 
         def frames(clock: FrameClock = clock, t0: int = t0, k: int = k) -> Any:
             for i, (idx, ts, temp) in enumerate(zip(clock.index, clock.timestamp_ns, clock.temperature_c,
@@ -190,9 +242,10 @@ def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0
                     fs.metadata.pop("temperature_c", None)
                 yield fs
 
-        results.append(evaluate_frames(name, frames(), info, board, frames_requested=len(clock.index),
-                                       collect_samples=True, sample_stride=_stride(info),
-                                       reference=REFERENCE))
+        results.append(evaluate_frames(name, tally.watch(frames()), info, board,
+                                       frames_requested=len(clock.index), collect_samples=True,
+                                       sample_stride=_stride(info), reference=REFERENCE))
+        tally.warn_if_empty(f"'{model.name}'", name)
     return _side(results, info, info.baseline_m or model.camera.baseline_m, t0, true_poses=real.poses)
 
 
@@ -206,6 +259,14 @@ def warn_unpaired(real: Samples, sim: Samples, what: str) -> None:
     for name in only_sim:
         warn(f"only the {what} gave board pixels here (none in the real frames); it is left out of every "
              "real-vs-simulated test", name, "explain-unpaired-standpoint")
+
+
+def warn_short(real: Samples, sim: Samples) -> None:
+    """A standpoint with board pixels in fewer than 3 frames has no usable temporal variance: it is
+    left out of the noise tests (its bias is still tested), and the user must know."""
+    for name in sorted(set(short_standpoints(real)) | set(short_standpoints(sim))):
+        warn(f"board pixels in fewer than {MIN_NOISE_FRAMES} frames: left out of the noise tests (a "
+             "temporal variance needs 3 frames or more)", name, "explain-short-standpoint")
 
 
 def present_effects(model: SensorModel) -> dict[str, dict[str, float]]:
@@ -275,6 +336,7 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     again."""
     present = present_effects(model)
     warn_unpaired(real.samples, sim.samples, "simulation")
+    warn_short(real.samples, sim.samples)
     if tick:
         tick("locate")
     structures = (decompose(real.samples), decompose(sim.samples))
@@ -312,29 +374,37 @@ def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, o
                 seed: int = 0, resimulate: bool = True, workers: int = 1, cluster: str | None = None,
                 discovery: bool = True, parameters: dict[str, Any] | None = None,
                 target: RerunTarget | None = None, tick: Progress | None = None, force: bool = False,
-                topics: TopicChoice | None = None) -> dict[str, Any]:
+                topics: TopicChoice | None = None, model_file: Path | None = None) -> dict[str, Any]:
     """`depthstation explain` of checkerboard captures: evaluate the real standpoints, simulate them
     with `model`, locate, attribute, refit, check, and write the result folder (whole or not at
-    all; a non-empty `out` only with `force`); its explain.json."""
-    inputs = [*real, *([board] if isinstance(board, Path) else [])]
+    all; a non-empty `out` only with `force`); its explain.json. The board and `model_file` (the model
+    TOML it was read from) are inputs: `--force` never deletes them, result.json lists them."""
+    inputs = [*real, *([board] if isinstance(board, Path) else []), *([model_file] if model_file else [])]
     with result_folder(out, force=force, inputs=inputs, kind="explain") as tmp:
         return _run_explain(real, board, model, tmp, frames, seed, resimulate, workers, cluster,
                             parameters, None if target is None else target.within(out, tmp), tick, topics,
-                            discovery)
+                            discovery, inputs, model_file)
 
 
 def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, frames: int,
                  seed: int, resimulate: bool, workers: int, cluster: str | None,
                  parameters: dict[str, Any] | None, target: RerunTarget | None,
                  tick: Progress | None, topics: TopicChoice | None = None,
-                 discovery: bool = True) -> dict[str, Any]:
+                 discovery: bool = True, inputs: Sequence[Path] = (),
+                 model_file: Path | None = None) -> dict[str, Any]:
     brd = board if isinstance(board, Board) else load_board(board)
-    real_side = evaluate_real(real, brd, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
-                              workers=workers, cluster=cluster, topics=topics)
-    sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
+    real_side = evaluate_real(real, board, frames=frames, baseline_m=model.camera.baseline_m, tick=tick,
+                              workers=workers, cluster=cluster, topics=topics,
+                              baseline_source=f"model '{model.name}' ([camera] baseline_m)", model=model)
+    try:
+        sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
+    except EvaluationError as exc:   # the real side has board pixels: the model is the cause
+        raise InputError(model_file, f"model '{model.name}': its simulation of the real standpoints gave no "
+                                     "board pixels to compare (frames without depth, or the board not found in "
+                                     "them): check the model's [camera] and effects") from exc
     ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, discovery=discovery,
                        tick=tick)
-    data = write_outputs(ex, out, [str(p) for p in real], dict(parameters or {}))
+    data = write_outputs(ex, out, [str(p) for p in (inputs or real)], dict(parameters or {}))
     if target is not None and target.enabled:
         log_explanation(ex, target)
     return data

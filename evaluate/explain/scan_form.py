@@ -24,16 +24,17 @@ from scipy.special import stdtr
 
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture.topics import TopicChoice
-from depthstation.core.errors import EvaluationError
+from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSet, FrameSource
 from depthstation.core.grid import Grid
 from depthstation.core.results import write_json, write_result_info
+from depthstation.core.run_warnings import warn
 from depthstation.evaluate.explain.attribute import CandidateFit, Table, gls
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
 from depthstation.evaluate.explain.discover import Discovery, select_table
 from depthstation.evaluate.explain.figures import residual_grid_figure
 from depthstation.evaluate.explain.library import library
-from depthstation.evaluate.explain.run import present_effects
+from depthstation.evaluate.explain.run import check_model_camera, known_baseline, present_effects
 from depthstation.evaluate.explain.samples import FloatArray, Samples
 from depthstation.evaluate.scan.chunks import chunk_ranges
 from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, make_renderer
@@ -228,8 +229,9 @@ def locate_cells(bc: BlockCells, shape: tuple[int, int]) -> dict[str, Any]:
 def _pseudo_samples(bc: BlockCells, info: StreamInfo, albedo: float) -> Samples:
     """Block-cells as samples at the cell centres (principal point: the grid has no pixel position)."""
     intr = info.stereo
+    baseline = np.nan if info.baseline_m is None else float(info.baseline_m)   # known_baseline set it
     return Samples.build(names=["sequence"], fx=intr.fx, ppx=intr.ppx, ppy=intr.ppy,
-                         baseline_m=float(info.baseline_m or 0.095), standpoint=0, frame=bc.block,
+                         baseline_m=baseline, standpoint=0, frame=bc.block,
                          u=intr.ppx, v=intr.ppy, z_ref_m=bc.z_m, err_m=bc.bias_m,
                          inclination_deg=bc.inclination_deg, albedo=albedo, temperature_c=40.0,
                          time_s=bc.time_s)
@@ -430,6 +432,7 @@ class ScanExplanation:
     before: BlockCells
     after: BlockCells | None
     shape: tuple[int, int]
+    device: dict[str, Any] = field(default_factory=dict)   # the recording's, for result.json
 
 
 def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorModel, out: Path, *,
@@ -455,6 +458,17 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
         raise EvaluationError(f"{len(clock.index)} frames: too few for frame blocks (need {MIN_BLOCKS * 2})")
     block = max(1, min(block_frames, len(clock.index) // MIN_BLOCKS))
     n_frames = len(clock.index)
+    # frames without a pose are skipped by both sides' study: say so, and count what is used
+    posed_at = [posed.match(ts * 1e-9, tolerance_s) is not None for ts in clock.timestamp_ns]
+    n_posed = int(sum(posed_at))
+    blocks_used = sum(any(posed_at[a:a + n]) for a, n in chunk_ranges(n_frames, block))
+    if n_posed < n_frames:
+        warn(f"{n_frames - n_posed} of {n_frames} frames have no pose within {tolerance_s:g} s in the "
+             f"trajectory and are left out: {n_posed} frames in {blocks_used} blocks are compared",
+             str(poses), "frames-without-pose")
+    if n_posed == 0:
+        raise InputError(poses, f"no pose within {tolerance_s:g} s of any of the {n_frames} frames' time "
+                                "stamps (another sequence's trajectory, or another clock?)")
 
     class _Limited:
         """The real source cut to the frames used."""
@@ -468,9 +482,11 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
             return source.frames(limit=lim, start=start)
 
     if tick:
-        tick(f"evaluate real ({n_frames} frames, blocks of {block})")
+        tick(f"evaluate real ({n_posed} frames with a pose, blocks of {block})")
     real = block_grids(_Limited(), mesh_path, posed, block, tolerance_s)
-    info = source.info
+    info = known_baseline(source.info, model.camera.baseline_m, f"model '{model.name}' ([camera] baseline_m)",
+                          str(sequence))
+    check_model_camera(model, info, dict(source.info.device or {}), str(sequence))
 
     def side(mdl: SensorModel, s: int) -> list[Grid]:
         seq = SimulatedSequence(mesh_path, mdl, info, posed, clock, seed=s, tolerance_s=tolerance_s)
@@ -516,7 +532,8 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
     data = {
         "kind": "scan",
         "inputs": {"sequence": str(sequence), "poses": str(poses), "reference": str(reference)},
-        "registration": reg_info, "frames": n_frames, "block_frames": block, "blocks": len(real),
+        "registration": reg_info, "frames": n_posed, "frames_read": n_frames,
+        "skipped_no_pose": n_frames - n_posed, "block_frames": block, "blocks": blocks_used,
         "grid": {"distance_bin_m": DISTANCE_BIN_M, "inclination_bin_deg": INCLINATION_BIN_DEG,
                  "min_cell_count": MIN_CELL_COUNT},
         "mismatch": before, "mismatch_after": after, "candidates": candidates, "selected": selected,
@@ -532,7 +549,7 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
                         + "; discovery looks along distance, disparity, inclination and the blocks' time "
                           "(the scan study keeps no pixel positions: u, v, radius, tile need per-pixel data)",
     }
-    return ScanExplanation(data, new_model, bc, after_bc, shape)
+    return ScanExplanation(data, new_model, bc, after_bc, shape, dict(source.info.device or {}))
 
 
 def residual_map(bc: BlockCells, shape: tuple[int, int]) -> FloatArray:
@@ -582,5 +599,5 @@ def write_scan_outputs(ex: ScanExplanation, out: Path, inputs: list[str],
     lines += ["", f"Not testable on this grid: {data['not_testable']}.", "",
               "![residual grid](residual_grid.png)", ""]
     (out / "report.md").write_text("\n".join(lines))
-    write_result_info(out, "explain-scan", inputs, options, extra={"explain": "explain.json"})
+    write_result_info(out, "explain-scan", inputs, options, ex.device, extra={"explain": "explain.json"})
     return data

@@ -49,7 +49,7 @@ def scan(
     tolerance_s: float = typer.Option(0.01, "--pose-tolerance-s", help="Max |t_frame - t_pose| (s)."),
     intrinsics: Path | None = typer.Option(None, "--intrinsics",
                                            help="Intrinsics file for a TUM folder (camera.json or "
-                                                "'fx fy cx cy [w h] [factor]')."),
+                                                "'fx fy cx cy \\[w h] \\[factor]')."),
     rrd: Path | None = typer.Option(None, "--rrd", help="Write a rerun recording."),
     force: ForceOption = False,
     spawn: bool = typer.Option(False, "--spawn", help="Stream to a rerun viewer."),

@@ -291,6 +291,25 @@ def term_class(name: str) -> type[Effect] | None:
     return cls
 
 
+# axes whose variable is >= 0 wherever it is evaluated (u, v, time, temperature change sign)
+NON_NEGATIVE_AXES = {"radius", "distance", "disparity", "inclination", "albedo", "edge"}
+
+
+def never_positive(spec: TermSpec, params: dict[str, float]) -> bool:
+    """Whether the term's value is <= 0 everywhere and < 0 somewhere: every basis column is >= 0
+    and no coefficient is positive, one negative (for other bases the sign is not decided here)."""
+    coefs = [float(params.get(c, 0.0)) for c in spec.coefficients]
+    if not coefs or max(coefs) > 0 or min(coefs) >= 0:
+        return False
+    if spec.basis in ("common", "exp"):
+        return True
+    if spec.basis.startswith("poly"):
+        return spec.axes[0] in NON_NEGATIVE_AXES or all(k % 2 == 0 for k in spec.powers)
+    if spec.basis == "product":
+        return all(a in NON_NEGATIVE_AXES for a in spec.axes)
+    return False
+
+
 def term_spec(effect: Effect | type[Effect]) -> TermSpec | None:
     """The spec of a generic term effect (None for catalogue effects)."""
     return getattr(effect, "spec", None) if isinstance(getattr(effect, "spec", None), TermSpec) else None
