@@ -66,7 +66,8 @@ def test_mixed_resolutions_refused(small: Path, tmp_path: Path, capsys: pytest.C
                          "--board", str(small / "p_320.toml"), "--out", str(tmp_path / "e"))
     assert code == 2, err
     assert "more than one camera" in err
-    assert "standpoint_01: depth 320x180" in err and "far: depth 640x360" in err
+    assert "standpoint_01: color_size [320, 180], depth_size [320, 180]" in err
+    assert "far: color_size [640, 360], depth_size [640, 360]" in err
     assert "Traceback" not in err and not (tmp_path / "e").exists()
 
 
