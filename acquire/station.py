@@ -386,8 +386,27 @@ def do_calibrate(st: Station, yes: bool, write: bool, ask: Callable[[str], bool]
     take = getattr(st.camera, "take_events", None)
     if callable(take) and (events := take()):
         record["device_events"] = events
+    keep_replaced_calibration(st.session, record)
     st.session.set("calibration", record)
     return record
+
+
+def keep_replaced_calibration(session: Session, record: dict[str, Any]) -> None:
+    """A new table after standpoints were captured: the earlier record goes to
+    `calibration_history` (with the standpoints taken under it) and the run warns. Why: the
+    session-level record was replaced without a word, so it no longer described those standpoints
+    (each MCAP still carries the calibration it was captured with)."""
+    before = session.data.get("calibration")
+    taken = [str(e["name"]) for e in session.standpoints if e.get("status") == "complete"]
+    if not taken or not isinstance(before, dict) or \
+            before.get("table_after_b64") == record.get("table_after_b64"):
+        return
+    history = list(session.data.get("calibration_history") or [])
+    history.append(dict(before, standpoints=taken))
+    session.set("calibration_history", history)
+    warn(f"the depth calibration changed after {len(taken)} standpoint(s) were captured with the earlier "
+         f"table ({', '.join(taken[:4])}{', ...' if len(taken) > 4 else ''}; kept in calibration_history): "
+         "the session mixes two calibrations", str(session.dir), "calibration-changed")
 
 
 def do_capture(st: Station, target: RerunTarget | Any, max_guidance_s: float | None) -> list[StandpointOutcome]:

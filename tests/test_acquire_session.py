@@ -277,3 +277,21 @@ def test_recordings_that_end_too_soon_are_said(tmp_path: Path, tiny: Path,
     code, err = acq(capsys, "capture", "--camera", str(rec), "--protocol", str(tiny), "--session",
                     str(tmp_path / "c"), "--strict")
     assert code == 3 and "ended before any standpoint was recorded" in err
+
+
+def test_calibrating_a_captured_session_keeps_the_earlier_table(done_session: Path, tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """`acquire calibrate --resume` after the standpoints replaced the session's calibration record
+    without a word; the earlier one now goes to calibration_history with the standpoints taken under it."""
+    s = tmp_path / "s"
+    shutil.copytree(done_session, s)
+    before = json.loads((s / "session.json").read_text())["calibration"]
+    assert before.get("table_after_b64")
+    code, err = acq(capsys, "calibrate", "--camera", "sim", "--session", str(s), "--resume", "--yes",
+                    "--seed", "5", "--strict")
+    data = json.loads((s / "session.json").read_text())
+    assert data["calibration"]["table_after_b64"] != before["table_after_b64"]  # a new table
+    assert code == 3 and "calibration changed after 2 standpoint(s)" in err, err
+    (old,) = data["calibration_history"]
+    assert old["table_after_b64"] == before["table_after_b64"]
+    assert old["standpoints"] == ["standpoint_01", "standpoint_02"]
