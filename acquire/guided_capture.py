@@ -29,6 +29,10 @@ from depthstation.core.errors import CameraDisconnected, CameraError, CaptureErr
 from depthstation.core.frames import FrameSet
 from depthstation.core.geometry import average_poses
 from depthstation.core.protocol import Protocol, Standpoint
+from depthstation.core.run_warnings import warn
+
+BOARD_SCALE_TOLERANCE = 0.05  # the evaluation's board-scale check: a camera's own depth scale is within ~2 %
+MIN_SCALE_PIXELS = 50  # board depth pixels a frame needs for the scale check
 
 
 class CameraMoved(CaptureError):
@@ -385,6 +389,7 @@ class GuidedCapture:
         stride = pose_stride(n)
         poses: list[np.ndarray] = []
         centres: list[np.ndarray] = []
+        scales: list[float] = []
         frames = FrameAccounting()
         with self.session.standpoint_writer(sp.name, self.info, meta) as writer:
             while state.recorded < n:
@@ -407,6 +412,8 @@ class GuidedCapture:
                     m[:3, :3], m[:3, 3] = pose.R, pose.t
                     poses.append(m)
                     centres.append(pose.stillness_points(self.protocol.board))
+                    if (r := self._depth_over_pose(fs, pose)) is not None:
+                        scales.append(r)
                     moved = self._moved(centres)
                     if moved is not None:
                         raise CameraMoved(f"{sp.name}: {moved} after {state.recorded} frames")
@@ -417,6 +424,8 @@ class GuidedCapture:
                 if self.on_guidance is not None and state.guidance is not None:
                     self.on_guidance(state.guidance, fs, self._t_s(fs))
             measured = self._measured(poses, n)
+            if scales:
+                measured["depth_over_pose"] = self._say_scale(sp, float(np.median(scales)))
             meta["measured"] = measured
             meta["frames"] = frames.summary()
             writer.set_metadata("standpoint", meta)
@@ -445,6 +454,34 @@ class GuidedCapture:
                         f"and {len(centres)} (tolerance {100 * tol.still_translation_m:.1f} cm / "
                         f"{tol.still_rotation_deg:g}°)")
         return None
+
+    def _depth_over_pose(self, fs: FrameSet, pose: BoardPose) -> float | None:
+        """The board's median depth over the z its pose gives at its centre (about 1 when the
+        protocol's board is the print; the pose scales with square_length_m, depth does not)."""
+        assert self.info is not None
+        intr = self.info.color_intrinsics if self.info.depth_aligned_to_color else self.info.depth_intrinsics
+        if fs.depth is None or intr is None:
+            return None
+        board = self.protocol.board
+        d = fs.depth[board_mask(pose, board, intr, margin_m=0.5 * board.square_length_m)]
+        d = d[d > 0]
+        w, h = board.size_m
+        z_pose = float((pose.R @ np.array([w / 2, h / 2, 0.0]) + pose.t)[2])
+        if d.size < MIN_SCALE_PIXELS or z_pose <= 0:
+            return None
+        return float(np.median(d)) * self.info.depth_units_m / z_pose
+
+    def _say_scale(self, sp: Standpoint, ratio: float) -> float:
+        """Warn now, not at the evaluation days later, when depth and pose disagree on the scale: a
+        board of another size than the protocol's records every standpoint at the wrong distance."""
+        if abs(ratio - 1.0) > BOARD_SCALE_TOLERANCE:
+            board = self.protocol.board
+            warn(f"{sp.name}: the board's depth reads {ratio:.2f}x the distance its pose gives: the "
+                 f"protocol's square_length_m {board.square_length_m:g} m implies "
+                 f"{board.square_length_m * ratio:.4f} m for this print (is the protocol's board the one "
+                 "held up?); the standpoint was recorded at the pose's distance",
+                 str(self.session.dir), "board-scale")
+        return ratio
 
     def _measured(self, poses: list[np.ndarray], n: int) -> dict[str, Any]:
         """The averaged board pose of the recorded frames (as the paper averages 150 EPnP poses)."""

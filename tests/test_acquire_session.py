@@ -266,6 +266,28 @@ def test_a_recording_that_does_not_fit_the_protocol_is_said(tmp_path: Path, tiny
     assert "recorded by Intel RealSense D435, the protocol is for a D455" in err
 
 
+def test_a_board_of_another_size_than_the_protocol_is_said_at_capture(
+        tmp_path: Path, tiny: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A 95 mm print under a protocol saying 50 mm: guidance took the board for 0.53 m away (the pose
+    scales with the square length) where depth read 1.0 m, and recorded it without a word."""
+    from test_acquire_cli import make_recording
+
+    rec = make_recording(tmp_path / "rec.db3", n=40)  # the default 95 mm board at 1.0 m
+    proto = tmp_path / "p50.toml"
+    proto.write_text(TINY_TOML.replace("square_length_m = 0.095", "square_length_m = 0.050")
+                     .replace("start_distance_m = 1.0", "start_distance_m = 0.53")
+                     .replace("max_distance_m = 1.8", "max_distance_m = 0.6"))
+    code, err = acq(capsys, "capture", "--camera", str(rec), "--protocol", str(proto), "--session",
+                    str(tmp_path / "s"), "--strict")
+    assert code == 3, err
+    assert "depth reads 1.90x the distance its pose gives" in err and "implies 0.0950 m" in err
+    (entry,) = json.loads((tmp_path / "s" / "session.json").read_text())["standpoints"]
+    assert entry["status"] == "complete"  # recorded: the warning says which distance is which
+    code, err = acq(capsys, "capture", "--camera", str(rec), "--protocol", str(tiny), "--session",
+                    str(tmp_path / "right"), "--strict")
+    assert "board-scale" not in err and "depth reads" not in err, err  # the right board: no word
+
+
 def test_recordings_that_end_too_soon_are_said(tmp_path: Path, tiny: Path,
                                                capsys: pytest.CaptureFixture[str]) -> None:
     from test_acquire_cli import make_recording
