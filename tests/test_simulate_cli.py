@@ -5,16 +5,34 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from depthstation.app.cli import run_cli
+
 EXE = Path(sys.executable).with_name("depthstation")
+Run = Callable[..., subprocess.CompletedProcess[str]]
 
 
 def _run(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run([str(EXE), "simulate", *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.fixture()
+def here(capsys: pytest.CaptureFixture[str]) -> Callable[..., subprocess.CompletedProcess[str]]:
+    """`depthstation simulate ...` in this process (the error checks: a process start each cost
+    ~2 s of imports); the executable itself is run by the tests above."""
+
+    def call(*args: str) -> subprocess.CompletedProcess[str]:
+        capsys.readouterr()
+        code = run_cli(["simulate", *args])
+        out = capsys.readouterr()
+        return subprocess.CompletedProcess(args, code, out.out, out.err)
+
+    return call
 
 
 def test_checkerboard_command_and_errors(tmp_path: Path) -> None:
@@ -83,14 +101,16 @@ def _tum(path: Path, rows: list[tuple[float, ...]]) -> Path:
     (["checkerboard", "--standpoint", "standpoint_01", "--standpoint", "standpoint_01"],
      "--standpoint standpoint_01 is given more than once"),
 ])
-def test_bad_options_are_bad_input(tmp_path: Path, args: list[str], said: str) -> None:
+def test_bad_options_are_bad_input(tmp_path: Path, args: list[str], said: str,
+                                   here: Run) -> None:
     """Each was an internal error (exit 1, or a NaN/negative-time output with exit 0) before."""
-    r = _run(*args, "--out", str(tmp_path / "o"), "--frames", "2")
+    r = here(*args, "--out", str(tmp_path / "o"), "--frames", "2")
     assert r.returncode == 2 and said in r.stderr and "internal error" not in r.stderr, r.stderr
     assert not (tmp_path / "o").exists()
 
 
-def test_bad_trajectories_name_the_file_and_line(tmp_path: Path) -> None:
+def test_bad_trajectories_name_the_file_and_line(tmp_path: Path,
+                                                 here: Run) -> None:
     q = (0.0, 0.0, 0.0, 1.0)
     a, b, c = (0.0, 0, 0, 0, *q), (0.1, 0, 0, 0, *q), (0.2, 0, 0, 0, *q)
     cases = {"one.txt": ([a], "trajectory holds 1 pose(s)"),
@@ -99,18 +119,19 @@ def test_bad_trajectories_name_the_file_and_line(tmp_path: Path) -> None:
              "zeroq.txt": ([a, (0.1, 0, 0, 0, 0, 0, 0, 0)], "line 3: zero quaternion")}
     for name, (rows, said) in cases.items():
         traj = _tum(tmp_path / name, rows)
-        r = _run("scan", "--trajectory", str(traj), "--out", str(tmp_path / f"o_{name}"), "--width", "256",
+        r = here("scan", "--trajectory", str(traj), "--out", str(tmp_path / f"o_{name}"), "--width", "256",
                  "--height", "144")
         assert r.returncode == 2 and f"{traj}: {said}" in r.stderr, (name, r.stderr)
 
 
-def test_protocol_mode_error_names_the_protocol(tmp_path: Path) -> None:
+def test_protocol_mode_error_names_the_protocol(tmp_path: Path,
+                                                here: Run) -> None:
     proto = tmp_path / "p.toml"
     proto.write_text('name = "odd"\n[board]\ntype = "checkerboard"\nsquares_x = 7\nsquares_y = 5\n'
                      'square_length_m = 0.095\n[streams]\nwidth = 333\nheight = 180\nfps = 30\n[plan]\n'
                      'frames_per_standpoint = 1\nstart_distance_m = 1.0\nstep_m = 0.5\nmax_distance_m = 1.0\n'
                      'inclinations_deg = [0.0]\n')
-    r = _run("checkerboard", "--protocol", str(proto), "--out", str(tmp_path / "o"), "--frames", "1")
+    r = here("checkerboard", "--protocol", str(proto), "--out", str(tmp_path / "o"), "--frames", "1")
     assert r.returncode == 2, r.stderr
     assert f"{proto}: [streams] width/height: d455: no 333x180 mode" in r.stderr
 
@@ -122,11 +143,11 @@ def test_protocol_mode_error_names_the_protocol(tmp_path: Path) -> None:
     ('baseline_m = "abc"', "baseline_m must be a number, got 'abc'"),
     ("depth_to_color_translation_m = [-59, 0, 0]", "depth_to_color_translation_m must be in metres"),
 ])
-def test_model_camera_values_of_the_wrong_shape(tmp_path: Path, line: str, said: str) -> None:
+def test_model_camera_values_of_the_wrong_shape(tmp_path: Path, line: str, said: str,
+        here: Run) -> None:
     model = tmp_path / "m.toml"
     model.write_text(f'[camera]\npreset = "d455"\n{line}\n')
-    r = subprocess.run([str(EXE), "simulate", "model", str(model)], capture_output=True, text=True,
-                       timeout=60)
+    r = here("model", str(model))
     assert r.returncode == 2 and f"{model}: model: [camera] {said}" in r.stderr, r.stderr
 
 
@@ -139,24 +160,24 @@ def test_model_camera_values_of_the_wrong_shape(tmp_path: Path, line: str, said:
     ("[effects.quantization]\ndisparity_step_px = 0.03125\ndepth_unit_m = 0.0001",
      "'effects.quantization.depth_unit_m' = 0.0001 m differs from the camera's depth units 0.001 m"),
 ])
-def test_model_effects_checked(tmp_path: Path, table: str, said: str) -> None:
+def test_model_effects_checked(tmp_path: Path, table: str, said: str,
+        here: Run) -> None:
     """Each was accepted: a negative variance clipped to nothing, a missing coefficient taken as 0, a
     quantisation unit the camera's units override."""
     model = tmp_path / "m.toml"
     model.write_text(f'[camera]\npreset = "d455"\n{table}\n')
-    r = subprocess.run([str(EXE), "simulate", "model", str(model)], capture_output=True, text=True,
-                       timeout=60)
+    r = here("model", str(model))
     assert r.returncode == 2 and f"{model}: model: {said}" in r.stderr, r.stderr
 
 
-def test_model_with_positive_and_sign_changing_terms_loads(tmp_path: Path) -> None:
+def test_model_with_positive_and_sign_changing_terms_loads(tmp_path: Path,
+        here: Run) -> None:
     """The checks refuse only what is wrong: a time term's negative slope is a variance that grows
     towards earlier times, and every parameter given loads."""
     model = tmp_path / "m.toml"
     model.write_text('[camera]\npreset = "d455"\n[effects.term_noise_time_poly1]\nc1 = -0.001\n'
                      'ref_time_s = 100.0\n[effects.term_noise_frame_common]\nc = 0.01\n')
-    r = subprocess.run([str(EXE), "simulate", "model", str(model)], capture_output=True, text=True,
-                       timeout=60)
+    r = here("model", str(model))
     assert r.returncode == 0 and "[effects.term_noise_time_poly1]" in r.stdout, r.stderr
 
 
