@@ -181,11 +181,14 @@ def test_model_with_positive_and_sign_changing_terms_loads(tmp_path: Path,
     assert r.returncode == 0 and "[effects.term_noise_time_poly1]" in r.stdout, r.stderr
 
 
-def test_a_model_that_renders_no_depth_is_warned(tmp_path: Path) -> None:
+def test_a_model_that_renders_no_depth_is_warned(tmp_path: Path, here: Run) -> None:
     """Depth units of 1e-9 m put every z beyond 16 bits: every pixel 0, exit 0 and no word before."""
     model = tmp_path / "tiny.toml"
     model.write_text('[camera]\npreset = "d455"\ndepth_units_m = 1e-9\n')
-    r = _run("checkerboard", "--protocol", "demo-d455", "-m", str(model), "--out", str(tmp_path / "c"),
+    proto = tmp_path / "p.toml"  # the demo protocol at 640x360: a quarter of the rendering
+    proto.write_text((Path(__file__).parents[1] / "protocols" / "demo-d455.toml").read_text()
+                     .replace("width = 1280", "width = 640").replace("height = 720", "height = 360"))
+    r = here("checkerboard", "--protocol", str(proto), "-m", str(model), "--out", str(tmp_path / "c"),
              "--frames", "1", "--standpoint", "standpoint_01")
     assert r.returncode == 0 and "standpoint_01: the simulation holds no depth" in r.stderr
     assert f"model '{model}'" in r.stderr
