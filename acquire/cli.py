@@ -71,7 +71,8 @@ def warmup(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: Path =
            serve: bool = ServeOpt, seed: int = SeedOpt, real_time: bool = RealTimeOpt,
            interval: float = typer.Option(10.0, "--interval", help="seconds between temperature samples"),
            accelerate: float = typer.Option(1.0, "--accelerate",
-                                            help="simulated camera only: run the clock this much faster (>= 1)"),
+                                            help="simulated camera only: run the clock this much "
+                                                 "faster (>= 1)"),
            ) -> None:
     """Stream until the temperature settles (protocol's warm-up rule); the curve goes into the session."""
     target = _target(rrd, spawn, serve, resume)

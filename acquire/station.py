@@ -409,7 +409,8 @@ def keep_replaced_calibration(session: Session, record: dict[str, Any]) -> None:
          "the session mixes two calibrations", str(session.dir), "calibration-changed")
 
 
-def do_capture(st: Station, target: RerunTarget | Any, max_guidance_s: float | None) -> list[StandpointOutcome]:
+def do_capture(st: Station, target: RerunTarget | Any,
+               max_guidance_s: float | None) -> list[StandpointOutcome]:
     """The guided loop with the panel and rerun; a recording's end stops it cleanly."""
     on_guidance = st.attach_operator()
     outcomes: list[StandpointOutcome] = []

@@ -9,6 +9,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+from test_acquire_cli import SMALL_TOML
 
 from depthstation.app.cli import run_cli
 from depthstation.core.capture.rs_writer import write_realsense_recording
@@ -17,33 +18,10 @@ from depthstation.core.protocol import Streams
 from depthstation.core.run_warnings import collecting
 from depthstation.simulate.simulated_camera import SimulatedCamera
 
-TINY_TOML = """
-name = "tiny"
-[board]
-type = "checkerboard"
-squares_x = 7
-squares_y = 5
-square_length_m = 0.095
-[streams]
-width = 640
-height = 360
-fps = 30
-[plan]
-frames_per_standpoint = 3
-start_distance_m = 1.0
-step_m = 0.8
-max_distance_m = 1.8
-inclinations_deg = [0.0]
-[tolerances]
-still_seconds = 0.3
-[warmup]
-min_minutes = 0.5
-max_slope_c_per_min = 0.1
-window_minutes = 0.5
-max_minutes = 1.0
-[calibration]
-on_chip = true
-"""
+TINY_TOML = (SMALL_TOML.replace("{frames}", "3").replace("step_m = 0.5", "step_m = 0.8")
+             .replace("max_distance_m = 1.5", "max_distance_m = 1.8")
+             .replace("min_minutes = 1.0", "min_minutes = 0.5")
+             .replace("max_minutes = 5.0", "max_minutes = 1.0"))
 
 CAP = ["--yes", "--max-guidance", "60"]
 FAST = [*CAP, "--accelerate", "1000", "--interval", "15"]

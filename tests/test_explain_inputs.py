@@ -11,27 +11,12 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from test_acquire_cli import SMALL_TOML
 
 from depthstation.app.cli import run_cli
 
-PROTOCOL = """name = "small"
-description = "small"
-[board]
-type = "checkerboard"
-squares_x = 7
-squares_y = 5
-square_length_m = 0.095
-[streams]
-width = {width}
-height = {height}
-fps = 30
-[plan]
-frames_per_standpoint = 3
-start_distance_m = 1.0
-step_m = 0.5
-max_distance_m = 1.5
-inclinations_deg = [0.0]
-"""
+PROTOCOL = (SMALL_TOML.replace("{frames}", "3").replace("width = 640", "width = {width}")
+            .replace("height = 360", "height = {height}"))
 
 
 def _protocol(root: Path, width: int = 320, height: int = 180) -> Path:

@@ -77,8 +77,8 @@ def explain(
         mode = ScanOptions(register=register, icp=icp).register_mode
         if mode == "pass-points":   # evaluate scan's --pass-points has no counterpart here
             raise InputError(None, "explain --scan registers with none, rigid or similarity; pass-points "
-                                   "registration is evaluate scan's (--pass-points FILE): give the trajectory "
-                                   "in the reference frame, or --similarity M")
+                                   "registration is evaluate scan's (--pass-points FILE): give the "
+                                   "trajectory in the reference frame, or --similarity M")
         _explain_scan(real, poses, reference, model, out, frames, seed, similarity, mode, block_frames,
                       not no_resimulate, force, topics, discover)
         return

@@ -400,8 +400,8 @@ def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, 
         sim_side = simulate_like(real_side, brd, model, seed=seed, tick=tick)
     except EvaluationError as exc:   # the real side has board pixels: the model is the cause
         raise InputError(model_file, f"model '{model.name}': its simulation of the real standpoints gave no "
-                                     "board pixels to compare (frames without depth, or the board not found in "
-                                     "them): check the model's [camera] and effects") from exc
+                                     "board pixels to compare (frames without depth, or the board not found "
+                                     "in them): check the model's [camera] and effects") from exc
     ex = explain_sides(real_side, sim_side, model, brd, seed=seed, resimulate=resimulate, discovery=discovery,
                        tick=tick)
     data = write_outputs(ex, out, [str(p) for p in (inputs or real)], dict(parameters or {}))
