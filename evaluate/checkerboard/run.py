@@ -16,7 +16,7 @@ import numpy as np
 
 from depthstation.core.board import Board, load_board
 from depthstation.core.capture.recording import Recording
-from depthstation.core.capture.registry import open_inputs
+from depthstation.core.capture.registry import check_distinct_recordings, open_inputs
 from depthstation.core.capture.session import camera_identity as session_camera_identity
 from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
@@ -24,7 +24,7 @@ from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
 from depthstation.core.progress import progress
 from depthstation.core.rerun_bridge import RerunTarget, recording
-from depthstation.core.results import fingerprint, result_folder
+from depthstation.core.results import result_folder
 from depthstation.core.run_warnings import warn
 from depthstation.evaluate.checkerboard import rerun_log
 from depthstation.evaluate.checkerboard.chunks import (
@@ -114,27 +114,10 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
                                      "inputs hold the same standpoint (two sessions of one protocol?); "
                                      "evaluate them in separate runs")
         seen[r.name] = r.path
-    check_distinct(recs)
+    check_distinct_recordings(recs)
     check_recorded_board(brd, recs, source)
     check_one_camera(recs, refuse=one_camera)
     return CheckerboardJob(list(inputs), source, brd, recs, opt)
-
-
-def check_distinct(recs: list[Recording]) -> None:
-    """One recording under two names (a copy) is bad input: its standpoint would count twice, and
-    explain's tests take the copies for independent evidence. Compared by size and a hash of the
-    first and last MiB (`fingerprint`), so files only; folders (PNG sets, rosbag2) by their path."""
-    seen: dict[tuple[Any, ...], Path] = {}
-    for r in recs:
-        p = Path(r.path)
-        if not p.is_file():
-            continue
-        f = fingerprint(p)
-        key = (f.get("bytes"), f.get("sha256_head_tail"))
-        if key in seen:
-            raise InputError(p, f"is the same recording as {seen[key]} (same size and content): its "
-                                "standpoint would count twice; give each recording once")
-        seen[key] = p
 
 
 def camera_identity(rec: Recording) -> dict[str, Any]:

@@ -7,10 +7,9 @@ from pathlib import Path
 from typing import Any
 
 from depthstation.core.capture.recording import Recording
-from depthstation.core.capture.registry import open_inputs
+from depthstation.core.capture.registry import check_distinct_recordings, open_inputs
 from depthstation.core.capture.session import Session
 from depthstation.core.capture.topics import TopicChoice
-from depthstation.core.errors import InputError
 
 # Frame sets in flight between the reader and the writer thread. A camera needs a deep queue (it
 # must never wait); an import waits anyway, and a short queue lets the memory of finished frames be
@@ -32,13 +31,7 @@ def import_recordings(
     Standpoints keep their names (file or folder stem); clashes get a `-2`, `-3` suffix.
     """
     recordings = open_inputs(list(sources), topics)
-    seen: dict[Path, Path] = {}
-    for rec in recordings:  # one recording twice would weigh its standpoint double in every study
-        key = Path(rec.path).resolve()
-        if key in seen:
-            raise InputError(rec.path, "is given twice (directly or inside a folder also given); "
-                                       "import each recording once")
-        seen[key] = Path(rec.path)
+    check_distinct_recordings(recordings)
     device: dict[str, Any] = dict(recordings[0].metadata.get("device") or recordings[0].info.device)
     session = Session.create(Path(out), device=device, imported_from=[str(r.path) for r in recordings])
     used: set[str] = set()

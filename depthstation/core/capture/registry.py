@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from depthstation.core.capture.mcap_reader import MCAP_MAGIC, open_mcap
 from depthstation.core.capture.png_folder import is_png_folder, open_png
@@ -21,6 +22,7 @@ from depthstation.core.capture.session import SESSION_FILE, Session
 from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.capture.tum_folder import is_tum_folder, open_tum_folder
 from depthstation.core.errors import InputError
+from depthstation.core.results import fingerprint
 
 
 @dataclass(frozen=True)
@@ -125,3 +127,22 @@ def open_inputs(paths: Sequence[Path], topics: TopicChoice | None = None) -> lis
         else:
             out.append(open_recording(p, topics=topics))
     return out
+
+
+def check_distinct_recordings(recs: Sequence[Recording]) -> None:
+    """One recording twice (given twice, inside a folder also given, or a copy under another name)
+    is bad input: its standpoint would count twice, and explain would take the copies for
+    independent evidence. Files compare by size and a hash of their first and last MiB
+    (`fingerprint`), folders (PNG sets, rosbag2) by their resolved path."""
+    seen: dict[tuple[Any, ...], Path] = {}
+    for r in recs:
+        p = Path(r.path)
+        if p.is_file():
+            f = fingerprint(p)
+            key: tuple[Any, ...] = ("file", f.get("bytes"), f.get("sha256_head_tail"))
+        else:
+            key = ("folder", p.resolve())
+        if key in seen:
+            raise InputError(p, f"is the same recording as {seen[key]} (given twice, or a copy): its "
+                                "standpoint would count twice; give each recording once")
+        seen[key] = p
