@@ -14,10 +14,9 @@ from depthstation.core.geometry import (
     inclination_deg,
     look_at,
     matrix_to_quaternion,
-    quaternion_to_matrix,
     rodrigues,
 )
-from depthstation.core.text_files import read_text
+from depthstation.core.tum import read_tum_poses
 
 Pose = NDArray[np.float64]
 
@@ -90,37 +89,11 @@ def write_tum(path: Path, stamps_s: NDArray[Any], poses: list[Pose] | NDArray[An
 
 
 def read_tum(path: Path) -> tuple[NDArray[np.float64], list[Pose]]:
-    """Time stamps (s) and camera-to-world poses of a TUM trajectory file."""
+    """Time stamps (s) and camera-to-world poses of a TUM trajectory (`core.tum.read_tum_poses`, the
+    reader the scan study uses: a file one takes the other takes), at least two of them."""
     p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "trajectory not found")
-    stamps: list[float] = []
-    poses: list[Pose] = []
-    for n, line in enumerate(read_text(p, "TUM trajectory").splitlines(), 1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
-        parts = s.split()
-        if len(parts) != 8:
-            raise InputError(p, f"line {n}: expected 8 numbers (timestamp tx ty tz qx qy qz qw)")
-        try:
-            vals = [float(x) for x in parts]
-        except ValueError as exc:
-            raise InputError(p, f"line {n}: {exc}") from exc
-        if not all(np.isfinite(vals)):
-            raise InputError(p, f"line {n}: a value is not finite")
-        q = np.array(vals[4:8])
-        if np.linalg.norm(q) < 1e-9:   # no rotation at all: it rendered NaN poses
-            raise InputError(p, f"line {n}: zero quaternion (qx qy qz qw all 0)")
-        if stamps and vals[0] <= stamps[-1]:   # the frame clock would repeat or run back
-            raise InputError(p, f"line {n}: time stamp {vals[0]:.9f} does not follow the previous one "
-                                f"({stamps[-1]:.9f}); a trajectory's times must increase")
-        pose = np.eye(4)
-        pose[:3, :3] = quaternion_to_matrix(q / np.linalg.norm(q))
-        pose[:3, 3] = vals[1:4]
-        stamps.append(vals[0])
-        poses.append(pose)
+    stamps, poses = read_tum_poses(p)
     if len(poses) < 2:
         raise InputError(p, f"trajectory holds {len(poses)} pose(s); a sequence needs 2 or more (its frame "
                             "rate comes from their times)")
-    return np.asarray(stamps), poses
+    return stamps, list(poses)

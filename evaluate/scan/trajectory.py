@@ -9,9 +9,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.core.errors import InputError
-from depthstation.core.geometry import matrix_to_quaternion, quaternion_to_matrix
-from depthstation.core.text_files import read_text
+from depthstation.core.geometry import matrix_to_quaternion
+from depthstation.core.tum import read_tum_poses
 
 
 @dataclass(frozen=True)
@@ -124,57 +123,9 @@ def compose_similarity(s: float, r: NDArray[np.float64], t: NDArray[np.float64])
 
 
 def read_tum(path: Path) -> Trajectory:
-    """Read a TUM trajectory; comment lines (#) and blank lines are skipped."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "trajectory file not found")
-    rows: list[list[float]] = []
-    lines: list[int] = []
-    for lineno, line in enumerate(read_text(path, "TUM trajectory").splitlines(), 1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
-        parts = s.replace(",", " ").split()
-        if len(parts) != 8:
-            raise InputError(path, f"line {lineno}: expected 8 values "
-                                   f"(timestamp tx ty tz qx qy qz qw), got {len(parts)}")
-        try:
-            row = [float(p) for p in parts]
-        except ValueError as exc:
-            raise InputError(path, f"line {lineno}: not a number ({exc})") from exc
-        if not all(np.isfinite(row)):  # a NaN pose is a tracking loss to leave out, not a pose
-            names = ("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw")
-            bad = ", ".join(n for n, v in zip(names, row, strict=True) if not np.isfinite(v))
-            raise InputError(path, f"line {lineno}: {bad} not finite (leave the frames a tracker lost "
-                                   "out of the file)")
-        rows.append(row)
-        lines.append(lineno)
-    if not rows:
-        raise InputError(path, "trajectory has no poses")
-    a = np.asarray(rows)
-    order = np.argsort(a[:, 0], kind="stable")
-    a = a[order]
-    at = np.asarray(lines)[order]
-    same_t = np.flatnonzero(np.diff(a[:, 0]) == 0)
-    if same_t.size:  # two files joined, or one written twice: the same line twice is harmless
-        clash = [k for k in same_t if not np.array_equal(a[k], a[k + 1])]
-        if clash:
-            k = clash[0]
-            more = f" ({len(clash)} such times)" if len(clash) > 1 else ""
-            raise InputError(path, f"lines {at[k]} and {at[k + 1]} give two different poses at "
-                                   f"t={float(a[k, 0]):.9f}{more}")
-        keep = np.ones(len(a), bool)
-        keep[same_t + 1] = False
-        a = a[keep]
-    poses = np.tile(np.eye(4), (a.shape[0], 1, 1))
-    for i, row in enumerate(a):
-        q = row[4:8]
-        nq = np.linalg.norm(q)
-        if nq < 1e-9:
-            raise InputError(path, f"pose at t={row[0]} has a zero quaternion")
-        poses[i, :3, :3] = quaternion_to_matrix(q / nq)
-        poses[i, :3, 3] = row[1:4]
-    return Trajectory(a[:, 0], poses)
+    """Read a TUM trajectory (`core.tum.read_tum_poses`: the one reader of the format)."""
+    stamps, poses = read_tum_poses(Path(path))
+    return Trajectory(stamps, poses)
 
 
 def write_tum(path: Path, timestamps_s: Sequence[float] | NDArray[np.float64],
