@@ -150,6 +150,7 @@ class GuidedCapture:
         self.events: list[dict[str, Any]] = []
         self.skipped: dict[str, str] = {}
         self.dropped = 0
+        self.scale_said = False  # board-scale is one cause for every standpoint: said once per run
         self.retakes = 0  # takes discarded because the camera moved while recording
         self.faults: dict[str, int] = {}  # disconnects and stalls per standpoint
         self.finished: list[StandpointOutcome] = []  # this run's outcomes so far (kept when cut short)
@@ -474,12 +475,14 @@ class GuidedCapture:
     def _say_scale(self, sp: Standpoint, ratio: float) -> float:
         """Warn now, not at the evaluation days later, when depth and pose disagree on the scale: a
         board of another size than the protocol's records every standpoint at the wrong distance."""
-        if abs(ratio - 1.0) > BOARD_SCALE_TOLERANCE:
+        if abs(ratio - 1.0) > BOARD_SCALE_TOLERANCE and not self.scale_said:
+            self.scale_said = True
             board = self.protocol.board
             warn(f"{sp.name}: the board's depth reads {ratio:.2f}x the distance its pose gives: the "
                  f"protocol's square_length_m {board.square_length_m:g} m implies "
                  f"{board.square_length_m * ratio:.4f} m for this print (is the protocol's board the one "
-                 "held up?); the standpoint was recorded at the pose's distance",
+                 "held up?); the standpoints are recorded at the pose's distance (each one's ratio: "
+                 "measured.depth_over_pose)",
                  str(self.session.dir), "board-scale")
         return ratio
 

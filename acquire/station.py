@@ -42,6 +42,7 @@ from depthstation.core.protocol import (
 from depthstation.core.rerun_bridge import RerunTarget, recording
 from depthstation.core.results import is_recording_rrd
 from depthstation.core.run_warnings import warn
+from depthstation.simulate.model import check_seed
 from depthstation.simulate.operator import SimulatedOperator, Stance
 
 DEFAULT_PROTOCOL = "checkerboard-d455"
@@ -63,8 +64,7 @@ class Station:
                  accelerate: float = 1.0, warmup_interval_s: float | None = None,
                  max_guidance_s: float | None = None) -> None:
         self.spec = parse_camera(camera)
-        if seed < 0:
-            raise InputError(None, f"--seed must be 0 or more, got {seed}")
+        check_seed(seed)
         check_run_options(self.spec.kind, accelerate, warmup_interval_s, max_guidance_s)
         if session.exists() and not session.is_dir():
             raise InputError(session, "is a file, not a session folder: give a folder for --session")

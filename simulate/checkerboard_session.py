@@ -6,7 +6,7 @@ import json
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,25 +36,36 @@ WARM_TEMPERATURE_C = 40.0
 
 @dataclass
 class DepthTally:
-    """Counts simulated frames and those holding any depth, as they pass to the writer. Why: a model
-    whose scale or depth units put every z out of range renders empty frames, and nothing downstream
-    says the simulation, not the scene, is empty."""
+    """Counts simulated frames and those holding any depth, as they pass to the writer, standpoint
+    by standpoint. Why: a model whose scale or depth units put every z out of range renders empty
+    frames, and nothing downstream says the simulation, not the scene, is empty. Said once per run
+    for all the standpoints it empties (one cause)."""
 
     frames: int = 0
     with_depth: int = 0
+    empty: list[tuple[str, int]] = field(default_factory=list)
 
     def watch(self, frames: Iterable[FrameSet]) -> Iterator[FrameSet]:
         for fs in frames:
             self.frames += 1
-            if fs.depth is not None and bool(np.any(fs.depth)):
-                self.with_depth += 1
+            if not self.with_depth and fs.depth is not None and bool(np.any(fs.depth)):
+                self.with_depth += 1  # one frame with depth is all that is asked: no scan after it
             yield fs
 
-    def warn_if_empty(self, model: str, where: str) -> None:
+    def done(self, name: str) -> None:
+        """The standpoint `name` is rendered: note it if none of its frames held depth."""
         if self.frames and not self.with_depth:
-            warn(f"the simulation holds no depth in any of its {self.frames} frames: model {model} renders "
-                 "nothing here (a depth scale, depth units or range that put every z out of range?)",
-                 where, "no-depth")
+            self.empty.append((name, self.frames))
+        self.frames = self.with_depth = 0
+
+    def warn_if_empty(self, model: str) -> None:
+        if not self.empty:
+            return
+        names = [n for n, _ in self.empty]
+        where = names[0] if len(names) == 1 else f"{', '.join(names[:4])}{', ...' if len(names) > 4 else ''}"
+        frames = f"its {self.empty[0][1]} frames" if len(names) == 1 else "their frames"
+        warn(f"the simulation holds no depth in any of {frames}: model {model} renders nothing here (a "
+             "depth scale, depth units or range that put every z out of range?)", where, "no-depth")
 
 
 def model_label(given: SensorModel | str | Path, mdl: SensorModel) -> str:
@@ -170,6 +181,7 @@ def simulate_checkerboard(protocol: Protocol | str | Path, model: SensorModel | 
         session = Session.create(out, protocol=proto.to_dict(), device=info.device, simulated=True)
     fps = float(proto.streams.fps)
     bar = _bar(progress, len(chosen) * n_frames)
+    tally = DepthTally()
     for k, sp in enumerate(chosen):
         pose = np.asarray((poses or {}).get(sp.name, standpoint_pose(proto.board, sp.distance_m,
                                                                      sp.inclination_deg, sp.side)))
@@ -178,7 +190,6 @@ def simulate_checkerboard(protocol: Protocol | str | Path, model: SensorModel | 
         start_ns = START_NS + k * 60_000_000_000
         frames_it = render_frames(renderer, n_frames, seed=seed * 100003 + k, start_ns=start_ns, fps=fps)
         frames_it = _ticking(frames_it, bar)
-        tally = DepthTally()
         frames_it = tally.watch(frames_it)
         meta = {"name": sp.name, "trajectory": sp.trajectory,
                 "target": {"distance_m": sp.distance_m, "inclination_deg": sp.inclination_deg,
@@ -195,11 +206,12 @@ def simulate_checkerboard(protocol: Protocol | str | Path, model: SensorModel | 
 
             write_realsense_recording(out / f"{sp.name}.db3", info, frames_it)
             rec["file"] = f"{sp.name}.db3"
-        tally.warn_if_empty(model_label(model, mdl), sp.name)
+        tally.done(sp.name)
         truth["standpoints"].append(rec)
         write_json(out / TRUTH_FILE, truth)
     if bar is not None:
         bar[0].stop()
+    tally.warn_if_empty(model_label(model, mdl))
     write_json(out / TRUTH_FILE, truth)
     return out
 

@@ -137,7 +137,8 @@ def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: Sens
         tally = DepthTally()
         for fs in tally.watch(gen()):
             w.write(fs)
-    tally.warn_if_empty(model_label(model, mdl), SEQUENCE_NAME)
+    tally.done(SEQUENCE_NAME)
+    tally.warn_if_empty(model_label(model, mdl))
     write_json(out / TRUTH_FILE, {
         "kind": "simulated-scan", "seed": seed, "frames": len(poses), "stream_info": info.to_dict(),
         "model_name": mdl.name, "model": mdl.to_toml(), "scene": sc.meta, "mesh_file": MESH_FILE,

@@ -100,6 +100,12 @@ def test_a_truncated_recording_imported_into_a_session_is_warned_at_every_study(
     assert "standpoint_02" in err and "cut short" in err
     assert str(imported / "standpoint_02.mcap") in info["truncated_inputs"]
     assert str(imported / "standpoint_01.mcap") not in info["truncated_inputs"]
+    # imported once more (a session moved into another): the cut goes with it
+    again = tmp_path / "again"
+    assert run_cli(["capture", "import", str(imported), "--out", str(again)]) == 0
+    moved = {e["name"]: e for e in json.loads((again / "session.json").read_text())["standpoints"]}
+    assert moved["standpoint_02"]["source_truncated"] == entry["source_truncated"]
+    assert "source_truncated" not in moved["standpoint_01"]
 
 
 def test_standpoints_of_two_cameras_are_warned(session: Path, tmp_path: Path,

@@ -225,12 +225,12 @@ def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0
     # time since the session's first frame, as the samples carry it (a generic time term is fitted
     # and rendered on the same clock)
     t0 = min((c.timestamp_ns[0] for c in real.clocks.values() if c.timestamp_ns), default=0)
+    tally = DepthTally()
     for k, (name, pose) in enumerate(real.poses.items()):
         if tick:
             tick(f"simulate {name}")
         renderer.set_pose(np.linalg.inv(pose))
         clock = real.clocks[name]
-        tally = DepthTally()
 
         def frames(clock: FrameClock = clock, t0: int = t0, k: int = k) -> Any:
             for i, (idx, ts, temp) in enumerate(zip(clock.index, clock.timestamp_ns, clock.temperature_c,
@@ -245,7 +245,8 @@ def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0
         results.append(evaluate_frames(name, tally.watch(frames()), info, board,
                                        frames_requested=len(clock.index), collect_samples=True,
                                        sample_stride=_stride(info), reference=REFERENCE))
-        tally.warn_if_empty(f"'{model.name}'", name)
+        tally.done(name)
+    tally.warn_if_empty(f"'{model.name}'")
     return _side(results, info, info.baseline_m or model.camera.baseline_m, t0, true_poses=real.poses)
 
 

@@ -462,13 +462,13 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
     posed_at = [posed.match(ts * 1e-9, tolerance_s) is not None for ts in clock.timestamp_ns]
     n_posed = int(sum(posed_at))
     blocks_used = sum(any(posed_at[a:a + n]) for a, n in chunk_ranges(n_frames, block))
+    if n_posed == 0:
+        raise InputError(poses, f"no pose within {tolerance_s:g} s of any of the {n_frames} frames' time "
+                                "stamps (another sequence's trajectory, or another clock?)")
     if n_posed < n_frames:
         warn(f"{n_frames - n_posed} of {n_frames} frames have no pose within {tolerance_s:g} s in the "
              f"trajectory and are left out: {n_posed} frames in {blocks_used} blocks are compared",
              str(poses), "frames-without-pose")
-    if n_posed == 0:
-        raise InputError(poses, f"no pose within {tolerance_s:g} s of any of the {n_frames} frames' time "
-                                "stamps (another sequence's trajectory, or another clock?)")
 
     class _Limited:
         """The real source cut to the frames used."""

@@ -61,8 +61,12 @@ def import_recordings(
                 w.write(fs)
                 if on_frame is not None:
                     on_frame(rec, i)
-            if getattr(rec, "truncated", False):  # kept in the session: every later study warns again
-                cut = {"path": str(rec.path), "recovered_frames": getattr(rec, "recovered_frames", None)}
+            earlier = rec.metadata.get("source") or {}  # a session imported again keeps an earlier cut
+            if getattr(rec, "truncated", False) or earlier.get("truncated"):  # every later study warns
+                now = getattr(rec, "truncated", False)
+                cut = {"path": str(rec.path) if now else earlier.get("path"),
+                       "recovered_frames": getattr(rec, "recovered_frames", None) if now
+                       else earlier.get("recovered_frames")}
                 w.entry["source_truncated"] = cut
                 w.set_metadata("source", dict(meta["source"], truncated=True,
                                               recovered_frames=cut["recovered_frames"]))
