@@ -44,6 +44,7 @@ from depthstation.core.parallel import ChunkRunner, ProgressFn, progress_bar
 from depthstation.core.results import (
     RESULT_FILE,
     RESULT_MARKER,
+    check_out_path,
     fingerprint,
     result_folder,
     write_json,
@@ -510,11 +511,7 @@ def claim_out(man: Manifest) -> None:
     earlier output (the marker naming this manifest, or a batch.json of a batch run before the
     marker existed) is updated; anything else is refused before any item runs."""
     out, mine = man.out, man.path.resolve()
-    if out.exists() and not out.is_dir():
-        raise InputError(out, f"the batch's out (in {man.path}) exists and is not a folder")
-    blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
-    if blocking is not None:
-        raise InputError(out, f"cannot be made: {blocking} is a file, not a folder")
+    check_out_path(out, f"the batch's out (in {man.path}) ")
     if out.is_dir() and any(out.iterdir()):
         marker = _read_json(out / RESULT_MARKER)
         legacy = _read_json(out / BATCH_FILE)

@@ -264,6 +264,16 @@ def check_replaceable(out: Path, inputs: Sequence[str | Path] = (), kind: str | 
                               "overwrite): choose another --out")
 
 
+def check_out_path(out: Path, what: str = "") -> None:
+    """An output folder that can be made: not a file, not below one (mkdir would fail with "File
+    exists", exit 1, the file unnamed). `what` says whose folder it is in the message."""
+    if out.exists() and not out.is_dir():
+        raise InputError(out, f"{what}is a file, not a folder (it names the result folder)")
+    blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise InputError(out, f"cannot be made: {blocking} is a file, not a folder")
+
+
 @contextmanager
 def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path] = (),
                   kind: str | None = None) -> Iterator[Path]:
@@ -278,11 +288,7 @@ def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path
     it for ours, and replaces it only by a result of the same kind.
     """
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "exists and is not a folder")
-    blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
-    if blocking is not None:  # mkdir would fail with "File exists" (exit 1, the file unnamed)
-        raise InputError(out, f"cannot be made: {blocking} is a file, not a folder")
+    check_out_path(out)
     if _non_empty(out) and not force:
         raise InputError(out, "is not empty; depthstation never overwrites results (--force replaces "
                               "it once the new result is complete)")

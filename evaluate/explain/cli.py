@@ -11,7 +11,7 @@ from depthstation.core.errors import InputError
 from depthstation.core.parallel import check_cluster_address
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
-from depthstation.core.results import ForceOption, result_folder
+from depthstation.core.results import ForceOption, check_out_path, result_folder
 from depthstation.evaluate.explain.run import run_explain
 from depthstation.evaluate.explain.scan_form import explain_scan, write_scan_outputs
 from depthstation.evaluate.scan.run import ScanOptions
@@ -62,8 +62,7 @@ def explain(
     for p in real:
         if not p.exists():
             raise InputError(p, "not found")
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "is a file: --out names the result folder")
+    check_out_path(out)
     check_seed(seed)
     if cluster is not None:
         check_cluster_address(cluster)
