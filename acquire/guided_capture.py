@@ -220,21 +220,26 @@ class GuidedCapture:
             self.on_state(state)
 
     # -- measuring ---------------------------------------------------------------------------
-    def _measure(self, fs: FrameSet) -> tuple[BoardPose | None, float | None]:
+    def _depth_intrinsics(self) -> Any:
+        """The intrinsics of the depth image's pixels (the colour camera's when depth is aligned)."""
         assert self.info is not None
+        return self.info.color_intrinsics if self.info.depth_aligned_to_color else self.info.depth_intrinsics
+
+    def _measure(self, fs: FrameSet) -> tuple[BoardPose | None, float | None, Any]:
+        """The board pose, its depth fill rate and its depth pixels (mask), each None when unknown."""
         if fs.color is None:
-            return None, None
+            return None, None, None
+        assert self.info is not None
         pose = board_pose(fs.color, self.protocol.board, self.info)
         if pose is None or fs.depth is None:
-            return pose, None
-        intr = self.info.color_intrinsics if self.info.depth_aligned_to_color else self.info.depth_intrinsics
+            return pose, None, None
+        intr = self._depth_intrinsics()
         assert intr is not None
         mask = board_mask(pose, self.protocol.board, intr, margin_m=0.5 * self.protocol.board.square_length_m)
-        return pose, fill_rate(fs.depth, mask)
+        return pose, fill_rate(fs.depth, mask), mask
 
     def _guidance(self, sp: Standpoint, pose: BoardPose | None, fill: float | None, still: bool) -> Guidance:
-        assert self.info is not None
-        intr = self.info.color_intrinsics if self.info.depth_aligned_to_color else self.info.depth_intrinsics
+        intr = self._depth_intrinsics()
         tol = self.protocol.tolerances
         if pose is None or intr is None:
             return guide(sp, tol, distance_m=None, inclination_deg=None, azimuth_deg=None, fill=fill)
@@ -346,7 +351,7 @@ class GuidedCapture:
             fs = self._frame()
             t = self._t_s(fs)
             t_start = t if t_start is None else t_start
-            pose, fill = self._measure(fs)
+            pose, fill, _ = self._measure(fs)
             is_still = still.update(fs.timestamp_ns,
                                     None if pose is None else pose.stillness_points(self.protocol.board))
             g = self._guidance(sp, pose, fill, is_still)
@@ -407,13 +412,14 @@ class GuidedCapture:
                     self._last_temp_ns = fs.timestamp_ns
                 # the pose on every `stride`-th frame is plenty for the average (30 of 150) and keeps
                 # 30 fps at 1280x720: detection costs about a frame period there
-                pose = self._measure(fs)[0] if (state.recorded - 1) % stride == 0 else None
+                sampled = (state.recorded - 1) % stride == 0
+                pose, _, mask = self._measure(fs) if sampled else (None, None, None)
                 if pose is not None:
                     m = np.eye(4)
                     m[:3, :3], m[:3, 3] = pose.R, pose.t
                     poses.append(m)
                     centres.append(pose.stillness_points(self.protocol.board))
-                    if (r := self._depth_over_pose(fs, pose)) is not None:
+                    if mask is not None and (r := self._depth_over_pose(fs, pose, mask)) is not None:
                         scales.append(r)
                     moved = self._moved(centres)
                     if moved is not None:
@@ -456,15 +462,15 @@ class GuidedCapture:
                         f"{tol.still_rotation_deg:g}°)")
         return None
 
-    def _depth_over_pose(self, fs: FrameSet, pose: BoardPose) -> float | None:
-        """The board's median depth over the z its pose gives at its centre (about 1 when the
-        protocol's board is the print; the pose scales with square_length_m, depth does not)."""
+    def _depth_over_pose(self, fs: FrameSet, pose: BoardPose, mask: Any) -> float | None:
+        """The board's median depth (over `mask`, its depth pixels from `_measure`) over the z its
+        pose gives at its centre (about 1 when the protocol's board is the print; the pose scales
+        with square_length_m, depth does not)."""
         assert self.info is not None
-        intr = self.info.color_intrinsics if self.info.depth_aligned_to_color else self.info.depth_intrinsics
-        if fs.depth is None or intr is None:
+        if fs.depth is None:
             return None
         board = self.protocol.board
-        d = fs.depth[board_mask(pose, board, intr, margin_m=0.5 * board.square_length_m)]
+        d = fs.depth[mask]
         d = d[d > 0]
         w, h = board.size_m
         z_pose = float((pose.R @ np.array([w / 2, h / 2, 0.0]) + pose.t)[2])
