@@ -226,9 +226,10 @@ def _generic_check(item: BatchItem) -> ItemCheck:
     return ItemCheck(tuple(item_paths(item)))
 
 
-def _overlap(a: Path, b: Path) -> bool:
-    """One path is the other or holds it (a session and one of its recordings)."""
-    ra, rb = a.resolve(), b.resolve()
+def _overlap(a: Path, b: Path, resolved: bool = False) -> bool:
+    """One path is the other or holds it (a session and one of its recordings); `resolved`: both
+    are resolved already (the manifest's pairwise check resolves each path once)."""
+    ra, rb = (a, b) if resolved else (a.resolve(), b.resolve())
     return ra == rb or ra in rb.parents or rb in ra.parents
 
 
@@ -317,12 +318,14 @@ def load_manifest(path: Path) -> Manifest:
     if not isinstance(raw_items, list) or not raw_items:
         raise InputError(path, "no [[items]] in the manifest")
     checked = [_check_item(path, k, raw, base, out, defaults) for k, raw in enumerate(raw_items)]
+    outs = [a.out.resolve() for a, _ in checked]
+    reads = [[x.resolve() for x in fa.recordings] for _, fa in checked]
     for j, (b, fb) in enumerate(checked):
         for i, (a, fa) in enumerate(checked[:j]):
             wa, wb = f"items[{i}] ({a.name})", f"items[{j}] ({b.name})"
-            if a.out.resolve() == b.out.resolve() or _overlap(a.out, b.out):
+            if _overlap(outs[i], outs[j], resolved=True):
                 raise InputError(path, f"{wb}: out folder {b.out} is (or holds, or lies in) the one of {wa}")
-            shared = next((x for x in fa.recordings for y in fb.recordings if _overlap(x, y)), None)
+            shared = next((x for x in reads[i] for y in reads[j] if _overlap(x, y, resolved=True)), None)
             if a.kind == b.kind and shared is not None:
                 raise InputError(path, f"{wa} and {wb} both read {shared}: the combined result would count "
                                        "its frames twice (double counts, too small U95); one item per "
