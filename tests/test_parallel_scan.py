@@ -132,3 +132,31 @@ def test_the_last_two_chunks_taper_to_short_pieces_that_cover_their_frames_once(
     tail = [ScanChunk("s", "m", traj, StudyConfig(), 1216, 64),
             ScanChunk("s", "m", traj, StudyConfig(), 1280, 54)]
     assert [c.limit for c in split_last(tail)] == [59, 30, 15, 7, 7]
+
+
+def test_a_mesh_rewritten_in_place_is_read_again_by_the_next_study(scan_case: dict[str, Any],
+                                                                   one_pass: Any, tmp_path: Path) -> None:
+    """The process keeps its prepared renderer for the next study (batch items, the report's figure
+    frame); a mesh file rewritten under the same path must not be served from that cache: the
+    second study sees a room 0.25 m larger and its errors move by about that."""
+    import open3d as o3d
+
+    from depthstation.evaluate.scan.synthetic import Room
+
+    mesh = tmp_path / "room.ply"
+    o3d.io.write_triangle_mesh(str(mesh), Room().mesh(segments=64))  # type: ignore[arg-type]
+    first = run_scan(scan_case["sequence"], mesh, scan_case["trajectory"], scan_case["config"])
+    assert_same(first, one_pass)
+    big = Room().mesh(segments=64)
+    big.scale(1.1, center=(0.0, 0.0, 0.0))
+    st = mesh.stat()
+    o3d.io.write_triangle_mesh(str(mesh), big)  # type: ignore[arg-type]
+    os.utime(mesh, ns=(st.st_atime_ns, st.st_mtime_ns + 1))  # even within one mtime tick
+    second = run_scan(scan_case["sequence"], mesh, scan_case["trajectory"], scan_case["config"])
+    assert second.grid.total > 0
+    shift = np.average(second.grid.mean, weights=second.grid.count) - np.average(first.grid.mean,
+                                                                                  weights=first.grid.count)
+    assert shift < -0.05  # reference depths 10 % longer: measured minus reference falls
+    chunks_mod.clear_cache()
+    again = run_scan(scan_case["sequence"], mesh, scan_case["trajectory"], scan_case["config"])
+    assert_same(again, second)

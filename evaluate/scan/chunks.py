@@ -69,10 +69,26 @@ class _WorkerCache:
 _CACHE = _WorkerCache()
 
 
+def clear_cache() -> None:
+    """Forget the kept sequence and renderer, so that the next study of this process opens its
+    sequence and reads and prepares its mesh again, as a command does (benchmarks time that)."""
+    _CACHE.source_key = _CACHE.source = _CACHE.mesh_key = _CACHE.caster = None
+
+
+def _file_key(path: str | Path) -> object:
+    """A path with its size and modification time: a file rewritten in place is not the one kept."""
+    try:
+        st = Path(path).stat()
+    except OSError:
+        return str(path)
+    return (str(path), st.st_size, st.st_mtime_ns)
+
+
 def renderer_for(mesh: str | Path, intr: Intrinsics, config: StudyConfig) -> FrameRenderer:
     """The renderer of `config` over `mesh` for frames of `intr`, kept for the next chunks (and the
-    report's figure frame) of this process: the mesh is loaded and prepared once."""
-    key = (str(mesh), intr, config.nthreads, config.renderer)
+    report's figure frame) of this process: the mesh is loaded and prepared once (again when the
+    file changed)."""
+    key = (_file_key(mesh), intr, config.nthreads, config.renderer)
     if _CACHE.caster is None or _CACHE.mesh_key != key:
         _CACHE.caster = None
         _CACHE.caster = make_renderer(config.renderer, Path(mesh), intr, config.nthreads)
@@ -83,7 +99,7 @@ def renderer_for(mesh: str | Path, intr: Intrinsics, config: StudyConfig) -> Fra
 def _context(chunk: ScanChunk) -> tuple[FrameRenderer, FrameSource]:
     source: FrameSource
     if isinstance(chunk.sequence, str):
-        key: object = (chunk.sequence, chunk.intrinsics, chunk.topics)
+        key: object = (_file_key(chunk.sequence), chunk.intrinsics, chunk.topics)
         if _CACHE.source is None or _CACHE.source_key != key:
             intr = Path(chunk.intrinsics) if chunk.intrinsics else None
             _CACHE.source = open_recording(Path(chunk.sequence), intrinsics=intr, topics=chunk.topics)
