@@ -50,8 +50,7 @@ from depthstation.core.results import (
     write_json,
     write_result_info,
 )
-from depthstation.core.run_warnings import current as current_warnings
-from depthstation.core.run_warnings import warn
+from depthstation.core.run_warnings import collecting, warn
 from depthstation.core.text_files import read_text
 from depthstation.core.tomlcompat import tomllib
 from depthstation.evaluate.checkerboard.chunks import REFERENCES, StandpointOptions, checkerboard_chunk
@@ -394,9 +393,11 @@ def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None =
     marker.unlink(missing_ok=True)
     # taken before reading: an input that changes while the item runs is seen changed next time
     inputs = [fingerprint(p) for p in item_paths(item)]
-    before = current_warnings()
-    # the item's folder is written under a temporary name and replaces an unfinished one whole
-    with result_folder(item.out, force=True, inputs=item_paths(item), kind=item.kind) as tmp:
+    # the item's own warnings: its result.json lists them, not those of the items before it (they
+    # reach the batch's collector when the item ends)
+    with collecting(forward=True) as own_warnings, \
+            result_folder(item.out, force=True, inputs=item_paths(item), kind=item.kind) as tmp:
+        # the item's folder is written under a temporary name and replaces an unfinished one whole
         job = KINDS[item.kind](replace(item, out=tmp))
         prog = progress or (lambda d, t: None)
         if job.merge is not None:
@@ -410,7 +411,7 @@ def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None =
         if not (tmp / RESULT_FILE).is_file():
             raise EvaluationError(f"{item.name}: the {item.kind} evaluation wrote no {RESULT_FILE}")
     grid_path = None if grid_name is None else item.out / Path(grid_name).name
-    own = [w.to_dict() for w in current_warnings() if w not in before]
+    own = [w.to_dict() for w in own_warnings]
     write_json(marker, {"fingerprint": item.fingerprint(), "grid": grid_path, "inputs": inputs,
                         "warnings": own})
     return grid_path

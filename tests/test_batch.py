@@ -389,3 +389,33 @@ def test_manifest_checked_whole_before_any_item_runs(tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"campaign.toml: items\[1\] \(gone\): input .*gone.npy not found"):
         batch(manifest)
     assert calls(tmp_path) == [] and not (tmp_path / "results").exists()
+
+
+def test_an_items_result_lists_its_own_warnings_not_those_of_the_items_before(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each item's result.json speaks for its numbers: a warning of the first item (a board not
+    found at pose03) must not appear in the second item's file; the batch lists both."""
+    monkeypatch.setitem(batch_mod.KINDS, "synthtable", prepare_table)
+    (tmp_path / "pose03.txt").write_text("pose03")
+    (tmp_path / "pose04.txt").write_text("pose04")
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('out = "res"\n'
+                        '[[items]]\nkind = "synthtable"\ninputs = { samples = "pose03.txt" }\n'
+                        '[[items]]\nkind = "synthtable"\ninputs = { samples = "pose04.txt" }\n')
+    assert run_cli(["evaluate", "batch", str(manifest), "--quiet"]) == 0
+    for name in ("pose03", "pose04"):
+        info = json.loads((tmp_path / "res" / name / "result.json").read_text())
+        assert [w["where"] for w in info["warnings"]] == [name], name
+    combined = json.loads((tmp_path / "res" / "combined" / "result.json").read_text())
+    assert sorted(w["where"] for w in combined["warnings"]) == ["pose03", "pose04"]
+
+
+def test_a_batch_called_outside_a_command_still_says_its_items_warnings(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    monkeypatch.setitem(batch_mod.KINDS, "synthtable", prepare_table)
+    (tmp_path / "pose03.txt").write_text("pose03")
+    manifest = tmp_path / "m.toml"
+    manifest.write_text('out = "res"\n[[items]]\nkind = "synthtable"\ninputs = { samples = "pose03.txt" }\n')
+    with caplog.at_level("WARNING", logger="depthstation.warnings"):
+        batch(manifest)
+    assert any("pose03: board not found" in r.getMessage() for r in caplog.records)

@@ -28,6 +28,19 @@ def test_a_warning_from_a_pool_thread_is_collected_once() -> None:
     assert later == []
 
 
+def test_a_pool_threads_warning_goes_to_the_innermost_collector_then_outwards() -> None:
+    """A batch item keeps its own list (its result.json); what its pool's threads warn belongs to
+    it, and reaches the command's list when the item ends."""
+    with collecting() as run:
+        with collecting() as item, ThreadPoolExecutor(1) as pool:
+            pool.submit(warn, "cut short", "b.mcap", "truncated-input").result()
+        assert [w.where for w in item] == ["b.mcap"]
+        assert [w.where for w in run] == ["b.mcap"]
+        with ThreadPoolExecutor(1) as pool:
+            pool.submit(warn, "cut short", "c.mcap", "truncated-input").result()
+    assert [w.where for w in run] == ["b.mcap", "c.mcap"]
+
+
 @pytest.fixture(scope="module")
 def session(small_session: Path) -> Path:
     return small_session

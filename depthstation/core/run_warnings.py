@@ -35,19 +35,22 @@ class RunWarning:
 
 log = logging.getLogger("depthstation.warnings")
 _COLLECTED: ContextVar[list[RunWarning] | None] = ContextVar("depthstation_warnings", default=None)
-# the main thread's outermost collector, for threads that did not inherit the context (a thread
-# pool's workers start with an empty one): their warnings reached stderr but not result.json or
-# --strict (a truncated recording read by a standpoint worker went unrecorded)
+# the main thread's collectors, innermost last, for threads that did not inherit the context (a
+# thread pool's workers start with an empty one): their warnings reached stderr but not result.json
+# or --strict (a truncated recording read by a standpoint worker went unrecorded). The innermost:
+# a batch item collects its own, so that its result.json lists what its workers warned
 _MAIN: list[list[RunWarning]] = []
 
 
 @contextmanager
-def collecting() -> Iterator[list[RunWarning]]:
-    """Collect the warnings of the code inside; nested collectors pass theirs to the outer one."""
+def collecting(*, forward: bool = False) -> Iterator[list[RunWarning]]:
+    """Collect the warnings of the code inside; nested collectors pass theirs to the outer one.
+    `forward`: with no outer collector, log them at the end as uncollected warnings are (a part of
+    a run that keeps its own list, e.g. a batch item, called outside any command)."""
     outer = _COLLECTED.get()
     mine: list[RunWarning] = []
     token = _COLLECTED.set(mine)
-    main = outer is None and threading.current_thread() is threading.main_thread()
+    main = threading.current_thread() is threading.main_thread()
     if main:
         _MAIN.append(mine)
     try:
@@ -58,6 +61,9 @@ def collecting() -> Iterator[list[RunWarning]]:
             _MAIN.remove(mine)
         if outer is not None:
             outer.extend(w for w in mine if w not in outer)
+        elif forward:
+            for w in mine:
+                log.warning(w.line())
 
 
 def warn(message: str, where: str | None = None, code: str = "general") -> RunWarning:
