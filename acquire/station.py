@@ -9,6 +9,7 @@ from __future__ import annotations
 import base64
 import contextlib
 import math
+import re
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -28,7 +29,7 @@ from depthstation.acquire.guided_capture import (
 from depthstation.acquire.views import BOARD_HELP, RerunView, TerminalPanel, blueprint
 from depthstation.acquire.warmup import WarmupDecision, WarmupSample, run_warmup
 from depthstation.core.capture.session import SESSION_FILE, Session, camera_identity, identity_differences
-from depthstation.core.device import CalibratableCamera
+from depthstation.core.device import CalibratableCamera, device_model
 from depthstation.core.errors import CameraError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress, stderr_console
@@ -272,7 +273,10 @@ def recording_misfits(info: Any, protocol: Protocol) -> list[str]:
     if want.infrared and info.infrared_intrinsics is None:
         out.append("no infrared stream, the protocol asks for one")
     name = str((info.device or {}).get("name") or "")
-    if name and protocol.device.model.lower() not in name.lower():
+    model = protocol.device.model.strip().upper()
+    found = device_model(name)  # the model a name ends with; else the model as a word in it
+    fits = found == model if found else re.search(rf"\b{re.escape(model)}\b", name.upper()) is not None
+    if name and not fits:  # not a substring: "D45" is in "D455", "D435" in "D435I"
         out.append(f"recorded by {name}, the protocol is for a {protocol.device.model}")
     return out
 

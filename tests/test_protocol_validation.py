@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -23,6 +24,9 @@ from depthstation.core.protocol import MAX_STANDPOINTS, check_for_acquisition, l
     ("fps = 30", 'fps = 30\npreset = "HighAccuracyy"', "'streams.preset' 'HighAccuracyy' is no RealSense"),
     ("width = 640", "width = 100000", "beyond any RealSense stream"),
     ("on_chip = true", "on_chip = true\ntare = true", "'calibration.tare_distance_m' is missing"),
+    ("inclinations_deg = [0.0]", "inclinations_deg = [0.0, 15.0, 15.0, 45.0]",
+     "'plan.inclinations_deg' lists 15 deg more than once"),
+    ("[plan]", '[device]\nmodel = "D45"\n\n[plan]', "'device.model' 'D45' is no RealSense model name"),
 ])
 def test_bad_plan_values_are_refused_at_load(tmp_path: Path, old: str, new: str, says: str) -> None:
     p = tmp_path / "bad.toml"
@@ -53,3 +57,28 @@ def test_acquire_needs_colour(tmp_path: Path) -> None:
 def test_empty_protocol_name_is_said_plainly() -> None:
     with pytest.raises(ProtocolError, match="--protocol is empty"):
         load_protocol("")
+
+
+@pytest.mark.parametrize(("model", "name", "fits"), [
+    ("D455", "Intel RealSense D455", True),
+    ("D455", "RealSense D455", True),
+    ("d455", "Intel RealSense D455", True),
+    ("D435", "Intel RealSense D435I", False),   # not a substring match
+    ("D455", "Intel RealSense D456", False),
+    ("D455", "RealSense D455 (USB 2)", True),   # no model at the end: the model as a word
+    ("D455", "RealSense D4550 prototype", False),
+])
+def test_a_recording_of_another_model_does_not_fit_the_protocol(tmp_path: Path, model: str, name: str,
+                                                                fits: bool) -> None:
+    from depthstation.acquire.station import recording_misfits
+    from depthstation.simulate.simulated_camera import SimulatedCamera
+
+    p = tmp_path / "p.toml"
+    p.write_text(TINY_TOML.replace("[plan]", f'[device]\nmodel = "{model}"\n\n[plan]'))
+    proto = load_protocol(p)
+    info = SimulatedCamera("d455").start(proto.streams)
+    info = replace(info, device={**(info.device or {}), "name": name})
+    said = recording_misfits(info, proto)
+    assert (said == []) is fits, said
+    if not fits:
+        assert said == [f"recorded by {name}, the protocol is for a {model}"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ D400_PRESETS = ("Custom", "Default", "Hand", "High Accuracy", "High Density", "M
 # a plan is walked by an operator: the paper's is 65 standpoints; thousands are a typo (a step in
 # millimetres, a range in millimetres) and would take memory and days
 MAX_STANDPOINTS = 1000
+MODEL_NAME = re.compile(r"D\d{3}[A-Z]?", re.IGNORECASE)  # a RealSense model as Intel names it
 MAX_FRAMES_PER_STANDPOINT = 100_000  # an hour at 30 fps
 MAX_WIDTH, MAX_HEIGHT, MAX_FPS = 1920, 1080, 300  # above any RealSense D400 stream profile
 
@@ -233,6 +235,10 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
         raise ProtocolError(source, "'plan.start_distance_m' must be positive and <= plan.max_distance_m")
     if any(not 0 <= a < 90 for a in p.inclinations_deg) or not p.inclinations_deg:
         raise ProtocolError(source, "'plan.inclinations_deg' must list angles in [0, 90)")
+    if twice := sorted({a for a in p.inclinations_deg if p.inclinations_deg.count(a) > 1}):
+        raise ProtocolError(source, f"'plan.inclinations_deg' lists {', '.join(f'{a:g}' for a in twice)} deg "
+                                    "more than once (a typo for another angle?): list each inclination "
+                                    "once; for more frames raise plan.frames_per_standpoint")
     if p.side not in ("left", "right"):
         raise ProtocolError(source, "'plan.side' must be 'left' or 'right'")
     per_trajectory = math.floor((p.max_distance_m - p.start_distance_m + 1e-9) / p.step_m) + 1
@@ -242,6 +248,9 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
                                     f"{p.step_m:g} m, {len(p.inclinations_deg)} inclinations); at most "
                                     f"{MAX_STANDPOINTS}, an operator walks each one: check plan.step_m and "
                                     "plan.max_distance_m (metres)")
+    if not MODEL_NAME.fullmatch(proto.device.model.strip()):
+        raise ProtocolError(source, f"'device.model' {proto.device.model!r} is no RealSense model name "
+                                    "(D455, D435I, D415, ...)")
     st = proto.streams
     if st.width <= 0 or st.height <= 0 or st.fps <= 0:
         raise ProtocolError(source, "'streams.width', 'streams.height' and 'streams.fps' must be positive")
