@@ -106,6 +106,33 @@ def test_a_standpoint_cut_short_is_warned_without_frames_asked() -> None:
     assert [(w.where, w.code) for w in said] == [("c", "fewer-frames")]
 
 
+class _ShortRecording:
+    """A recording of n still frames: just what `evaluate_recording` reads."""
+
+    def __init__(self, board: Board, n: int) -> None:
+        self.name, self.path, self.info, self.metadata = "short", "short.mcap", ALIGNED, {}
+        self._frames = list(still_frames(board, pose_for(board, 1.0, 10.0), ALIGNED, n))
+        self.limits: list[int | None] = []
+
+    def frames(self, limit: int | None = None) -> list[FrameSet]:
+        self.limits.append(limit)
+        return self._frames[:limit]
+
+
+def test_frames_read_up_to_a_cap_are_not_warned_of_only_frames_asked_for() -> None:
+    """explain reads up to 30 frames per standpoint unless told: a 4-frame standpoint is not a
+    fault then (it was, for every standpoint of a 10-frame protocol, and --strict failed), only when
+    the user asked for more with --frames."""
+    from depthstation.evaluate.checkerboard.study import evaluate_recording
+
+    board = Board()
+    rec = _ShortRecording(board, 4)
+    r = evaluate_recording(rec, board, up_to=30)  # type: ignore[arg-type]
+    assert rec.limits == [30] and r.frames_used == 4 and r.frames_requested is None and not r.notes
+    r = evaluate_recording(rec, board, frames=6, up_to=30)  # type: ignore[arg-type]
+    assert rec.limits[-1] == 6 and any("fewer frames than asked: 4 of 6" in n for n in r.notes)
+
+
 def test_standpoint_without_board_is_reported_not_fatal() -> None:
     board = Board()
     frames = [FrameSet(k, k, np.full((360, 640), 10000, np.uint16), np.full((360, 640, 3), 90, np.uint8))

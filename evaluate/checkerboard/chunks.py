@@ -21,7 +21,7 @@ from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner, ProgressFn
 from depthstation.evaluate.checkerboard.frame import FrameResult
-from depthstation.evaluate.checkerboard.study import StandpointResult, evaluate_recording
+from depthstation.evaluate.checkerboard.study import DEFAULT_FRAMES, StandpointResult, evaluate_recording
 
 REFERENCES = ("auto", "average", "frame")
 
@@ -30,7 +30,8 @@ REFERENCES = ("auto", "average", "frame")
 class StandpointOptions:
     """How each standpoint is evaluated (the keyword options of `evaluate_recording`)."""
 
-    frames: int | None = None  # asked for (short standpoints warned); None: up to DEFAULT_FRAMES
+    frames: int | None = None  # asked for (short standpoints warned); None: up to `up_to`, not warned
+    up_to: int = DEFAULT_FRAMES  # frames read when none were asked for
     reference: str = "auto"
     collect_samples: bool = False
     sample_stride: int = 1
@@ -52,7 +53,7 @@ class CheckerboardChunk:
 def evaluate(rec: Recording, board: Board, options: StandpointOptions,
              on_frame: Callable[[FrameSet, FrameResult], None] | None = None) -> StandpointResult:
     o = options
-    return evaluate_recording(rec, board, frames=o.frames, reference=o.reference,
+    return evaluate_recording(rec, board, frames=o.frames, up_to=o.up_to, reference=o.reference,
                               collect_samples=o.collect_samples, sample_stride=o.sample_stride,
                               refine=o.refine, margin_m=o.margin_m, on_frame=on_frame, roi=o.roi)
 

@@ -257,16 +257,17 @@ def evaluate_frames(name: str, frames: Iterable[FrameSet], info: StreamInfo, boa
 
 
 def evaluate_recording(rec: Recording, board: Board, *, frames: int | None = None,
-                       collect_samples: bool = False, sample_stride: int = 1, refine: bool = True,
+                       up_to: int = DEFAULT_FRAMES, collect_samples: bool = False, sample_stride: int = 1,
+                       refine: bool = True,
                        margin_m: float = 0.01, on_frame: FrameCallback | None = None,
                        reference: str = "auto", roi: float | None = None) -> StandpointResult:
     """Contract 3: the checkerboard study of one recording (its first `frames` frames, or up to
-    DEFAULT_FRAMES when none were asked for: then a short recording is not warned of here).
+    `up_to` when none were asked for: then a short recording is not warned of here).
 
     reference: 'average' (the standpoint's averaged pose, the paper's method), 'frame' (each
     frame's own pose) or 'auto' (average unless the camera moved during the standpoint).
     """
-    result = evaluate_frames(rec.name, rec.frames(limit=frames or DEFAULT_FRAMES), rec.info, board,
+    result = evaluate_frames(rec.name, rec.frames(limit=frames or up_to), rec.info, board,
                              frames_requested=frames, collect_samples=collect_samples,
                              sample_stride=sample_stride, refine=refine, margin_m=margin_m,
                              path=str(rec.path), on_frame=on_frame, reference=reference, roi=roi)

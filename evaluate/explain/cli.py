@@ -12,7 +12,7 @@ from depthstation.core.parallel import check_cluster_address
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.core.results import ForceOption, check_out_path, result_folder
-from depthstation.evaluate.explain.run import run_explain
+from depthstation.evaluate.explain.run import EXPLAIN_FRAMES, run_explain
 from depthstation.evaluate.explain.scan_form import explain_scan, write_scan_outputs
 from depthstation.evaluate.scan.run import ScanOptions
 from depthstation.simulate.model import check_seed, load_model
@@ -29,7 +29,9 @@ def explain(
     board: Path | None = typer.Option(None, "--board", help="board.json or a protocol TOML with \\[board]."),
     model: str = typer.Option("d455", "--model", help="Preset (d455, d435, d415) or a model TOML."),
     out: Path = typer.Option(..., "--out", help="Result folder (must be new or empty)."),
-    frames: int = typer.Option(30, "--frames", help="Frames per standpoint to use."),
+    frames: int | None = typer.Option(None, "--frames", show_default=False,
+                                      help="Frames per standpoint to use [default: up to 30; a standpoint "
+                                           "with fewer is warned of only when --frames is given]."),
     seed: int = typer.Option(0, "--seed", help="Seed of the simulation."),
     scan: bool = typer.Option(False, "--scan",
                               help="REAL is a reference-scan sequence (needs --poses, --reference)."),
@@ -69,7 +71,7 @@ def explain(
     if out.exists() and any(out.iterdir()) and not force:
         raise InputError(out, "is not empty; explain never overwrites results (--force replaces it)")
     topics = topic_choice(depth_topic, color_topic, infrared_topic)
-    if frames < 3:
+    if frames is not None and frames < 3:
         raise InputError(None, f"--frames must be at least 3, not {frames} (the noise tests need a temporal "
                                "variance over 3 frames or more)")
     if scan:
@@ -78,8 +80,8 @@ def explain(
             raise InputError(None, "explain --scan registers with none, rigid or similarity; pass-points "
                                    "registration is evaluate scan's (--pass-points FILE): give the "
                                    "trajectory in the reference frame, or --similarity M")
-        _explain_scan(real, poses, reference, model, out, frames, seed, similarity, mode, block_frames,
-                      not no_resimulate, force, topics, discover)
+        _explain_scan(real, poses, reference, model, out, frames or EXPLAIN_FRAMES, seed, similarity, mode,
+                      block_frames, not no_resimulate, force, topics, discover)
         return
     if board is None:
         raise InputError(None, "--board is needed for checkerboard sessions")
@@ -92,7 +94,9 @@ def explain(
 
     data = run_explain(real, board, mdl, out, frames=frames, seed=seed, resimulate=not no_resimulate,
                        workers=workers, cluster=cluster, topics=topics, discovery=discover,
-                       parameters={"board": str(board), "model": model, "frames": frames, "seed": seed,
+                       parameters={"board": str(board), "model": model,
+                                   "frames": frames if frames is not None else f"up to {EXPLAIN_FRAMES}",
+                                   "seed": seed,
                                    "workers": workers, "cluster": cluster, "discover": discover},
                        target=RerunTarget(rrd, spawn, serve, force), tick=tick, force=force,
                        model_file=model_file(model))

@@ -49,6 +49,7 @@ from depthstation.simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO, board_scene
 from depthstation.simulate.view_renderer import ViewRenderer
 
 MAX_SAMPLES_PER_FRAME = 20_000
+EXPLAIN_FRAMES = 30  # frames per standpoint read when --frames is not given
 # Each frame against its own board pose: the reference-plane error then varies from frame to frame
 # and the frame-level standard errors include it (an averaged pose would carry one error per
 # standpoint that no frame statistic can see, and real and sim would differ by it).
@@ -179,7 +180,7 @@ def _stride(info: StreamInfo) -> int:
     return max(1, round(info.depth_intrinsics.width / 320))
 
 
-def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, baseline_m: float,
+def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int | None, baseline_m: float,
                   tick: Progress | None = None, workers: int = 1, cluster: str | None = None,
                   topics: TopicChoice | None = None, baseline_source: str = "the model",
                   model: SensorModel | None = None) -> Side:
@@ -188,14 +189,16 @@ def evaluate_real(paths: Sequence[Path], board: Board | Path, *, frames: int, ba
     Standpoints go out as tasks on a ChunkRunner: each is read and evaluated by the worker that
     gets it, local processes (`workers`) or a Dask scheduler (`cluster`).
     """
-    probe = prepare_checkerboard(list(paths), board, StandpointOptions(frames=frames, topics=topics),
+    probe = prepare_checkerboard(list(paths), board,
+                                 StandpointOptions(frames=frames, up_to=EXPLAIN_FRAMES, topics=topics),
                                  one_camera=True)
     info = known_baseline(probe.recordings[0].info, baseline_m, baseline_source,
                           str(probe.recordings[0].path))
     device = probe.device
     if model is not None:
         check_model_camera(model, info, device, str(probe.recordings[0].path))
-    options = StandpointOptions(frames=frames, collect_samples=True, sample_stride=_stride(info),
+    options = StandpointOptions(frames=frames, up_to=EXPLAIN_FRAMES, collect_samples=True,
+                                sample_stride=_stride(info),
                                 reference=REFERENCE, topics=topics)
     job = replace(probe, options=options)
 
@@ -371,8 +374,9 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     return Explanation(real, sim, before, attr, model, new_model, resim, after, cands, disc, lib, rest)
 
 
-def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, *, frames: int,
-                seed: int = 0, resimulate: bool = True, workers: int = 1, cluster: str | None = None,
+def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, *,
+                frames: int | None, seed: int = 0, resimulate: bool = True, workers: int = 1,
+                cluster: str | None = None,
                 discovery: bool = True, parameters: dict[str, Any] | None = None,
                 target: RerunTarget | None = None, tick: Progress | None = None, force: bool = False,
                 topics: TopicChoice | None = None, model_file: Path | None = None) -> dict[str, Any]:
@@ -387,7 +391,7 @@ def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, o
                             discovery, inputs, model_file)
 
 
-def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, frames: int,
+def _run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, frames: int | None,
                  seed: int, resimulate: bool, workers: int, cluster: str | None,
                  parameters: dict[str, Any] | None, target: RerunTarget | None,
                  tick: Progress | None, topics: TopicChoice | None = None,
