@@ -86,9 +86,10 @@ def _b64(table: bytes) -> str:
 
 def calibration_step(camera: CalibratableCamera, result: CalibrationResult, cal: Calibration,
                      confirm: Callable[[str], bool], say: Callable[[str], None],
-                     write: bool, current: bytes) -> tuple[dict[str, Any], bytes]:
+                     write: bool, current: bytes, unattended: bool = False) -> tuple[dict[str, Any], bytes]:
     """Show one result, ask, apply (or put `current` back) and return its session record and the
-    table now active."""
+    table now active. `unattended` (--yes): a table that is not recommended is not applied, not
+    asked for; a script's yes cannot mean "apply a table that makes the depth no better"."""
     if result.kind == "tare":
         before, after = result.health[0], result.health[1]
         tv = tare_verdict(before, after, cal.tare_min_error)
@@ -105,7 +106,11 @@ def calibration_step(camera: CalibratableCamera, result: CalibrationResult, cal:
         scale = "Intel on-chip health: |h| < 0.25 good, < 0.75 can be improved, else requires calibration"
         why_not = "not needed: health is good"
     question = f"Apply the new {result.kind} table? " + ("(recommended)" if recommend else f"({why_not})")
-    applied = bool(confirm(question))
+    if unattended and not recommend:
+        say(f"{question} no (--yes applies only a recommended table)")
+        applied = False
+    else:
+        applied = bool(confirm(question))
     if applied:
         camera.set_calibration_table(result.table)
         if write:
@@ -149,13 +154,15 @@ def _skipped(reason: str, steps: list[dict[str, Any]]) -> dict[str, Any]:
 
 def run_calibration(camera: Any, cal: Calibration, *, confirm: Callable[[str], bool],
                     say: Callable[[str], None] = print, write: bool = False, timeout_s: float = 30.0,
-                    ask_distance: Callable[[str, float], float] | None = None) -> dict[str, Any]:
+                    ask_distance: Callable[[str, float], float] | None = None,
+                    unattended: bool = False) -> dict[str, Any]:
     """The protocol's calibration steps in order (on-chip, then tare); the record for session.json.
 
     Cameras that cannot self-calibrate (playback, simulation without the feature) and cameras that
     cannot enter the calibration mode (USB 2) are recorded as skipped with the reason, so a session
     says what state its camera was in. `ask_distance(question, default)` lets the operator enter the
-    tare target's measured distance from the front glass (default: the protocol's).
+    tare target's measured distance from the front glass (default: the protocol's). `unattended`
+    (--yes): only recommended tables are applied (`calibration_step`).
     """
     if not isinstance(camera, CalibratableCamera):
         say("this camera cannot self-calibrate (recording or simulation): calibration skipped")
@@ -172,7 +179,7 @@ def run_calibration(camera: Any, cal: Calibration, *, confirm: Callable[[str], b
             say("on-chip calibration: point the camera at a textured flat surface about 0.5-1 m away "
                 "and hold still")
             res = camera.run_on_chip_calibration(timeout_s)
-            step, active = calibration_step(camera, res, cal, confirm, say, write, active)
+            step, active = calibration_step(camera, res, cal, confirm, say, write, active, unattended)
             steps.append(step)
         if cal.tare:
             assert cal.tare_distance_m is not None
@@ -189,7 +196,7 @@ def run_calibration(camera: Any, cal: Calibration, *, confirm: Callable[[str], b
                     f"{1000 * gt:.2f} mm (no depth-origin offset known for this model)"))
             res = camera.run_tare_calibration(gt, timeout_s)
             res = CalibrationResult(res.kind, res.table, res.health, {**res.details, **where})
-            step, active = calibration_step(camera, res, cal, confirm, say, write, active)
+            step, active = calibration_step(camera, res, cal, confirm, say, write, active, unattended)
             steps.append(step)
     except CalibrationUnavailable as exc:
         say(str(exc))

@@ -122,3 +122,16 @@ def test_live_d455_streams_and_reports() -> None:
         assert cam.options()
     finally:
         cam.stop()
+
+
+@pytest.mark.parametrize(("health", "applied"), [(0.1, False), (0.5, True)])
+def test_unattended_yes_applies_only_a_recommended_table(health: float, applied: bool) -> None:
+    """--yes answers the questions a script cannot, but not with "apply a table that is not needed":
+    good health keeps the current table; an improvable one is applied."""
+    dev = FakeDevice(health)
+    said: list[str] = []
+    rec = run_calibration(dev, Calibration(on_chip=True), confirm=lambda q: True, say=said.append,
+                          unattended=True)
+    assert rec["steps"][0]["applied"] is applied and rec["steps"][0]["recommended"] is applied
+    assert dev.table == (b"factory+occ" if applied else b"factory")
+    assert any("--yes applies only a recommended table" in s for s in said) is not applied
