@@ -155,3 +155,48 @@ def test_a_reference_in_other_axes_or_units_is_said_not_to_fit(walk: dict[str, A
     assert not fit["fits"]
     if mistake == "one wall":
         assert fit["miss_share"] > 0.5 and "see no reference surface" in said[0].message
+
+
+def test_a_mesh_with_a_nan_vertex_is_refused_naming_it(walk: dict[str, Any], tmp_path: Path) -> None:
+    """One NaN vertex on the table top opened holes the rays passed through to the floor: the grid
+    moved (mean +0.7 -> -3.5 mm) with exit 0 and no word. Now bad input, naming the vertex."""
+    import open3d as o3d
+
+    from depthstation.core.errors import InputError
+
+    d = walk["dir"]
+    mesh = o3d.io.read_triangle_mesh(str(d / "scene.ply"))
+    v = np.asarray(mesh.vertices).copy()
+    v[7] = np.nan
+    mesh.vertices = o3d.utility.Vector3dVector(v)
+    o3d.io.write_triangle_mesh(str(tmp_path / "nan.ply"), mesh)
+    with pytest.raises(InputError, match=r"nan\.ply: 1 of \d+ vertices are not finite .* vertex 7"):
+        run_scan(d / "sequence.mcap", d / "trajectory.txt", tmp_path / "nan.ply", tmp_path / "o",
+                 ScanOptions(frames=4, **BINS))  # type: ignore[arg-type]
+    assert not (tmp_path / "o" / "grid.npz").exists()
+
+
+def test_frames_without_a_pose_are_said_and_poses_between_the_frames_are_bad_input(
+        walk: dict[str, Any], tmp_path: Path) -> None:
+    """A tracker that lost every other frame: the grid holds half the walk, said
+    (`frames-without-pose`, with the counts). Poses stamped between the frames (another rate, an
+    offset of 13 ms against a 10 ms tolerance): bad input naming the trajectory, not an internal
+    'nothing for registration' with exit 1."""
+    from depthstation.core.errors import InputError
+
+    d = walk["dir"]
+    truth = read_tum(d / "trajectory.txt")
+    write_tum(tmp_path / "half.txt", truth.timestamps_s[::2], truth.poses[::2])
+    with collecting() as found:
+        run_scan(d / "sequence.mcap", tmp_path / "half.txt", d / "scene.ply", tmp_path / "o",
+                 ScanOptions(min_count_sequence=100, **BINS))  # type: ignore[arg-type]
+    said = [w for w in found if w.code == "frames-without-pose"]
+    n = len(truth.timestamps_s)
+    assert len(said) == 1 and said[0].message.startswith(f"{n // 2} of {n} frames have no pose")
+    assert said[0].where == str(tmp_path / "half.txt")
+    info = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert "frames-without-pose" in [w["code"] for w in info["warnings"]]
+    write_tum(tmp_path / "between.txt", truth.timestamps_s + 0.013, truth.poses)
+    with pytest.raises(InputError, match=r"between\.txt: no frame has a pose within 0\.01 s .*13\.0 ms"):
+        run_scan(d / "sequence.mcap", tmp_path / "between.txt", d / "scene.ply", tmp_path / "o2",
+                 ScanOptions(**BINS))  # type: ignore[arg-type]

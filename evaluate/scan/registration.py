@@ -181,6 +181,16 @@ def umeyama(src: F64, dst: F64, with_scale: bool = True) -> F64:
     return compose_similarity(s, r, mu_d - s * r @ mu_s)
 
 
+class NoPosedFrame(EvaluationError):
+    """No frame of the sequence has a pose within the tolerance (`nearest_s`: the smallest gap
+    between a frame and a pose): the trajectory's fault, said by the caller naming its file."""
+
+    def __init__(self, tolerance_s: float, nearest_s: float) -> None:
+        super().__init__(f"no frame has a pose within {tolerance_s:g} s (the nearest pose is "
+                         f"{1000 * nearest_s:.1f} ms from its frame; --pose-tolerance-s)")
+        self.nearest_s = nearest_s
+
+
 def depth_band_frames(source: FrameSource, trajectory: Trajectory, *,
                       band_m: tuple[float, float] = (0.5, 2.0), tolerance_s: float = 0.01, every: int = 10,
                       stride: int = 4,
@@ -195,21 +205,26 @@ def depth_band_frames(source: FrameSource, trajectory: Trajectory, *,
     x = ((u - intr.ppx) / intr.fx).ravel()
     y = ((v - intr.ppy) / intr.fy).ravel()
     parts = []
+    posed = 0
+    nearest = np.inf
     for pos, fs in enumerate(source.frames()):  # by position: device frame numbers have gaps
         if pos % every or fs.depth is None:
             continue
         pose = trajectory.match(fs.timestamp_ns * 1e-9, tolerance_s)
         if pose is None:
+            if len(trajectory):
+                nearest = min(nearest, trajectory.gap_s(fs.timestamp_ns * 1e-9))
             continue
+        posed += 1
         z = fs.depth[::stride, ::stride].astype(np.float64).ravel() * info.depth_units_m
         ok = (z >= band_m[0]) & (z <= band_m[1])
         p = np.stack([x[ok] * z[ok], y[ok] * z[ok], z[ok]], axis=-1)
         parts.append(p @ pose[:3, :3].T + pose[:3, 3])
         if max_frames is not None and len(parts) >= max_frames:
             break
-    if not parts:
-        raise EvaluationError(f"no frame with a pose and depth in {band_m[0]}-{band_m[1]} m for registration")
-    return parts
+    if posed == 0 and np.isfinite(nearest):
+        raise NoPosedFrame(tolerance_s, float(nearest))
+    return [p for p in parts if len(p)]
 
 
 def voxel_cloud(parts: list[F64], voxel_m: float = 0.01) -> F64:
@@ -347,9 +362,15 @@ def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any
     if local is not None:
         init = local.to_local(init)
     parts = depth_band_frames(source, trajectory, band_m=band_m, tolerance_s=tolerance_s, every=every)
-    points = voxel_cloud(parts)
     info: dict[str, Any] = {"band_m": list(band_m), "frames": len(parts)}
     m = init
+    if not parts:  # no posed depth in the band: nothing to fit, nor to measure the fit by
+        if mode in ("rigid", "similarity"):
+            raise EvaluationError(f"--register {mode}: no posed frame has depth in {band_m[0]:g}-"
+                                  f"{band_m[1]:g} m to fit (--icp-band-m)")
+        info["note"] = f"no posed depth in {band_m[0]:g}-{band_m[1]:g} m: cloud-to-mesh not measured"
+        return Registration(m, method, None, None, info, mode, None, scale_band95=scale_band, local=local)
+    points = voxel_cloud(parts)
     if mode in ("rigid", "similarity"):
         scaled = mode == "similarity"
         m, icp_info = icp_with_scale(points, target, init, with_scale=scaled)

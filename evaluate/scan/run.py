@@ -41,6 +41,7 @@ from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, check_rendere
 from depthstation.evaluate.scan.reference import PoissonParams, reference_mesh, sample_reference_points
 from depthstation.evaluate.scan.registration import (
     REGISTER_MODES,
+    NoPosedFrame,
     Registration,
     initial_similarity,
     read_pass_points,
@@ -216,9 +217,12 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                         local_shift(centres.min(axis=0), centres.max(axis=0)))
     traj = given.translated(-local.trajectory_m)
     t_mesh = time.perf_counter()
-    reg = register(source, traj, mesh, sample_reference_points(mesh), mode=opt.register_mode,
-                   similarity=similarity, pass_points=pass_points, band_m=opt.icp_band_m,
-                   tolerance_s=opt.tolerance_s, every=opt.icp_every, local=local if local.any else None)
+    try:
+        reg = register(source, traj, mesh, sample_reference_points(mesh), mode=opt.register_mode,
+                       similarity=similarity, pass_points=pass_points, band_m=opt.icp_band_m,
+                       tolerance_s=opt.tolerance_s, every=opt.icp_every, local=local if local.any else None)
+    except NoPosedFrame as exc:  # the trajectory's stamps sit between the frames' (another rate, an offset)
+        raise InputError(Path(poses), str(exc)) from exc
     posed = traj.transformed(reg.matrix)
     config = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
                          every=opt.every, max_frames=opt.frames, tolerance_s=opt.tolerance_s,
@@ -336,6 +340,11 @@ def run_prepared(job: ScanJob, runner: ChunkRunner, *, rec: Any = None,
     if not result.used:
         raise EvaluationError(f"no frame could be evaluated ({len(result.no_pose)} frames had no pose "
                               f"within {opt.tolerance_s} s)")
+    if result.no_pose:  # the grid holds only the posed frames: a tracker that lost half the walk says so
+        n = len(result.used) + len(result.no_pose) + len(result.no_depth)
+        warn(f"{len(result.no_pose)} of {n} frames have no pose within {opt.tolerance_s:g} s in the "
+             "trajectory: left out of the grid (the tracker lost them, or --pose-tolerance-s is too tight)",
+             str(job.poses), "frames-without-pose")
     return result
 
 

@@ -41,6 +41,14 @@ class Trajectory:
             return None
         return self.poses[best]
 
+    def gap_s(self, t_s: float) -> float:
+        """Seconds from t_s to the nearest pose stamp (inf without poses)."""
+        ts = self.timestamps_s
+        if ts.size == 0:
+            return float("inf")
+        i = int(np.searchsorted(ts, t_s))
+        return float(min(abs(ts[j] - t_s) for j in (i - 1, i) if 0 <= j < ts.size))
+
     def transformed(self, similarity: NDArray[np.float64]) -> Trajectory:
         """Poses in another frame: p' = s R p + t applied to the camera centre; the rotation part
         gets the pure rotation (cameras stay orthonormal, the scale moves only the centres)."""
