@@ -235,3 +235,44 @@ def test_figure_frame_outside_the_sequence_is_bad_input(tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"--figure-frame 9: the sequence has 3 frames \(0 to 2\)"):
         run_scan(folder, tmp_path / "poses.txt", tmp_path / "room.ply", tmp_path / "o",
                  ScanOptions(figure_frame=9))
+
+
+@pytest.mark.parametrize(("name", "text", "says"), [
+    ("intrinsics.txt", "60 60 39.5 29.5 80 60 0", "depth_factor must be depth counts per metre"),
+    ("intrinsics.txt", "fx fy cx cy\n60 60 39.5 29.5", "line 1: 'fx' is no number"),
+    ("intrinsics.txt", "-60 60 39.5 29.5", "fx must be a positive focal length"),
+    ("camera.json", '{"fx": 60, "fy": 60, "cx": 39.5, "cy": 29.5, "factor": 0}',
+     "factor must be depth counts"),
+    ("camera.json", '{"fx": 60, "fy": 60, "cx": 39.5, "cy": 29.5, "depth_units_m": 0}',
+     "metres per count must lie in 1e-6 to 0.1"),
+    ("camera.json", '{"fx": 60, "fy": 60, "cx": 39.5, "cy": 29.5, "depth_scale": 5000}',
+     "Open3D's depth_scale\\? write depth_units_m = 1/5000"),
+    ("camera.json", '{"fx": 60, "fy": 60, "cx": 39.5, "cy": 29.5, "depth_units_m": 0.001, "factor": 5000}',
+     "the depth units disagree"),
+])
+def test_a_tum_folders_bad_intrinsics_are_bad_input_naming_the_file(tmp_path: Path, name: str, text: str,
+                                                                    says: str) -> None:
+    """A zero depth factor was a ZeroDivisionError (exit 1), a header line a ValueError, units of 0 or
+    Open3D's 5000 counts per metre gave grids in metres or kilometres: each now names its file."""
+    seq = make_sequence(frames=2, width=80, height=60, seed=2)
+    folder = write_tum_folder(seq, tmp_path / "seq")
+    (folder / "camera.json").unlink()
+    (folder / name).write_text(text)
+    with pytest.raises(InputError, match=says) as err:
+        open_recording(folder)
+    assert err.value.path == folder / name
+
+
+def test_a_tum_depth_list_with_one_time_stamp_twice_is_bad_input(tmp_path: Path) -> None:
+    """Two depth images at one time: one of them was posed with the other's pose, without a word."""
+    seq = make_sequence(frames=3, width=80, height=60, seed=2)
+    folder = write_tum_folder(seq, tmp_path / "seq")
+    for assoc in [p for p in folder.glob("*.txt") if p.name != "depth.txt"]:
+        assoc.unlink()
+    lines = (folder / "depth.txt").read_text().splitlines()
+    rows = [i for i, line in enumerate(lines) if line.strip() and not line.startswith("#")]
+    stamp = lines[rows[0]].split()[0]
+    lines[rows[1]] = stamp + " " + lines[rows[1]].split()[1]
+    (folder / "depth.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=f"lines {rows[0] + 1} and {rows[1] + 1} have the same time stamp"):
+        open_recording(folder)

@@ -7,6 +7,7 @@ scan study often starts from it.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -26,34 +27,79 @@ _ASSOC_NAMES = ("associations.txt", "association.txt", "associate.txt", "depth.t
 
 
 def _read_intrinsics(path: Path) -> tuple[Intrinsics, float | None]:
-    """camera.json-like (our keys or fx/fy/cx/cy, optional depth_units_m / depth_scale) or a text
-    file `fx fy cx cy [width height] [depth_factor]`. Returns (intrinsics, depth units or None)."""
-    if path.suffix == ".json":
-        try:
-            d: dict[str, Any] = json.loads(read_text(path, "intrinsics JSON"))
-        except json.JSONDecodeError as exc:
-            raise InputError(path, f"broken JSON ({exc})") from exc
-        if "depth_intrinsics" in d:
-            info = StreamInfo.from_dict(d)
-            return info.depth_intrinsics, info.depth_units_m
-        d = d.get("depth", d)
-        units = d.get("depth_units_m", d.get("depth_scale"))
-        if "factor" in d:
-            units = 1.0 / float(d["factor"])
-        try:
-            return Intrinsics.from_dict(d), None if units is None else float(units)
-        except KeyError as exc:
-            raise InputError(path, f"intrinsics lack {exc}") from exc
+    """camera.json-like (our keys or fx/fy/cx/cy, optional depth_units_m / depth_scale in metres per
+    count, or `factor` in counts per metre) or a text file `fx fy cx cy [width height] [depth_factor]`.
+    Returns (intrinsics, depth units or None). Every value is checked: a bad one is bad input
+    naming the file and the key (it was a ZeroDivisionError, or a grid in kilometres)."""
+    try:
+        if path.suffix == ".json":
+            return _read_intrinsics_json(path)
+        return _read_intrinsics_text(path)
+    except (ValueError, TypeError) as exc:  # Intrinsics' own checks: focal lengths, principal point
+        raise InputError(path, str(exc)) from exc
+
+
+def _units(path: Path, key: str, value: Any) -> float:
+    """Metres per depth count, within what a depth camera can mean."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(path, f"{key} must be a number, got {value!r}")
+    if key in ("factor", "depth_factor"):
+        if value <= 0:
+            raise InputError(path, f"{key} must be depth counts per metre (e.g. 5000 for TUM RGB-D, 1000 "
+                                   f"for millimetres), got {value!r}")
+        units = 1.0 / float(value)
+    else:
+        units = float(value)
+    if not 1e-6 <= units <= 0.1:
+        hint = (f" (a count-per-metre value, Open3D's depth_scale? write depth_units_m = 1/{value:g})"
+                if key != "factor" and units > 1 else "")
+        raise InputError(path, f"{key} {value!r} gives {units:g} m per depth count: metres per count must "
+                               f"lie in 1e-6 to 0.1{hint}")
+    return units
+
+
+def _read_intrinsics_json(path: Path) -> tuple[Intrinsics, float | None]:
+    try:
+        d: dict[str, Any] = json.loads(read_text(path, "intrinsics JSON"))
+    except json.JSONDecodeError as exc:
+        raise InputError(path, f"broken JSON ({exc})") from exc
+    if not isinstance(d, dict):
+        raise InputError(path, "expected a JSON object of intrinsics")
+    if "depth_intrinsics" in d:
+        info = StreamInfo.from_dict(d)
+        return info.depth_intrinsics, _units(path, "depth_units_m", info.depth_units_m)
+    d = d.get("depth", d)
+    given = {key: _units(path, key, d[key]) for key in ("depth_units_m", "depth_scale", "factor") if key in d}
+    units = next(iter(given.values()), None)
+    if units is not None and any(not math.isclose(u, units, rel_tol=1e-6) for u in given.values()):
+        raise InputError(path, "the depth units disagree: " + ", ".join(f"{k} {d[k]!r}" for k in given)
+                         + " (keep one)")
+    try:
+        return Intrinsics.from_dict(d), units
+    except KeyError as exc:
+        raise InputError(path, f"intrinsics lack {exc}") from exc
+
+
+def _read_intrinsics_text(path: Path) -> tuple[Intrinsics, float | None]:
     vals: list[float] = []
-    for line in read_text(path, "intrinsics file").splitlines():
+    for n, line in enumerate(read_text(path, "intrinsics file").splitlines(), 1):
         s = line.split("#", 1)[0].strip()
-        if s:
-            vals += [float(x) for x in s.replace(",", " ").split()]
+        for x in s.replace(",", " ").split():
+            try:
+                vals.append(float(x))
+            except ValueError:
+                raise InputError(path, f"line {n}: {x!r} is no number (expected 'fx fy cx cy [width height] "
+                                       "[depth_factor]'; comments start with #)") from None
     if len(vals) < 4:
         raise InputError(path, "expected 'fx fy cx cy [width height] [depth_factor]'")
+    if not all(math.isfinite(v) for v in vals):
+        raise InputError(path, "holds a value that is not a finite number")
     fx, fy, cx, cy = vals[:4]
+    if len(vals) >= 6 and not all(v > 0 and v == int(v) for v in vals[4:6]):
+        raise InputError(path, f"width and height must be whole positive numbers of pixels, got "
+                               f"{vals[4]:g} {vals[5]:g}")
     w, h = (int(vals[4]), int(vals[5])) if len(vals) >= 6 else (0, 0)
-    units = 1.0 / vals[6] if len(vals) >= 7 else None
+    units = _units(path, "depth_factor", vals[6]) if len(vals) >= 7 else None
     return Intrinsics(w, h, fx, fy, cx, cy), units
 
 
@@ -96,7 +142,8 @@ def open_tum_folder(path: Path, intrinsics: Path | None = None) -> TumSequence:
         raise InputError(path, f"no {' / '.join(_ASSOC_NAMES)} in this TUM RGB-D folder")
     stamps: list[float] = []
     files: list[Path] = []
-    for line in read_text(assoc, "TUM association file").splitlines():
+    first_line: dict[float, int] = {}
+    for n, line in enumerate(read_text(assoc, "TUM association file").splitlines(), 1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
@@ -106,7 +153,15 @@ def open_tum_folder(path: Path, intrinsics: Path | None = None) -> TumSequence:
         pick = next((p for p in pairs if "depth" in p[1]), pairs[-1] if len(pairs) == 1 else None)
         if pick is None:
             raise InputError(assoc, f"cannot tell the depth file in line {s!r}")
-        stamps.append(float(pick[0]))
+        try:
+            t = float(pick[0])
+        except ValueError:
+            raise InputError(assoc, f"line {n}: {pick[0]!r} is no time stamp (seconds)") from None
+        if t in first_line:  # two images at one time: one of them would be posed with the other's pose
+            raise InputError(assoc, f"lines {first_line[t]} and {n} have the same time stamp {pick[0]} "
+                                    "(two depth images at one time: one of them is misnamed)")
+        first_line[t] = n
+        stamps.append(t)
         files.append(path / pick[1])
     if not files:
         raise InputError(assoc, "no frames listed")
@@ -125,6 +180,10 @@ def open_tum_folder(path: Path, intrinsics: Path | None = None) -> TumSequence:
     elif first.shape[:2] != (intr.height, intr.width):
         raise InputError(Path(ipath), f"gives {intr.width}x{intr.height} pixels, but the depth images are "
                                       f"{first.shape[1]}x{first.shape[0]} ({files[0].name})")
+    try:
+        intr.check()  # focal lengths, principal point: also of a text file without an image size
+    except ValueError as exc:
+        raise InputError(Path(ipath), str(exc)) from exc
     info = StreamInfo(depth_intrinsics=intr, color_intrinsics=None,
                       depth_units_m=units if units is not None else 1.0 / TUM_DEPTH_FACTOR)
     return TumSequence(path, files, stamps, info, name=path.name, metadata={"intrinsics_file": str(ipath)})
