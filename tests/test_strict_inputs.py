@@ -249,3 +249,29 @@ def test_one_recording_under_two_names(small_session: Path, tmp_path: Path, run:
             "--board", str(small_session.parent / "p.toml"), "--out", str(tmp_path / "o"), "--frames", "3")
     one_line_error(r, "again.mcap", "same recording as", "standpoint_01.mcap")
     assert not (tmp_path / "o").exists()
+
+
+def test_mcap_cut_before_its_first_complete_frame(tmp_path: Path, run: Callable[..., Ran]) -> None:
+    """Its first chunk survived but holds no whole frame: it was imported as a 0-frame session and
+    exported as an empty TUM folder with exit 0, and the scan study failed later on 'nothing for
+    registration'; now bad input at once, and nothing is written."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    from depthstation.core.capture.mcap_writer import McapFileWriter
+
+    info = sample_info(64, 48)
+    full = tmp_path / "full.mcap"
+    with McapFileWriter(full, info, compression="lz4", chunk_size=2 * 1024) as w:
+        for f in sample_frames(info, 6, seed=3):
+            w.write(f)
+    with full.open("rb") as fh:  # the end of the first chunk that holds data
+        reader = StreamReader(fh, emit_chunks=True)
+        end = next(fh.tell() for r in reader.records if isinstance(r, Chunk) and r.data)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(full.read_bytes()[:end + 1])
+    for args in (("capture", "import", str(cut), "--out", str(tmp_path / "imp")),
+                 ("capture", "export", str(cut), "--to", "tum", "--out", str(tmp_path / "exp"))):
+        r = run(*args)
+        one_line_error(r, "cut.mcap", "cut short before its first complete frame")
+    assert not (tmp_path / "imp").exists() and not (tmp_path / "exp").exists()

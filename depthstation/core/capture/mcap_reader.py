@@ -169,6 +169,9 @@ class McapRecording(Recording):
         if truncated:
             self.truncated = True
             self.recovered_frames = count
+            if count == 0:  # not a short recording: nothing at all (it was imported as a 0-frame session)
+                raise InputError(self.path, "is cut short before its first complete frame: it holds no frame "
+                                            "to read")
             warn(f"recording is cut short; recovered {count} frames from its complete chunks", str(self.path),
                  "truncated-input")
 
