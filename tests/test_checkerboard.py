@@ -175,6 +175,22 @@ def test_charuco_rendered() -> None:
     assert abs(r.figures["inclination_deg"] - 20.0) < 0.5
 
 
+def test_a_charuco_board_file_with_extra_rows_is_said() -> None:
+    """The detector finds the markers a 7x7 board file shares with a 7x5 print, so the pose looks
+    right while the board's centre and area reach past the print onto the wall (the audit: noise
+    2.6 -> 69 mm, accuracy +49 mm, exit 0, no word). The print's own file says nothing."""
+    from dataclasses import replace
+
+    printed = Board(type="charuco", squares_x=7, squares_y=5, square_length_m=0.075,
+                    marker_length_m=0.05625, dictionary="DICT_4X4_50")
+    frames = list(still_frames(printed, pose_for(printed, 0.9, 10.0), ALIGNED, 2, noise_rel=NOISE_REL))
+    right = evaluate_frames("s", frames, ALIGNED, printed, frames_requested=2)
+    assert right.frames_used == 2 and "board-extent" not in [w.code for w in right.warnings]
+    wrong = evaluate_frames("s", frames, ALIGNED, replace(printed, squares_y=7), frames_requested=2)
+    said = [w.message for w in wrong.warnings if w.code == "board-extent"]
+    assert len(said) == 1 and "squares_y 7" in said[0] and "beyond those found" in said[0]
+
+
 def test_moment_plane_fit_equals_svd() -> None:
     rng = np.random.default_rng(1)
     p = rng.normal(size=(5000, 3)) * [0.3, 0.2, 0.002]

@@ -7,6 +7,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.special import stdtr
@@ -366,6 +367,14 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
     f.update(expanded_uncertainties(ok, board, info, out.camera_in_board, f, use_frame))
     f.update(_dqt_figures(ok, info, pose, use_frame, temporal_pct or {}))
     out.figures = f
+    if board.type == "charuco" and (unseen := corners_never_seen(ok, board, _colour_intrinsics(info))):
+        never, in_view = unseen
+        out.note("board-extent",
+                 f"{len(never)} of the {in_view} board corners the board file puts in view, in rows or "
+                 f"columns beyond those found, were found in no frame (corner ids {_id_list(never)}): the "
+                 f"board file may describe more rows or columns than the print (squares_x "
+                 f"{board.squares_x}, squares_y {board.squares_y}), and then the board's centre and area, "
+                 "and every figure here, are wrong; else part of the board was covered or out of the light")
     if abs(f["accuracy_m"]) > BOARD_SCALE_TOLERANCE * f["distance_m"]:
         # the pose's distance scales with the board's printed size: a wrong square length moves the
         # reference plane by the same ratio, which the depth does not follow
@@ -402,6 +411,54 @@ def _dqt_figures(ok: list[FrameResult], info: StreamInfo, pose: NDArray[np.float
         out.update(standpoint_figures([d for _, d in frames], gts, temporal_pct.get(prefix, float("nan")),
                                       info.stereo.fx, info.baseline_m, prefix))
     return out
+
+
+UNSEEN_SHARE = 0.1  # of the corners in view, never found in any frame: the board file's extent is suspect
+UNSEEN_MIN = 4
+
+
+def corners_never_seen(ok: list[FrameResult], board: Board,
+                       intr: Intrinsics) -> tuple[list[int], int] | None:
+    """ChArUco corners a frame's pose puts well inside the image (3 % from its border), in rows or
+    columns beyond those any frame found, that no frame found; and how many are in view. None when
+    few. Why: the detector finds the markers a
+    board file with extra rows shares with the print, so the pose looks right while the board's
+    centre and mask (reaching past the print onto the wall) are not: noise 2.6 -> 69 mm, no word."""
+    frames = [r for r in ok if r.pose_color is not None and r.corner_ids is not None]
+    if not frames:
+        return None
+    obj = board.corner_points()
+    k, dist = intr.K, intr.opencv_distortion()
+    mu, mv = 0.03 * intr.width, 0.03 * intr.height
+    in_view = np.zeros(len(obj), bool)
+    seen = np.zeros(len(obj), bool)
+    for r in frames:
+        pose = r.pose_color
+        assert pose is not None and r.corner_ids is not None
+        cam = obj @ pose[:3, :3].T + pose[:3, 3]
+        uv, _ = cv2.projectPoints(obj, cv2.Rodrigues(pose[:3, :3])[0], pose[:3, 3], k, dist)
+        u, v = uv.reshape(-1, 2).T
+        inside = (u >= mu) & (u <= intr.width - 1 - mu) & (v >= mv) & (v <= intr.height - 1 - mv)
+        in_view |= (cam[:, 2] > 0) & inside
+        seen[r.corner_ids] = True
+    if not seen.any():
+        return None
+    # only corners beyond the found part (rows or columns past those any frame found): extra rows
+    # of a board file lie there; a corner missed inside the found part is the detector's, not the file's
+    cols_n = board.inner_corners[0]
+    col, row = np.arange(len(obj)) % cols_n, np.arange(len(obj)) // cols_n
+    c_lo, c_hi = col[seen].min(), col[seen].max()
+    r_lo, r_hi = row[seen].min(), row[seen].max()
+    beyond = (col < c_lo) | (col > c_hi) | (row < r_lo) | (row > r_hi)
+    never = np.flatnonzero(in_view & ~seen & beyond)
+    n_view = int(in_view.sum())
+    if len(never) < UNSEEN_MIN or len(never) < UNSEEN_SHARE * n_view:
+        return None
+    return [int(i) for i in never], n_view
+
+
+def _id_list(ids: list[int], most: int = 12) -> str:
+    return ", ".join(map(str, ids[:most])) + (f", ... ({len(ids)} in all)" if len(ids) > most else "")
 
 
 def _colour_intrinsics(info: StreamInfo) -> Intrinsics:
