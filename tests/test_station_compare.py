@@ -209,7 +209,8 @@ def test_bad_output_options_are_refused_before_any_table(tmp_path: Path,
     rrd = tmp_path / "old.rrd"
     rrd.write_bytes(b"RRF2 an earlier recording")
     cases = [(["--rrd", str(rrd)], "old.rrd"), (["--rrd", str(tmp_path)], "is a folder"),
-             (["--min-count", "-5"], "--min-count")]
+             (["--min-count", "-5"], "--min-count"), (["--max-offset", "-1"], "--max-offset"),
+             (["--max-offset", "nan"], "--max-offset")]
     for extra, named in cases:
         capsys.readouterr()
         code = run_cli(["compare", str(a), str(b), "--out", str(tmp_path / "cmp"), *extra])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 import re
 from pathlib import Path
 from typing import Any
@@ -205,6 +206,9 @@ def run_compare(dirs: list[Path], out: Path, *, min_count: int = 2000, match: st
     not at all; a non-empty `out` only with `force`); returns the summary."""
     if min_count < 1:
         raise InputError(None, f"--min-count must be at least 1 sample, not {min_count}")
+    if not (math.isfinite(max_offset) and max_offset >= 0):  # negative or NaN matched nothing, exit 0
+        raise InputError(None, f"--max-offset must be a finite number of units >= 0 (1 = 10 cm of distance "
+                               f"or 5 deg of inclination), not {max_offset}")
     with result_folder(out, force=force, inputs=dirs, kind="compare") as tmp:
         return _compare(dirs, tmp, min_count=min_count, match=match, max_offset=max_offset,
                         target=None if target is None else target.within(out, tmp), quiet=quiet)
