@@ -275,3 +275,19 @@ def test_mcap_cut_before_its_first_complete_frame(tmp_path: Path, run: Callable[
         r = run(*args)
         one_line_error(r, "cut.mcap", "cut short before its first complete frame")
     assert not (tmp_path / "imp").exists() and not (tmp_path / "exp").exists()
+
+
+def test_a_png_frame_without_its_depth_image_is_said(png_set: Path) -> None:
+    """A frame whose depth file is gone was not even counted as read (a missing colour image was
+    warned of): now `frames-rejected` names the folder and the frame."""
+    from depthstation.core.capture.png_folder import open_png
+    from depthstation.core.run_warnings import collecting
+
+    depth = sorted((png_set / "pose03").glob("frame*_depth.png"))
+    k = depth[0].name.split("_")[0][len("frame"):]
+    assert (png_set / "pose03" / f"frame{k}_color.png").exists()
+    depth[0].unlink()
+    with collecting() as said:
+        open_png(png_set / "pose03")
+    assert [(w.code, w.where) for w in said] == [("frames-rejected", str(png_set / "pose03"))]
+    assert f"no depth image (frame {int(k)})" in said[0].message

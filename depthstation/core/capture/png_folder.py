@@ -16,6 +16,7 @@ from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
 from depthstation.core.capture.recording import Recording, size_problem
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
+from depthstation.core.run_warnings import warn
 from depthstation.core.text_files import read_text
 
 
@@ -136,6 +137,13 @@ def open_png(folder: Path) -> PngRecording:
     frames = _png_frames(folder)
     if not frames:
         raise InputError(folder, "has no frameK_depth.png files")
+    have = {k for k, _, _ in frames}
+    named = (re.fullmatch(r"frame(\d+)_color\.png", p.name) for p in folder.glob("frame*_color.png"))
+    colour_only = sorted(k for m in named if m and (k := int(m.group(1))) not in have)
+    if colour_only:  # a frame whose depth file is gone was not even counted as read
+        warn(f"{len(colour_only)} frame(s) have a colour image but no depth image (frame "
+             f"{', '.join(map(str, colour_only[:10]))}{', ...' if len(colour_only) > 10 else ''}): left out",
+             str(folder), "frames-rejected")
     device = {"name": cam.get("sensor", "unknown")}
     baseline = cam.get("stereo_baseline_m", cam.get("stereo_baseline_m_nominal"))
     info = StreamInfo(
