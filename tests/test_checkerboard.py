@@ -191,6 +191,21 @@ def test_a_charuco_board_file_with_extra_rows_is_said() -> None:
     assert len(said) == 1 and "squares_y 7" in said[0] and "beyond those found" in said[0]
 
 
+def test_depth_that_does_not_lie_where_the_pose_puts_the_board_is_said() -> None:
+    """Depth mirrored left to right (a flipped export): the board at 15 deg seen at -15 deg by the
+    depth, a 30 deg disagreement the study computed and never said (noise 6x). Unmirrored: quiet."""
+    board = Board()
+    frames = list(still_frames(board, pose_for(board, 1.0, 15.0), ALIGNED, 2))
+    right = evaluate_frames("s", frames, ALIGNED, board, frames_requested=2)
+    assert "depth-pose-disagree" not in [w.code for w in right.warnings]
+    assert right.figures["pose_depth_normal_angle_deg"] < 1.0
+    flipped = [FrameSet(f.index, f.timestamp_ns, np.ascontiguousarray(f.depth[:, ::-1]), f.color)
+               for f in frames]
+    wrong = evaluate_frames("s", flipped, ALIGNED, board, frames_requested=2)
+    said = [w.message for w in wrong.warnings if w.code == "depth-pose-disagree"]
+    assert len(said) == 1 and "disagree by" in said[0]
+
+
 def test_moment_plane_fit_equals_svd() -> None:
     rng = np.random.default_rng(1)
     p = rng.normal(size=(5000, 3)) * [0.3, 0.2, 0.002]

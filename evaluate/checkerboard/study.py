@@ -367,6 +367,13 @@ def aggregate(name: str, results: list[FrameResult], info: StreamInfo, board: Bo
     f.update(expanded_uncertainties(ok, board, info, out.camera_in_board, f, use_frame))
     f.update(_dqt_figures(ok, info, pose, use_frame, temporal_pct or {}))
     out.figures = f
+    tilt = f.get("pose_depth_normal_angle_deg", float("nan"))
+    if tilt > DEPTH_POSE_TILT_DEG:  # NaN compares False: no depth plane, nothing to say
+        out.note("depth-pose-disagree",
+                 f"the depth's plane and the board's pose disagree by {tilt:.1f} deg: the depth does not lie "
+                 "where the colour image puts the board (a wrong depth_to_color, mirrored or flipped depth, "
+                 "another camera's intrinsics) or the board file does not describe the print; noise and "
+                 "accuracy are measured against the pose's plane and would hold that disagreement")
     if board.type == "charuco" and (unseen := corners_never_seen(ok, board, _colour_intrinsics(info))):
         never, in_view = unseen
         out.note("board-extent",
@@ -413,6 +420,7 @@ def _dqt_figures(ok: list[FrameResult], info: StreamInfo, pose: NDArray[np.float
     return out
 
 
+DEPTH_POSE_TILT_DEG = 10.0  # real D435 standpoints: 1-1.7 deg, 5.3 with the camera moving 120 px
 UNSEEN_SHARE = 0.1  # of the corners in view, never found in any frame: the board file's extent is suspect
 UNSEEN_MIN = 4
 
