@@ -276,3 +276,33 @@ def test_a_tum_depth_list_with_one_time_stamp_twice_is_bad_input(tmp_path: Path)
     (folder / "depth.txt").write_text("\n".join(lines) + "\n")
     with pytest.raises(InputError, match=f"lines {rows[0] + 1} and {rows[1] + 1} have the same time stamp"):
         open_recording(folder)
+
+
+def test_a_clouds_normals_facing_both_ways_are_reoriented_and_said(tmp_path: Path) -> None:
+    """Normals half of which point out of the room (a cloud sampled with unoriented normals):
+    Poisson turned surfaces inside out and the grid's mean moved by 40-110 mm with a passing fit
+    check. Now they are turned towards the walk's cameras, and said (`reference-normals`)."""
+    import open3d as o3d
+
+    from depthstation.core.run_warnings import collecting
+
+    mesh = Room().mesh(segments=64)
+    o3d.utility.random.seed(0)
+    cloud = mesh.sample_points_uniformly(40_000, use_triangle_normal=True)
+    n = np.asarray(cloud.normals).copy()
+    views = np.array([[0.3, -0.75, 0.2], [-0.3, -0.75, -0.2]])
+    pts = np.asarray(cloud.points)
+    inward = np.einsum("ij,ij->i", n, views[0] - pts) >= 0
+    n[~inward] *= -1.0  # all facing the cameras first, then every other one flipped
+    n[::2] *= -1.0
+    cloud.normals = o3d.utility.Vector3dVector(n)
+    o3d.io.write_point_cloud(str(tmp_path / "both.ply"), cloud)
+    with collecting() as said:
+        m, _, info = reference_mesh(tmp_path / "both.ply", tmp_path / "res", params=PoissonParams(depth=6),
+                                    viewpoints=views)
+    assert [(w.code, w.where) for w in said] == [("reference-normals", str(tmp_path / "both.ply"))]
+    assert info["normals"].startswith("given, 50 % facing away")
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    d = scene.compute_distance(o3d.core.Tensor(np.asarray(m.vertices, dtype=np.float32))).numpy()
+    assert np.median(d) < 0.03

@@ -222,8 +222,24 @@ def orient_normals(cloud: Any, scans: Scans | None = None, viewpoints: np.ndarra
     return how
 
 
+AWAY_SHARE = 0.2  # of a cloud's given normals facing away from the walk: not oriented, re-oriented
+
+
+def facing_away(cloud: Any, viewpoints: np.ndarray) -> float:
+    """Share of the cloud's normals that face away from their nearest camera centre."""
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(cloud.points)
+    nrm = np.asarray(cloud.normals)
+    if len(pts) == 0:
+        return 0.0
+    _, nearest = cKDTree(viewpoints).query(pts, k=1)
+    return float(np.mean(np.einsum("ij,ij->i", nrm, viewpoints[nearest] - pts) < 0))
+
+
 def poisson_mesh(cloud: Any, params: PoissonParams = PoissonParams(), scans: Scans | None = None,
-                 viewpoints: np.ndarray | None = None) -> tuple[Any, dict[str, Any]]:
+                 viewpoints: np.ndarray | None = None,
+                 where: str | None = None) -> tuple[Any, dict[str, Any]]:
     """Poisson surface of the cloud, minus vertices whose density is below the quantile."""
     o3d = open3d()
 
@@ -232,6 +248,14 @@ def poisson_mesh(cloud: Any, params: PoissonParams = PoissonParams(), scans: Sca
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(
             radius=params.normal_radius_m, max_nn=params.normal_max_nn))
         normals = orient_normals(cloud, scans, viewpoints)
+    elif viewpoints is not None and len(viewpoints) and (away := facing_away(cloud, viewpoints)) > AWAY_SHARE:
+        # Poisson on normals half of which point out of the room turns surfaces inside out: the
+        # grid's mean moved by 40-110 mm with a passing fit check
+        how = orient_normals(cloud, None, viewpoints)
+        normals = f"given, {100 * away:.0f} % facing away from the walk: re-oriented {how}"
+        warn(f"{100 * away:.0f} % of the cloud's own normals face away from the nearest camera centre of the "
+             f"walk (normals of no consistent orientation): re-oriented {how} before meshing",
+             where, "reference-normals")
     mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
         cloud, depth=params.depth, n_threads=params.threads if params.threads > 0 else -1)
     dens = np.asarray(densities)
@@ -304,7 +328,7 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
             return geom, path, {**info, "local_shift_m": [0.0, 0.0, 0.0], "appearance": look}
         mesh = geom
     else:
-        mesh, info = poisson_mesh(geom, params, scans, local_views)
+        mesh, info = poisson_mesh(geom, params, scans, local_views, str(path))
         info = {"kind": "cloud", "points": len(geom.points), **info}
     info.update({"local_shift_m": shift.tolist(), "appearance": look})
     if cache_dir is None:
