@@ -70,14 +70,21 @@ def test_sigkill_then_resume_rerecords_only_the_broken_standpoint(recording: Pat
     assert list(sess.glob("standpoint_02.attempt-*.mcap.partial"))
 
 
-def test_sigint_finalises_the_open_file(recording: Path, tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def long_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """20 s at its frame rate: on a loaded machine the guidance before the capture took most of an
+    8 s recording, which then ended before the Ctrl-C (exit 0, 'the recording ended')."""
+    return make_recording(tmp_path_factory.mktemp("long") / "board.db3", n=600)
+
+
+def test_sigint_finalises_the_open_file(long_recording: Path, tmp_path: Path) -> None:
     from mcap.reader import make_reader
 
     proto = tmp_path / "one.toml"
     proto.write_text(TWO_HERE.replace("frames_per_standpoint = {frames}", "frames_per_standpoint = 120"))
     sess = tmp_path / "s"
     # played at its frame rate, the 120 frames take 4 s: the Ctrl-C lands mid-standpoint
-    proc = start(recording, proto, sess, "--real-time")
+    proc = start(long_recording, proto, sess, "--real-time")
     partial = sess / "standpoint_01.mcap.partial"
     wait_for(partial, proc)
     time.sleep(0.5)
