@@ -291,3 +291,14 @@ def test_a_png_frame_without_its_depth_image_is_said(png_set: Path) -> None:
         open_png(png_set / "pose03")
     assert [(w.code, w.where) for w in said] == [("frames-rejected", str(png_set / "pose03"))]
     assert f"no depth image (frame {int(k)})" in said[0].message
+
+
+def test_a_charuco_marker_far_smaller_than_its_square_is_bad_input(tmp_path: Path,
+                                                                  run: Callable[..., Ran]) -> None:
+    """marker_length_m 0.001 in 75 mm squares passed the board check and ended in 'does this board
+    file describe the printed board?' after every frame was tried."""
+    board = tmp_path / "b.json"
+    board.write_text(json.dumps({"type": "charuco", "squares_x": 7, "squares_y": 5, "square_length_m": 0.075,
+                                 "marker_length_m": 0.001, "dictionary": "DICT_4X4_50"}))
+    r = run("evaluate", "checkerboard", str(tmp_path), "--board", str(board), "--out", str(tmp_path / "o"))
+    one_line_error(r, "b.json", "board.marker_length_m 0.001 m is under a fifth of the square")

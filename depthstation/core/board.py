@@ -137,6 +137,11 @@ class Board:
                 raise InputError(source, "board: a charuco board needs marker_length_m and dictionary")
             if not 0 < board.marker_length_m < board.square_length_m:
                 raise InputError(source, "board.marker_length_m must be smaller than square_length_m")
+            if board.marker_length_m < 0.2 * board.square_length_m:  # 1 mm markers in 80 mm squares
+                small = board.marker_length_m
+                raise InputError(source, f"board.marker_length_m {small:g} m is under a fifth of the square "
+                                         f"({board.square_length_m:g} m): no ArUco marker is printed that "
+                                         "small in its square; metres, not millimetres?")
             if not (board.dictionary.startswith("DICT_") and hasattr(cv2.aruco, board.dictionary)):
                 names = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_") and n.upper() == n)
                 close = [n for n in names if n.lower() == board.dictionary.lower()]
