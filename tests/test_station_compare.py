@@ -218,3 +218,21 @@ def test_bad_output_options_are_refused_before_any_table(tmp_path: Path,
         assert code == 2 and named in captured.err, (extra, captured.err)
         assert "mean diff" not in captured.out + captured.err and not (tmp_path / "cmp").exists()
     assert rrd.read_bytes() == b"RRF2 an earlier recording"
+
+
+def test_a_figure_that_is_no_number_names_the_file_and_the_standpoint(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A damaged cell ('abc' for a distance) was read as NaN: the standpoint went unmatched under a
+    warning about names, exit 0. Now bad input naming the table, the standpoint and the column."""
+    a = write_checkerboard(tmp_path / "a", 0.095)
+    b = write_checkerboard(tmp_path / "b", 0.095)
+    table = (b / "standpoints.csv").read_text().splitlines()
+    head = table[0].split(",")
+    cells = table[1].split(",")
+    cells[head.index("distance_m")] = "abc"
+    (b / "standpoints.csv").write_text("\n".join([table[0], ",".join(cells), *table[2:]]) + "\n")
+    capsys.readouterr()
+    code = run_cli(["compare", str(a), str(b), "--out", str(tmp_path / "cmp")])
+    err = capsys.readouterr().err
+    assert code == 2 and f"{b / 'standpoints.csv'}: {cells[0]}: distance_m 'abc' is not a number" in err, err
+    assert not (tmp_path / "cmp").exists()

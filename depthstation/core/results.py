@@ -424,7 +424,19 @@ def read_standpoints(path: Path) -> list[dict[str, Any]]:
         raise InputError(path, f"cannot read ({exc})") from exc
     if rows and not {"standpoint", "distance_m", "inclination_deg"} <= set(rows[0]):
         raise InputError(path, "needs the columns standpoint, distance_m, inclination_deg")
+    for row in rows:  # a figure's cell that is no number was read as NaN: the standpoint went unmatched
+        for k, v in row.items():
+            if isinstance(v, str) and k is not None and _numeric_column(k):
+                raise InputError(path, f"{row.get('standpoint')}: {k} {v!r} is not a number")
     return rows
+
+
+_NUMERIC_SUFFIXES = ("_m", "_m2", "_deg", "_px", "_pct", "_mm", "_p", "_ratio", "_std", "_u95")
+
+
+def _numeric_column(name: str) -> bool:
+    """Whether a standpoints.csv column holds a figure (its unit's suffix, or a count)."""
+    return name.endswith(_NUMERIC_SUFFIXES) or name in ("frames", "frames_read", "fill_rate")
 
 
 def open_result(path: Path) -> ResultFolder:
