@@ -302,3 +302,14 @@ def test_a_charuco_marker_far_smaller_than_its_square_is_bad_input(tmp_path: Pat
                                  "marker_length_m": 0.001, "dictionary": "DICT_4X4_50"}))
     r = run("evaluate", "checkerboard", str(tmp_path), "--board", str(board), "--out", str(tmp_path / "o"))
     one_line_error(r, "b.json", "board.marker_length_m 0.001 m is under a fifth of the square")
+
+
+def test_a_colour_lens_that_does_not_fit_names_the_intrinsics_and_the_standpoint(
+        png_set: Path, tmp_path: Path, run: Callable[..., Ran]) -> None:
+    """The depth stream's focal length given as the colour's: every frame fails on its reprojection
+    error, and the refusal named only the board file. It names the standpoint and the intrinsics."""
+    depth_stream = {"color.fx": 639.04, "color.fy": 639.04, "color.cx": 635.5, "color.cy": 359.2}
+    edit_json(png_set / "camera.json", depth_stream)
+    r = run("evaluate", "checkerboard", str(png_set), "--board", str(png_set / "board.json"),
+            "--out", str(tmp_path / "o"), "--frames", "2")
+    one_line_error(r, "pose03: reprojection error", "camera.json")

@@ -197,8 +197,12 @@ def check_usable(job: CheckerboardJob, results: list[StandpointResult]) -> None:
             raise InputError(job.board_source if Path(job.board_source).exists() else None,
                              f"the board was found in no frame of the {len(results)} standpoint(s): does "
                              "this board file describe the printed board (type, squares, dictionary)?")
-        raise InputError(None, f"no usable frame in any of {len(results)} standpoints "
-                               f"({', '.join(reasons) or 'no frames'}); check the inputs and "
+        paths = ", ".join(x.path for x in results[:3] if x.path) + (", ..." if len(results) > 3 else "")
+        cause = ("; a reprojection error that large means the colour image's intrinsics (a PNG set's "
+                 "camera.json, the recording's calibration) do not fit its lens, or the board file's "
+                 "sizes do not fit the print" if any(k.startswith("reprojection") for k in reasons) else "")
+        raise InputError(None, f"no usable frame in any of {len(results)} standpoints ({paths}: "
+                               f"{', '.join(reasons) or 'no frames'}){cause}; check the inputs and "
                                f"{job.board_source}")
 
 
