@@ -313,3 +313,19 @@ def test_a_colour_lens_that_does_not_fit_names_the_intrinsics_and_the_standpoint
     r = run("evaluate", "checkerboard", str(png_set), "--board", str(png_set / "board.json"),
             "--out", str(tmp_path / "o"), "--frames", "2")
     one_line_error(r, "pose03: reprojection error", "camera.json")
+
+
+def test_a_board_file_with_another_dictionary_than_the_recordings_is_said(
+        png_set: Path, tmp_path: Path, run: Callable[..., Ran]) -> None:
+    """DICT_4X4_100 shares its first 50 markers with DICT_4X4_50, so the board is found either way;
+    the set's own board.json says 4X4_50 and the check compared sizes only."""
+    board = json.loads((png_set / "board.json").read_text())
+    given = tmp_path / "given.json"
+    given.write_text(json.dumps({**board, "dictionary": "DICT_4X4_100"}))
+    r = run("evaluate", "checkerboard", str(png_set), "--board", str(given), "--out", str(tmp_path / "o"),
+            "--frames", "2")
+    assert r.returncode == 0, r.stderr
+    info = json.loads((tmp_path / "o" / "result.json").read_text())
+    said = [w["message"] for w in info["warnings"] if w["code"] == "board-mismatch"]
+    assert len(said) == 1 and "dictionary 'DICT_4X4_50' there, 'DICT_4X4_100'" in said[0]
+    assert "centre, area and corners follow its description" in said[0]

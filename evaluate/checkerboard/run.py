@@ -152,7 +152,8 @@ def check_one_camera(recs: list[Recording], *, refuse: bool = False) -> None:
          "one: evaluate each camera separately", str(recs[0].path.parent), "mixed-cameras")
 
 
-BOARD_KEYS = ("type", "squares_x", "squares_y", "square_length_m", "marker_length_m")
+BOARD_KEYS = ("type", "squares_x", "squares_y", "square_length_m", "marker_length_m", "dictionary",
+              "first_square_black")
 
 
 def check_recorded_board(board: Board, recs: list[Recording], source: str) -> None:
@@ -182,10 +183,13 @@ def check_recorded_board(board: Board, recs: list[Recording], source: str) -> No
         if diffs:
             text = "; ".join(diffs)
             where = str(r.path.parent)  # the session, or the PNG set's root (its board.json)
+            why = ("every distance scales with the square length" if any(d.startswith("square_length_m")
+                                                                          for d in diffs)
+                   else "the board's centre, area and corners follow its description")
             if text not in told:
                 told.add(text)
-                warn(f"the recording's board differs from the one given: {text} (every distance scales "
-                     "with the square length: which one is the print?)", where, "board-mismatch")
+                warn(f"the recording's board differs from the one given: {text} ({why}: which one is the "
+                     "print?)", where, "board-mismatch")
 
 
 def check_usable(job: CheckerboardJob, results: list[StandpointResult]) -> None:
