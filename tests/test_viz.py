@@ -136,6 +136,12 @@ def test_view_refuses_what_is_not_a_result_or_a_recording(tmp_path: Path) -> Non
     (scan / "result.json").write_text("{broken")
     with pytest.raises(InputError, match=r"result\.json"):
         view_path(scan, spawn=False)
+    from tests.test_station_compare import write_checkerboard
+
+    table = write_checkerboard(tmp_path / "cb", 0.095) / "standpoints.csv"
+    table.write_text(table.read_text().splitlines()[0] + "\n")  # the header alone: a cut table
+    with pytest.raises(InputError, match=r"standpoints\.csv: holds no standpoint"):
+        view_path(table.parent, spawn=False)
 
 
 def test_view_rebuilds_a_recording_older_than_its_folder(tmp_path: Path) -> None:

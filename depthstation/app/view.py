@@ -80,6 +80,8 @@ def folder_to_rrd(folder: Path, rrd: Path) -> Path:
                          f"{MIN_COUNT_VIEW} samples empty")
         if has[STANDPOINTS_FILE]:
             rows = read_standpoints(folder / STANDPOINTS_FILE)
+            if not rows:  # a study writes one row per standpoint: a table without any was cut
+                raise InputError(folder / STANDPOINTS_FILE, "holds no standpoint (an empty or cut table)")
             idx = np.arange(len(rows))
             for col in SERIES_COLUMNS:
                 if rows and col in rows[0]:
