@@ -196,6 +196,13 @@ def test_frames_without_a_pose_are_said_and_poses_between_the_frames_are_bad_inp
     assert said[0].where == str(tmp_path / "half.txt")
     info = json.loads((tmp_path / "o" / "result.json").read_text())
     assert "frames-without-pose" in [w["code"] for w in info["warnings"]]
+    # poses for the odd frames only: none on the frames registration samples (every 10th), yet the
+    # study has half the walk to evaluate (it must not be refused as "no frame has a pose")
+    write_tum(tmp_path / "odd.txt", truth.timestamps_s[1::2], truth.poses[1::2])
+    with collecting() as found:
+        run_scan(d / "sequence.mcap", tmp_path / "odd.txt", d / "scene.ply", tmp_path / "o3",
+                 ScanOptions(min_count_sequence=100, **BINS))  # type: ignore[arg-type]
+    assert [w.code for w in found].count("frames-without-pose") == 1
     write_tum(tmp_path / "between.txt", truth.timestamps_s + 0.013, truth.poses)
     with pytest.raises(InputError, match=r"between\.txt: no frame has a pose within 0\.01 s .*13\.0 ms"):
         run_scan(d / "sequence.mcap", tmp_path / "between.txt", d / "scene.ply", tmp_path / "o2",

@@ -222,6 +222,12 @@ def depth_band_frames(source: FrameSource, trajectory: Trajectory, *,
         parts.append(p @ pose[:3, :3].T + pose[:3, 3])
         if max_frames is not None and len(parts) >= max_frames:
             break
+    if posed == 0 and np.isfinite(nearest) and every > 1:  # the frames between the sampled ones
+        for pos, fs in enumerate(source.frames()):
+            if pos % every and trajectory.match(fs.timestamp_ns * 1e-9, tolerance_s) is not None:
+                return []  # poses, but none on a sampled frame: nothing to fit, the study goes on
+            if pos % every:
+                nearest = min(nearest, trajectory.gap_s(fs.timestamp_ns * 1e-9))
     if posed == 0 and np.isfinite(nearest):
         raise NoPosedFrame(tolerance_s, float(nearest))
     return [p for p in parts if len(p)]
