@@ -72,8 +72,9 @@ def test_sigkill_then_resume_rerecords_only_the_broken_standpoint(recording: Pat
 
 @pytest.fixture(scope="module")
 def long_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """20 s at its frame rate: on a loaded machine the guidance before the capture took most of an
-    8 s recording, which then ended before the Ctrl-C (exit 0, 'the recording ended')."""
+    """20 s at its frame rate. Why: a playback paced at the frame rate that fell behind during the
+    guidance catches up at full speed, so a 120-frame standpoint of an 8 s recording could be
+    recorded, or the recording end, within the half second before the Ctrl-C (exit 0)."""
     return make_recording(tmp_path_factory.mktemp("long") / "board.db3", n=600)
 
 
@@ -81,13 +82,14 @@ def test_sigint_finalises_the_open_file(long_recording: Path, tmp_path: Path) ->
     from mcap.reader import make_reader
 
     proto = tmp_path / "one.toml"
-    proto.write_text(TWO_HERE.replace("frames_per_standpoint = {frames}", "frames_per_standpoint = 120"))
+    proto.write_text(TWO_HERE.replace("frames_per_standpoint = {frames}", "frames_per_standpoint = 400"))
     sess = tmp_path / "s"
-    # played at its frame rate, the 120 frames take 4 s: the Ctrl-C lands mid-standpoint
+    # 400 frames take 13 s at the frame rate and seconds even caught up at full speed: the Ctrl-C,
+    # 0.2 s after the standpoint's file appears, lands mid-standpoint
     proc = start(long_recording, proto, sess, "--real-time")
     partial = sess / "standpoint_01.mcap.partial"
     wait_for(partial, proc)
-    time.sleep(0.5)
+    time.sleep(0.2)
     proc.send_signal(signal.SIGINT)
     proc.wait(timeout=30)
     err = proc.stderr.read() if proc.stderr else ""
