@@ -21,10 +21,17 @@ TWO_HERE = SMALL_TOML.replace("max_distance_m = 1.5", "max_distance_m = 1.0").re
     "inclinations_deg = [0.0]", "inclinations_deg = [0.0, 1.0]")
 
 
+def _default_sigint() -> None:
+    """In the child: Ctrl-C as a shell gives it (a child inherits an ignored SIGINT, and Python then
+    leaves it ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start(rec: Path, proto: Path, sess: Path, *extra: str) -> subprocess.Popen[str]:
     return subprocess.Popen([EXE, "acquire", "capture", "--camera", str(rec), "--protocol", str(proto),
                              "--session", str(sess), *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_sigint)
 
 
 def wait_for(path: Path, proc: subprocess.Popen[str], timeout: float = 60.0) -> None:
@@ -72,9 +79,9 @@ def test_sigkill_then_resume_rerecords_only_the_broken_standpoint(recording: Pat
 
 @pytest.fixture(scope="module")
 def long_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """20 s at its frame rate. Why: a playback paced at the frame rate that fell behind during the
-    guidance catches up at full speed, so a 120-frame standpoint of an 8 s recording could be
-    recorded, or the recording end, within the half second before the Ctrl-C (exit 0)."""
+    """600 frames: a 400-frame standpoint after the guidance's frames. Why: the 8 s recording played
+    at its frame rate was used up by the guidance in a fresh checkout (kernels compiled on first
+    use), and the recording ended before the Ctrl-C (exit 0)."""
     return make_recording(tmp_path_factory.mktemp("long") / "board.db3", n=600)
 
 
@@ -84,9 +91,11 @@ def test_sigint_finalises_the_open_file(long_recording: Path, tmp_path: Path) ->
     proto = tmp_path / "one.toml"
     proto.write_text(TWO_HERE.replace("frames_per_standpoint = {frames}", "frames_per_standpoint = 400"))
     sess = tmp_path / "s"
-    # 400 frames take 13 s at the frame rate and seconds even caught up at full speed: the Ctrl-C,
-    # 0.2 s after the standpoint's file appears, lands mid-standpoint
-    proc = start(long_recording, proto, sess, "--real-time")
+    # not paced at the frame rate: paced playback that falls behind (kernels compiled in a fresh
+    # checkout, a loaded machine) skips ahead by the clock and could end the recording before the
+    # Ctrl-C; unpaced, the recording is read as fast as it is processed, and 400 frames take
+    # seconds, so the Ctrl-C 0.2 s after the standpoint's file appears lands mid-standpoint
+    proc = start(long_recording, proto, sess)
     partial = sess / "standpoint_01.mcap.partial"
     wait_for(partial, proc)
     time.sleep(0.2)
