@@ -17,7 +17,7 @@ from typing import Any, Protocol, runtime_checkable
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.errors import CameraDisconnected, CameraError
 from depthstation.core.frames import FrameSet
-from depthstation.core.protocol import Streams
+from depthstation.core.protocol import MODEL_NAME, Streams
 
 # depth origin behind the front cover glass (mm), cased cameras (Intel support, issues #10928, #14870)
 DEPTH_ORIGIN_BEHIND_GLASS_MM: dict[str, float] = {
@@ -30,7 +30,7 @@ PRODUCT_IDS: dict[str, tuple[str, ...]] = {
     "D455": ("0B5C",), "D455F": ("0B5C",), "D456": ("0B5C",), "D435": ("0B07",), "D435I": ("0B3A",),
     "D415": ("0AD3",), "D405": ("0B5B",),
 }
-_MODEL_RE = re.compile(r"\b(D\d{3}[A-Z]?)\s*$")
+_MODEL_RE = re.compile(rf"\b({MODEL_NAME.pattern})\s*$")  # a name ending in a model: "RealSense D455"
 
 
 def device_model(name: str) -> str | None:

@@ -204,12 +204,8 @@ def orient_normals(cloud: Any, scans: Scans | None = None, viewpoints: np.ndarra
     pts = np.asarray(cloud.points)
     normals = np.asarray(cloud.normals).copy()
     if viewpoints is not None and len(viewpoints):
-        from scipy.spatial import cKDTree
-
-        _, nearest = cKDTree(viewpoints).query(pts, k=1)
-        flip = np.einsum("ij,ij->i", normals, viewpoints[nearest] - pts) < 0
-        normals[flip] *= -1.0
-        how = "towards the nearest camera centre of the trajectory"
+        normals[facing_away(cloud, viewpoints)] *= -1.0
+        how = TOWARDS_CAMERAS
     elif scans:
         for start, end, origin in scans:
             flip = np.einsum("ij,ij->i", normals[start:end], origin - pts[start:end]) < 0
@@ -223,18 +219,18 @@ def orient_normals(cloud: Any, scans: Scans | None = None, viewpoints: np.ndarra
 
 
 AWAY_SHARE = 0.2  # of a cloud's given normals facing away from the walk: not oriented, re-oriented
+TOWARDS_CAMERAS = "towards the nearest camera centre of the trajectory"
 
 
-def facing_away(cloud: Any, viewpoints: np.ndarray) -> float:
-    """Share of the cloud's normals that face away from their nearest camera centre."""
+def facing_away(cloud: Any, viewpoints: np.ndarray) -> np.ndarray:
+    """Per point, whether its normal faces away from its nearest camera centre."""
     from scipy.spatial import cKDTree
 
     pts = np.asarray(cloud.points)
-    nrm = np.asarray(cloud.normals)
     if len(pts) == 0:
-        return 0.0
+        return np.zeros(0, bool)
     _, nearest = cKDTree(viewpoints).query(pts, k=1)
-    return float(np.mean(np.einsum("ij,ij->i", nrm, viewpoints[nearest] - pts) < 0))
+    return np.asarray(np.einsum("ij,ij->i", np.asarray(cloud.normals), viewpoints[nearest] - pts) < 0)
 
 
 def poisson_mesh(cloud: Any, params: PoissonParams = PoissonParams(), scans: Scans | None = None,
@@ -248,14 +244,19 @@ def poisson_mesh(cloud: Any, params: PoissonParams = PoissonParams(), scans: Sca
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(
             radius=params.normal_radius_m, max_nn=params.normal_max_nn))
         normals = orient_normals(cloud, scans, viewpoints)
-    elif viewpoints is not None and len(viewpoints) and (away := facing_away(cloud, viewpoints)) > AWAY_SHARE:
+    elif viewpoints is not None and len(viewpoints):
         # Poisson on normals half of which point out of the room turns surfaces inside out: the
         # grid's mean moved by 40-110 mm with a passing fit check
-        how = orient_normals(cloud, None, viewpoints)
-        normals = f"given, {100 * away:.0f} % facing away from the walk: re-oriented {how}"
-        warn(f"{100 * away:.0f} % of the cloud's own normals face away from the nearest camera centre of the "
-             f"walk (normals of no consistent orientation): re-oriented {how} before meshing",
-             where, "reference-normals")
+        flip = facing_away(cloud, viewpoints)
+        away = float(np.mean(flip)) if len(flip) else 0.0
+        if away > AWAY_SHARE:
+            turned = np.asarray(cloud.normals).copy()
+            turned[flip] *= -1.0
+            cloud.normals = o3d.utility.Vector3dVector(turned)
+            normals = f"given, {100 * away:.0f} % facing away from the walk: re-oriented {TOWARDS_CAMERAS}"
+            warn(f"{100 * away:.0f} % of the cloud's own normals face away from the nearest camera centre of "
+                 f"the walk (normals of no consistent orientation): re-oriented {TOWARDS_CAMERAS} before "
+                 "meshing", where, "reference-normals")
     mesh, densities = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
         cloud, depth=params.depth, n_threads=params.threads if params.threads > 0 else -1)
     dens = np.asarray(densities)

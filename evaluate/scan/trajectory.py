@@ -23,31 +23,31 @@ class Trajectory:
     def __len__(self) -> int:
         return int(self.timestamps_s.size)
 
+    def _nearest(self, t_s: float) -> int | None:
+        """Index of the pose stamp nearest to t_s (None without poses)."""
+        ts = self.timestamps_s
+        i = int(np.searchsorted(ts, t_s))
+        best = None
+        for j in (i - 1, i):
+            if 0 <= j < ts.size and (best is None or abs(ts[j] - t_s) < abs(ts[best] - t_s)):
+                best = j
+        return best
+
     def match(self, t_s: float, tolerance_s: float) -> NDArray[np.float64] | None:
         """Pose whose stamp is nearest to t_s, or None when none lies within the tolerance.
 
         Nearest rather than interpolated: ORB-SLAM3 stamps its poses with the frame time, so an
         exact match is the normal case and a gap means the tracker lost the frame.
         """
-        ts = self.timestamps_s
-        if ts.size == 0:
-            return None
-        i = int(np.searchsorted(ts, t_s))
-        best = None
-        for j in (i - 1, i):
-            if 0 <= j < ts.size and (best is None or abs(ts[j] - t_s) < abs(ts[best] - t_s)):
-                best = j
-        if best is None or abs(ts[best] - t_s) > tolerance_s:
+        best = self._nearest(t_s)
+        if best is None or abs(self.timestamps_s[best] - t_s) > tolerance_s:
             return None
         return self.poses[best]
 
     def gap_s(self, t_s: float) -> float:
         """Seconds from t_s to the nearest pose stamp (inf without poses)."""
-        ts = self.timestamps_s
-        if ts.size == 0:
-            return float("inf")
-        i = int(np.searchsorted(ts, t_s))
-        return float(min(abs(ts[j] - t_s) for j in (i - 1, i) if 0 <= j < ts.size))
+        best = self._nearest(t_s)
+        return float("inf") if best is None else float(abs(self.timestamps_s[best] - t_s))
 
     def transformed(self, similarity: NDArray[np.float64]) -> Trajectory:
         """Poses in another frame: p' = s R p + t applied to the camera centre; the rotation part
