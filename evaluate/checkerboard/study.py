@@ -259,8 +259,7 @@ def evaluate_frames(name: str, frames: Iterable[FrameSet], info: StreamInfo, boa
 
 def evaluate_recording(rec: Recording, board: Board, *, frames: int | None = None,
                        up_to: int = DEFAULT_FRAMES, collect_samples: bool = False, sample_stride: int = 1,
-                       refine: bool = True,
-                       margin_m: float = 0.01, on_frame: FrameCallback | None = None,
+                       refine: bool = True, margin_m: float = 0.01, on_frame: FrameCallback | None = None,
                        reference: str = "auto", roi: float | None = None) -> StandpointResult:
     """Contract 3: the checkerboard study of one recording (its first `frames` frames, or up to
     `up_to` when none were asked for: then a short recording is not warned of here).
@@ -429,9 +428,9 @@ def corners_never_seen(ok: list[FrameResult], board: Board,
                        intr: Intrinsics) -> tuple[list[int], int] | None:
     """ChArUco corners a frame's pose puts well inside the image (3 % from its border), in rows or
     columns beyond those any frame found, that no frame found; and how many are in view. None when
-    few. Why: the detector finds the markers a
-    board file with extra rows shares with the print, so the pose looks right while the board's
-    centre and mask (reaching past the print onto the wall) are not: noise 2.6 -> 69 mm, no word."""
+    few. Why: the detector finds the markers a board file with extra rows shares with the print, so
+    the pose looks right while the board's centre and mask (reaching past the print onto the wall)
+    are not: noise 2.6 -> 69 mm, no word."""
     frames = [r for r in ok if r.pose_color is not None and r.corner_ids is not None]
     if not frames:
         return None

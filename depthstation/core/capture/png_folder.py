@@ -20,16 +20,21 @@ from depthstation.core.run_warnings import warn
 from depthstation.core.text_files import read_text
 
 
-def _png_frames(folder: Path) -> list[tuple[int, Path, Path | None]]:
-
-    out = []
+def _png_files(folder: Path) -> tuple[list[tuple[int, Path, Path | None]], list[int]]:
+    """(frame number, depth PNG, colour PNG or None) per depth image, in frame order, and the frame
+    numbers that have a colour image but no depth image; one listing of the folder."""
+    depth: dict[int, Path] = {}
+    colour: dict[int, Path] = {}
     for p in folder.iterdir():
-        m = re.fullmatch(r"frame(\d+)_depth\.png", p.name)
+        m = re.fullmatch(r"frame(\d+)_(depth|color)\.png", p.name)
         if m:
-            k = int(m.group(1))
-            c = folder / f"frame{k}_color.png"
-            out.append((k, p, c if c.is_file() else None))
-    return sorted(out)
+            (depth if m.group(2) == "depth" else colour)[int(m.group(1))] = p
+    frames = sorted((k, d, colour.get(k)) for k, d in depth.items())
+    return frames, sorted(k for k in colour if k not in depth)
+
+
+def _png_frames(folder: Path) -> list[tuple[int, Path, Path | None]]:
+    return _png_files(folder)[0]
 
 
 class PngRecording(Recording):
@@ -134,12 +139,9 @@ def open_png(folder: Path) -> PngRecording:
     fps = cam.get("fps", 30.0)
     if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not fps > 0:
         raise InputError(cam_path, f"fps must be positive, got {fps!r}")
-    frames = _png_frames(folder)
+    frames, colour_only = _png_files(folder)
     if not frames:
         raise InputError(folder, "has no frameK_depth.png files")
-    have = {k for k, _, _ in frames}
-    named = (re.fullmatch(r"frame(\d+)_color\.png", p.name) for p in folder.glob("frame*_color.png"))
-    colour_only = sorted(k for m in named if m and (k := int(m.group(1))) not in have)
     if colour_only:  # a frame whose depth file is gone was not even counted as read
         warn(f"{len(colour_only)} frame(s) have a colour image but no depth image (frame "
              f"{', '.join(map(str, colour_only[:10]))}{', ...' if len(colour_only) > 10 else ''}): left out",
