@@ -141,3 +141,21 @@ def test_standpoints_of_two_cameras_are_warned(session: Path, tmp_path: Path,
     assert "baseline_m 0.095" in said[0] and "baseline_m 0.05" in said[0]
     code, err, info = _strict(session, session.parent / "p.toml", tmp_path / "o2", capsys)
     assert code == 0 and not info["warnings"], err  # one camera: no word
+
+
+def test_a_study_called_from_python_lists_its_warnings_in_result_json(
+        session: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A notebook or script that calls the study (no command, no collector of its own) gets the
+    same result.json as the command: its warnings listed, and each also logged once."""
+    from depthstation.evaluate.checkerboard.run import run_checkerboard
+
+    board = tmp_path / "b.json"
+    board.write_text(json.dumps({"type": "checkerboard", "squares_x": 7, "squares_y": 5,
+                                 "square_length_m": 0.092}))
+    with caplog.at_level("WARNING", logger="depthstation.warnings"):
+        run_checkerboard([session], board, tmp_path / "o", frames=12)
+    info = json.loads((tmp_path / "o" / "result.json").read_text())
+    said = [w for w in info["warnings"] if w["code"] == "board-mismatch"]
+    assert len(said) == 1 and "0.092" in said[0]["message"], info["warnings"]
+    logged = [r.getMessage() for r in caplog.records if "square_length_m 0.095 there" in r.getMessage()]
+    assert len(logged) == 1, caplog.records

@@ -31,6 +31,7 @@ import typer
 from depthstation.core.errors import DepthstationError, InputError
 from depthstation.core.grid import GRID_FILE
 from depthstation.core.run_warnings import current as current_warnings
+from depthstation.core.run_warnings import ensure_collecting
 
 # every writer's --force (result_folder(force=...)): one declaration, one meaning
 ForceOption = Annotated[bool, typer.Option("--force", help="Replace a non-empty --out and an existing "
@@ -285,7 +286,9 @@ def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path
     the same folder; a kill, an error or a full disk leaves at most a hidden `.<name>.partial-PID`
     folder, never one that `view` or `compare` would take for a finished result. The finished
     folder carries a marker (`.depthstation-result`, with `kind`) so that a later `--force` knows
-    it for ours, and replaces it only by a result of the same kind.
+    it for ours, and replaces it only by a result of the same kind. Where no command
+    collects the run's warnings (a notebook, a script), this does, so that `result.json` lists
+    them too (`ensure_collecting`).
     """
     out = Path(out)
     check_out_path(out)
@@ -303,7 +306,8 @@ def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path
     try:
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir()
-        yield tmp
+        with ensure_collecting():
+            yield tmp
         if _non_empty(out) and not force:
             raise InputError(out, f"appeared while this run was writing; the new result is left in {tmp}")
         if force:

@@ -66,6 +66,19 @@ def collecting(*, forward: bool = False) -> Iterator[list[RunWarning]]:
                 log.warning(w.line())
 
 
+@contextmanager
+def ensure_collecting() -> Iterator[list[RunWarning]]:
+    """The running collector, or a new one (logged at its end) where none runs: for a study called
+    from Python, so that its result.json lists its warnings as a command's does (a nested
+    collector here would hide the ones raised before it from that result.json)."""
+    bucket = _COLLECTED.get()
+    if bucket is not None:
+        yield bucket
+        return
+    with collecting(forward=True) as mine:
+        yield mine
+
+
 def warn(message: str, where: str | None = None, code: str = "general") -> RunWarning:
     """Record a warning (once: the same message for the same place is not repeated). In a thread
     outside any collector of its own, the main thread's running command collects it."""

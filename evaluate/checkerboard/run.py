@@ -25,7 +25,7 @@ from depthstation.core.parallel import ChunkRunner
 from depthstation.core.progress import progress
 from depthstation.core.rerun_bridge import RerunTarget, recording
 from depthstation.core.results import result_folder
-from depthstation.core.run_warnings import warn
+from depthstation.core.run_warnings import ensure_collecting, warn
 from depthstation.evaluate.checkerboard import rerun_log
 from depthstation.evaluate.checkerboard.chunks import (
     REFERENCES,
@@ -248,13 +248,13 @@ def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames:
     With `workers > 1` or a Dask `cluster`, standpoints go out as tasks (each read by the worker
     that evaluates it); the per-frame rerun stream then shows standpoints, not frames.
     """
-    job = prepare_checkerboard(inputs, board_path, replace(StandpointOptions(), frames=frames,
-                                                           reference=reference,
-                                                           collect_samples=collect_samples,
-                                                           topics=topics,
-                                                           roi=None if roi_pct is None else roi_pct / 100.0))
-    with result_folder(out, force=force, inputs=[*inputs, board_path], kind="checkerboard") as tmp:
-        return _run(job, tmp, (target or RerunTarget()).within(out, tmp), workers, cluster)
+    options = replace(StandpointOptions(), frames=frames, reference=reference,
+                      collect_samples=collect_samples, topics=topics,
+                      roi=None if roi_pct is None else roi_pct / 100.0)
+    with ensure_collecting():  # what preparing the job warns (the board) is the run's too
+        job = prepare_checkerboard(inputs, board_path, options)
+        with result_folder(out, force=force, inputs=[*inputs, board_path], kind="checkerboard") as tmp:
+            return _run(job, tmp, (target or RerunTarget()).within(out, tmp), workers, cluster)
 
 
 def _run(job: CheckerboardJob, out: Path, target: RerunTarget, workers: int,
