@@ -160,3 +160,33 @@ def test_a_mesh_rewritten_in_place_is_read_again_by_the_next_study(scan_case: di
     chunks_mod.clear_cache()
     again = run_scan(scan_case["sequence"], mesh, scan_case["trajectory"], scan_case["config"])
     assert_same(again, second)
+
+
+
+def test_a_sequence_folder_whose_list_is_rewritten_in_place_is_read_again(scan_case: dict[str, Any],
+                                                                          tmp_path: Path) -> None:
+    """A worker keeps its open sequence for the next chunk, also of the next study (a Dask cluster's
+    workers live on). A TUM folder's depth.txt rewritten in place (an editor, a re-export) leaves
+    the folder's own time as it was: the worker must not serve the old frame list."""
+    import shutil
+
+    folder = tmp_path / "seq"
+    shutil.copytree(scan_case["sequence"], folder)
+    first = scan_chunk(chunks_mod.scan_chunks(folder, scan_case["mesh"], scan_case["trajectory"],
+                                              scan_case["config"], chunk_frames=100)[0])
+    assert len(first.used) == 10
+    listing = folder / "depth.txt"
+    lines = listing.read_text().splitlines()
+    st = folder.stat()
+    with listing.open("r+") as f:  # in place: the folder's entries, and its mtime, stay
+        f.write("\n".join([lines[0], *lines[6:]]) + "\n")  # the last 5 frames only
+        f.truncate()
+    os.utime(folder, ns=(st.st_atime_ns, st.st_mtime_ns))
+    chunk = chunks_mod.scan_chunks(folder, scan_case["mesh"], scan_case["trajectory"], scan_case["config"],
+                                   chunk_frames=100)[0]
+    assert chunk.limit == 5
+    second = scan_chunk(chunk)
+    chunks_mod.clear_cache()
+    fresh = scan_chunk(chunk)
+    assert len(second.used) == len(fresh.used) == 5
+    assert_same(second, fresh)  # the last five frames, not the first five of the old list

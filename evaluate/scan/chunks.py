@@ -76,9 +76,15 @@ def clear_cache() -> None:
 
 
 def _file_key(path: str | Path) -> object:
-    """A path with its size and modification time: a file rewritten in place is not the one kept."""
+    """A path with its size and modification time: a file rewritten in place is not the one kept.
+    A folder (TUM, PNG sequence) by its entries' too: its own time does not move when a list or
+    camera file in it is rewritten in place."""
+    p = Path(path)
     try:
-        st = Path(path).stat()
+        st = p.stat()
+        if p.is_dir():
+            entries = sorted((e.name, e.stat().st_size, e.stat().st_mtime_ns) for e in os.scandir(p))
+            return (str(path), st.st_mtime_ns, tuple(entries))
     except OSError:
         return str(path)
     return (str(path), st.st_size, st.st_mtime_ns)

@@ -194,8 +194,6 @@ def make_sequence(frames: int = 24, width: int = 160, height: int = 120, *, room
 
 def write_tum_folder(seq: SyntheticSequence, out: Path) -> Path:
     """The sequence as a TUM RGB-D folder (depth/*.png, depth.txt, camera.json)."""
-
-
     out = Path(out)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     lines = ["# timestamp filename"]
