@@ -335,3 +335,20 @@ def test_export_of_an_aligned_png_set_keeps_baseline_and_stereo_imager(
     assert png.info.stereo_intrinsics is not None and bag.info.stereo_intrinsics is not None
     for k in ("width", "height", "fx", "fy", "ppx", "ppy"):
         assert getattr(bag.info.stereo_intrinsics, k) == pytest.approx(getattr(png.info.stereo_intrinsics, k))
+
+
+
+def test_a_topic_option_with_a_session_is_honoured_or_refused(simulated: dict[str, Any], tmp_path: Path,
+                                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """A session's standpoints are read from our writer's topics: a --depth-topic naming another was
+    ignored (the study ran on the stream not asked for); naming the session's own one is the same run."""
+    session = simulated["root"] / "sim"
+    board = Path(__file__).parents[1] / "protocols" / "demo-d455.toml"
+    args = ["evaluate", "checkerboard", str(session), "--board", str(board), "--frames", "2"]
+    code, _, err = _cli([*args, "--out", str(tmp_path / "a"), "--depth-topic", "/cams/front/depth"], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert str(session) in err and "/cams/front/depth" in err and "/camera/depth/image_rect_raw" in err
+    assert not (tmp_path / "a").exists()
+    own = ["--depth-topic", "/camera/depth/image_rect_raw"]
+    code, _, err = _cli([*args, "--out", str(tmp_path / "b"), *own], capsys)
+    assert code == 0, err

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from depthstation.core.capture import mcap_writer as mw
 from depthstation.core.capture.mcap_reader import MCAP_MAGIC, open_mcap
 from depthstation.core.capture.png_folder import is_png_folder, open_png
 from depthstation.core.capture.realsense_bag import is_rosbag2_folder, open_realsense
@@ -114,6 +115,7 @@ def open_inputs(paths: Sequence[Path], topics: TopicChoice | None = None) -> lis
         if not p.exists():
             raise InputError(p, "does not exist")
         if p.is_dir() and (p / SESSION_FILE).is_file():
+            check_session_topics(p, topics)
             out.extend(Session.open(p, read_only=True).recordings())
         elif p.is_dir() and recording_format(p) is None and not is_tum_folder(p):
             subs = sorted(d for d in p.iterdir() if is_png_folder(d))
@@ -127,6 +129,20 @@ def open_inputs(paths: Sequence[Path], topics: TopicChoice | None = None) -> lis
         else:
             out.append(open_recording(p, topics=topics))
     return out
+
+
+def check_session_topics(session: Path, topics: TopicChoice | None) -> None:
+    """A session's standpoints are read from the topics our writer gives each stream; a topic
+    option naming another is refused, not ignored (the study would read a stream not asked for)."""
+    if topics is None:
+        return
+    ours = {"depth": mw.DEPTH_TOPIC, "color": mw.COLOR_TOPIC, "infrared": mw.INFRARED_TOPIC}
+    other = [f"--{k}-topic {v}" for k, v in topics.to_dict().items() if v is not None and v != ours[k]]
+    if other:
+        held = ", ".join(f"{k} on {v}" for k, v in ours.items())
+        raise InputError(session, f"is a depthstation session, whose standpoints hold {held}; "
+                                  f"{' and '.join(other)} names another (give a ROS recording's own files "
+                                  "to read its topics)")
 
 
 def check_distinct_recordings(recs: Sequence[Recording]) -> None:
