@@ -145,3 +145,22 @@ def test_ctrl_c_while_a_standpoint_is_being_closed_still_finishes_it(tmp_path: P
     assert rec.frame_count == 20
     assert [e["status"] for e in json.loads((tmp_path / "s" / "session.json").read_text())["standpoints"]] \
         == ["complete"]
+
+
+def test_a_ctrl_c_held_while_a_standpoint_closes_survives_a_failing_close() -> None:
+    """Ctrl-C during the close is held until the file is finished; when the close then fails (a
+    full disk), the Ctrl-C still ends the run (exit 130), with that failure as its cause: it was
+    dropped, and the run went on."""
+    import os
+
+    from depthstation.core.capture.session import _sigint_deferred
+    from depthstation.core.errors import CaptureError
+
+    with pytest.raises(KeyboardInterrupt) as info, _sigint_deferred():
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)  # the handler runs: held, not raised here
+        raise CaptureError("standpoint_01.mcap: writing failed: no space left on the device")
+    assert isinstance(info.value.__cause__, CaptureError)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with pytest.raises(CaptureError), _sigint_deferred():  # no Ctrl-C: the failure as it was
+        raise CaptureError("writing failed")

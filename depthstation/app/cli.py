@@ -104,8 +104,9 @@ def _run(args: list[str]) -> int:
     except DepthstationError as exc:
         typer.echo(f"depthstation: error: {exc}", err=True)
         return exc.exit_code
-    except KeyboardInterrupt:
-        typer.echo("depthstation: interrupted", err=True)
+    except KeyboardInterrupt as exc:  # a failure held behind the Ctrl-C is said too
+        cause = f" ({exc.__cause__})" if exc.__cause__ is not None else ""
+        typer.echo(f"depthstation: interrupted{cause}", err=True)
         return 130
     except _EXIT as exc:
         return int(getattr(exc, "exit_code", 0) or 0)

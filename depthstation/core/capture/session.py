@@ -360,7 +360,8 @@ _STOP = object()
 
 @contextlib.contextmanager
 def _sigint_deferred() -> Iterator[None]:
-    """Hold SIGINT back while the block runs (main thread only) and raise it afterwards."""
+    """Hold SIGINT back while the block runs (main thread only) and raise it afterwards, also when
+    the block fails: the Ctrl-C is not lost behind that error, which becomes its cause."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -372,6 +373,10 @@ def _sigint_deferred() -> Iterator[None]:
     previous = signal.signal(signal.SIGINT, hold)
     try:
         yield
+    except Exception as exc:
+        if caught:
+            raise KeyboardInterrupt from exc
+        raise
     finally:
         signal.signal(signal.SIGINT, previous)
     if caught:
