@@ -267,6 +267,45 @@ def test_normal_std_matches_monte_carlo_of_pnp() -> None:
     assert normal_std_deg(pose, obj, HD, sigma, frames=100) == pytest.approx(predicted / 10, rel=1e-6)
 
 
+
+def test_a_board_half_out_of_view_has_the_pose_uncertainty_of_the_corners_seen() -> None:
+    """A ChArUco board half out of view gives its pose from the corners seen: the scatter of PnP
+    poses from those noisy corners is what the prediction weighted by the corners seen says, and
+    wider than the whole board's prediction (which the U95 used: it shrank instead of growing)."""
+    import cv2
+
+    from depthstation.core.board_pose import solve_board_pose
+    from depthstation.evaluate.checkerboard.pose import normal_std_deg
+    from depthstation.evaluate.checkerboard.uncertainty import corner_counts, pose_covariance
+
+    board = Board()
+    pose = pose_for(board, 3.0, 20.0, azimuth_deg=10.0)
+    obj = board.corner_points()
+    seen = np.flatnonzero(obj[:, 0] < np.median(obj[:, 0]))  # the left half of the columns
+    uv, _ = cv2.projectPoints(obj[seen], cv2.Rodrigues(pose[:3, :3])[0], pose[:3, 3], HD.K, np.zeros(5))
+    uv = uv.reshape(-1, 2)
+    sigma = 0.05
+    rng = np.random.default_rng(1)
+    t, tilts = [], []
+    for _ in range(400):
+        p = solve_board_pose(obj[seen], uv + rng.normal(0.0, sigma, uv.shape), HD)
+        assert p is not None
+        t.append(p.matrix[:3, 3])
+        tilts.append(np.cross(pose[:3, 2], p.matrix[:3, 2]))
+    counts = corner_counts([seen], board)
+    assert counts.sum() == len(seen) and set(np.flatnonzero(counts)) == set(seen)
+    half = pose_covariance(pose, board, HD, sigma, counts)
+    whole = pose_covariance(pose, board, HD, sigma)
+    measured = np.std(np.asarray(t), axis=0, ddof=1)
+    np.testing.assert_allclose(measured, np.sqrt(np.diag(half)[3:]), rtol=0.15)  # 400 samples: ~7 %
+    assert np.all(np.sqrt(np.diag(whole)[3:]) < 0.8 * measured)  # the whole board's: optimistic
+    tilt = float(np.degrees(np.sqrt(np.linalg.eigvalsh(np.cov(np.asarray(tilts).T))[-1])))
+    assert normal_std_deg(pose, obj, HD, sigma, weights=counts) == pytest.approx(tilt, rel=0.15)
+    # every corner seen in every one of 10 frames: the same as the whole board's over 10 frames
+    ten = corner_counts([np.arange(len(obj))] * 10, board)
+    np.testing.assert_allclose(pose_covariance(pose, board, HD, sigma, ten), whole / 10, rtol=1e-9)
+
+
 def test_colour_tests_give_scipy_stats_p_values_without_importing_it() -> None:
     """Welch's and the paired t-test of black against white squares, written on scipy.special:
     the p-values of scipy.stats.ttest_ind(equal_var=False) and ttest_rel, edge cases included."""

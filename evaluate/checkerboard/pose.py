@@ -72,8 +72,19 @@ def pose_jacobian(pose: NDArray[np.float64], object_points: NDArray[np.float64],
     return jac
 
 
+def weighted_information(jac: NDArray[np.float64],
+                         weights: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    """J^T W J of a corners' Jacobian (rows u, v per corner), each corner weighted by how many
+    frames saw it (None: every corner once). Why: a ChArUco board partly out of view constrains
+    its pose with the corners seen only; all the board's corners made the prediction optimistic."""
+    if weights is None:
+        return np.asarray(jac.T @ jac, dtype=np.float64)
+    w = np.repeat(np.asarray(weights, dtype=np.float64), 2)
+    return np.asarray((jac * w[:, None]).T @ jac, dtype=np.float64)
+
+
 def normal_std_deg(pose: NDArray[np.float64], object_points: NDArray[np.float64], intr: Intrinsics,
-                   sigma_px: float, frames: int = 1) -> float:
+                   sigma_px: float, frames: int = 1, weights: NDArray[np.float64] | None = None) -> float:
     """Standard deviation (deg) of the board normal's direction from corner noise (Cramer-Rao).
 
     Gauss-Newton covariance of the 6-dof pose, sigma^2 (J^T J)^-1 / frames, with J the Jacobian of
@@ -81,11 +92,15 @@ def normal_std_deg(pose: NDArray[np.float64], object_points: NDArray[np.float64]
     Returned: the larger axis (the worse of the two tilts). For a still camera `frames` frames of
     independent corner noise average like one pose from all corners; a static corner bias (the same
     every frame) does not average and is not in this figure. At 0 deg the reported inclination is
-    the folded |tilt| and reads ~1.25 x this on average (Rayleigh).
+    the folded |tilt| and reads ~1.25 x this on average (Rayleigh). `weights`: how many frames saw
+    each of `object_points` (then instead of `frames`).
     """
     jac = pose_jacobian(pose, object_points, intr)
     try:
-        cov = sigma_px**2 / max(frames, 1) * np.linalg.inv(jac.T @ jac)
+        if weights is None:
+            cov = sigma_px**2 / max(frames, 1) * np.linalg.inv(jac.T @ jac)
+        else:
+            cov = sigma_px**2 * np.linalg.inv(weighted_information(jac, weights))
     except np.linalg.LinAlgError:
         return float("inf")
     # a small rotation w (camera frame, left-multiplied) moves the normal n by w x n

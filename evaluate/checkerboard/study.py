@@ -27,6 +27,7 @@ from depthstation.evaluate.checkerboard.pose import normal_std_deg
 from depthstation.evaluate.checkerboard.uncertainty import (
     NOISE_TYPE_B,
     STATIC_FLOOR_PX,
+    corner_counts,
     corner_errors,
     coverage_factor,
     folded_angle,
@@ -157,8 +158,10 @@ def pose_uncertainty(ok: list[FrameResult], board: Board, intr: Intrinsics,
     f = {"corner_noise_px": noise}
     if np.isfinite(noise):
         pose = np.asarray(np.linalg.inv(camera_in_board), dtype=np.float64)  # board -> colour
-        f["inclination_std_deg"] = normal_std_deg(pose, board.corner_points(),
-                                                  intr, noise, frames=len(ok))
+        ids = [r.corner_ids for r in ok if r.corner_ids is not None]
+        f["inclination_std_deg"] = normal_std_deg(pose, board.corner_points(), intr, noise, frames=len(ok),
+                                                  weights=corner_counts(ids, board) * len(ok) / len(ids)
+                                                  if ids else None)
     else:
         f["inclination_std_deg"] = float("nan")
     f["inclination_frame_std_deg"] = _mean_std([frame_inclination_deg(r, board) for r in ok])[1]
@@ -184,8 +187,12 @@ def expanded_uncertainties(ok: list[FrameResult], board: Board, info: StreamInfo
         return {**out, "distance_m_u95": nan, "inclination_deg_u95": nan, "noise_m_u95": nan,
                 "accuracy_m_u95": nan}
     static = max(ce.static_px, STATIC_FLOOR_PX)
-    rnd = propagate(pose_c, d2c, board, pose_covariance(pose_c, board, intr, ce.random_px) / n)
-    sta = propagate(pose_c, d2c, board, pose_covariance(pose_c, board, intr, static))
+    # each corner counts as often as frames saw it (a ChArUco board partly out of view): the random
+    # part averages over those sightings, the static one weighs each corner by its share of frames
+    counts = corner_counts([r.corner_ids for r in seen], board)  # type: ignore[misc]
+    share = counts / len(seen)
+    rnd = propagate(pose_c, d2c, board, pose_covariance(pose_c, board, intr, ce.random_px, share * n))
+    sta = propagate(pose_c, d2c, board, pose_covariance(pose_c, board, intr, static, share))
     d_emp = f["reference_distance_std_m"] / np.sqrt(n) if n > 1 else nan
     u_d = np.sqrt(max(rnd["distance_var"], d_emp ** 2 if np.isfinite(d_emp) else 0.0) + sta["distance_var"])
     _, u_inc = folded_angle(rnd["tilt"], rnd["tilt_cov"] + sta["tilt_cov"], k)

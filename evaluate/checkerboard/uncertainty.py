@@ -27,7 +27,7 @@ from scipy.special import stdtrit
 from depthstation.core.board import Board
 from depthstation.core.camera_model import Intrinsics
 from depthstation.core.geometry import rodrigues
-from depthstation.evaluate.checkerboard.pose import pose_jacobian
+from depthstation.evaluate.checkerboard.pose import pose_jacobian, weighted_information
 
 F64 = NDArray[np.float64]
 # The static corner error of the X-junction refinement on the simulator's exact-coverage colour:
@@ -90,12 +90,22 @@ def corner_errors(corner_ids: list[NDArray[np.int64]], corners_px: list[NDArray[
     return CornerErrors(random, static, n_c, n_frames)
 
 
-def pose_covariance(board_to_color: F64, board: Board, intr: Intrinsics, sigma_px: float) -> F64:
+def corner_counts(corner_ids: list[NDArray[np.int64]], board: Board) -> F64:
+    """How many of the frames saw each of the board's corners."""
+    counts = np.zeros(len(board.corner_points()))
+    for ids in corner_ids:
+        np.add.at(counts, np.asarray(ids, dtype=np.int64), 1.0)
+    return counts
+
+
+def pose_covariance(board_to_color: F64, board: Board, intr: Intrinsics, sigma_px: float,
+                    weights: F64 | None = None) -> F64:
     """6x6 covariance of a board pose from corner errors of sigma_px per coordinate (Cramer-Rao),
-    in the parameters p = (rotation vector applied in the camera frame, translation)."""
+    in the parameters p = (rotation vector applied in the camera frame, translation). `weights`:
+    each corner's weight (frames that saw it, or their share); None: every corner once."""
     jac = pose_jacobian(board_to_color, board.corner_points(), intr)
     try:
-        return np.asarray(sigma_px ** 2 * np.linalg.inv(jac.T @ jac), dtype=np.float64)
+        return np.asarray(sigma_px ** 2 * np.linalg.inv(weighted_information(jac, weights)), dtype=np.float64)
     except np.linalg.LinAlgError:
         return np.full((6, 6), np.inf)
 
