@@ -16,6 +16,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from test_acquire_cli import EXE, SMALL_TOML
 
 SIM_TOML = (SMALL_TOML.replace("max_distance_m = 1.5", "max_distance_m = 1.6")
+            .replace("width = 640\nheight = 360", "width = 424\nheight = 240")  # a D455 mode
             .replace("step_m = 0.5", "step_m = 0.6")
             .replace("inclinations_deg = [0.0]", "inclinations_deg = [0.0, 30.0]")
             .replace("min_minutes = 1.0", "min_minutes = 10.0")

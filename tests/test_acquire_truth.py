@@ -38,7 +38,7 @@ def run_session(out: Path, proto: Protocol, seed: int, model: Any = "d455") -> t
 
 
 def two_by_two(frames: int = 10) -> Protocol:
-    return Protocol("truth", streams=Streams(width=640, height=360, fps=30),
+    return Protocol("truth", streams=Streams(width=424, height=240, fps=30),
                     plan=Plan(frames_per_standpoint=frames, start_distance_m=1.0, step_m=0.6,
                               max_distance_m=1.6, inclinations_deg=(0.0, 30.0)),
                     tolerances=Tolerances(distance_m=0.05, inclination_deg=3.0, still_seconds=0.3))
@@ -87,7 +87,7 @@ def test_end_of_range_moves_to_the_next_trajectory(tmp_path: Path) -> None:
     from depthstation.core.capture.session import Session
     from depthstation.simulate.model import load_model
 
-    proto = Protocol("range", streams=Streams(width=640, height=360, fps=30),
+    proto = Protocol("range", streams=Streams(width=424, height=240, fps=30),
                      plan=Plan(frames_per_standpoint=4, start_distance_m=1.0, step_m=1.2, max_distance_m=2.2,
                                inclinations_deg=(0.0, 30.0)),
                      tolerances=Tolerances(distance_m=0.05, inclination_deg=3.0, still_seconds=0.3,
@@ -111,7 +111,7 @@ def test_end_of_range_moves_to_the_next_trajectory(tmp_path: Path) -> None:
 def test_a_seed_repeats_the_session(tmp_path: Path) -> None:
     """The operator steps on frame time and the camera's noise is drawn from (seed, frame): two runs
     with one seed give the same walk and the same measured standpoints; another seed does not."""
-    proto = Protocol("seed", streams=Streams(width=640, height=360, fps=30),
+    proto = Protocol("seed", streams=Streams(width=424, height=240, fps=30),
                      plan=Plan(frames_per_standpoint=4, start_distance_m=1.2, max_distance_m=1.2,
                                inclinations_deg=(20.0,)),
                      tolerances=Tolerances(distance_m=0.05, inclination_deg=3.0, still_seconds=0.3))
