@@ -159,3 +159,11 @@ def test_a_study_called_from_python_lists_its_warnings_in_result_json(
     assert len(said) == 1 and "0.092" in said[0]["message"], info["warnings"]
     logged = [r.getMessage() for r in caplog.records if "square_length_m 0.095 there" in r.getMessage()]
     assert len(logged) == 1, caplog.records
+    # what the summary says the board's scale does to the figures, it does: 3.2 % short
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert "square_length_m 0.092" in summary["absorbed"]["board_scale"]
+    told = json.loads((session / "truth.json").read_text())["standpoints"]
+    truth = {t["name"]: t["distance_m"] for t in told}
+    for sp in summary["standpoints"]:
+        ratio = sp["figures"]["distance_m"] / truth[sp["name"]]
+        assert ratio == pytest.approx(0.092 / 0.095, abs=0.002), sp["name"]

@@ -78,6 +78,22 @@ def write_tables(out: Path, results: list[StandpointResult], board: Board) -> No
                 w.writerow(frame_row(r, f, board))
 
 
+def absorbed(board: Board) -> dict[str, str]:
+    """What the reference pose takes as exact, so that every figure carries its error, and none of
+    it is in <figure>_u95: a reader must know it before calling a few per cent the camera's."""
+    return {
+        "board_scale": f"square_length_m {board.square_length_m:g} is taken as the print's: a print k % "
+                       "larger places the reference k % nearer (distance_m reads k % short, accuracy_m "
+                       "k % of the distance too far); the recording's own board is compared where it names "
+                       "one (board-mismatch), and depth checks it to 5 % (board-scale)",
+        "colour_intrinsics": "the colour camera's focal length from the recording: k % too long places the "
+                             "reference k % farther (distance_m k % long, accuracy_m k % of the distance "
+                             "too near)",
+        "depth_to_colour": "the recording's depth-to-colour extrinsics: a translation error moves the "
+                           "reference plane by its component along the board's normal (accuracy_m)",
+    }
+
+
 def summary(results: list[StandpointResult], board: Board, inputs: list[str],
             parameters: dict[str, Any], device: dict[str, Any]) -> dict[str, Any]:
     """Everything a reader needs to trust the table: inputs, board, software, per-standpoint detail."""
@@ -105,11 +121,13 @@ def summary(results: list[StandpointResult], board: Board, inputs: list[str],
         "expanded_uncertainty": "<figure>_u95 = k u_c, k = t(0.975, frames - 1) (GUM): distance and "
                                 "inclination from the pose's random corner noise (corner_random_px, "
                                 "averaged over the frames) and a static corner error (corner_static_px "
-                                "from the mean residuals, at least 0.01 px) through the corners' "
-                                "Jacobian; inclination near 0 deg as a folded magnitude (Rayleigh "
-                                "bound); noise from the frames' scatter plus 0.4 % for the estimator; "
+                                "from the mean residuals, at least 0.01 px) through the Jacobian of "
+                                "the corners seen (each weighted by the frames that saw it); "
+                                "inclination near 0 deg as a folded magnitude (Rayleigh bound); "
+                                "noise from the frames' scatter plus 0.4 % for the estimator; "
                                 "accuracy from the frames' scatter plus the reference plane's offset "
                                 "uncertainty. See docs/checkerboard-study.md.",
+        "absorbed": absorbed(board),
         "pose_uncertainty": "inclination_std_deg = Cramer-Rao std of the averaged pose's normal "
                             "(worse tilt axis) from the mean per-frame corner noise (corner_noise_px, "
                             "from reprojection residuals) over the frames used; "
