@@ -194,3 +194,21 @@ def test_workers_give_the_same_real_side(plain_session: Path) -> None:
         return [(c.effect, c.delta_bic, c.heldout_rmse_after_m) for c in res.candidates]
 
     assert fit(one.samples) == fit(two.samples)
+
+
+def test_a_depth_scale_is_said_to_be_what_a_misprinted_board_gives_too() -> None:
+    """The checkerboard's truth is the board's pose: a depth scale s fitted there is also a print s
+    larger than its file says (the study's distances follow the square length, test_run_warnings),
+    so explain says so instead of writing a print error into the camera's model."""
+    from depthstation.evaluate.explain.attribute import CandidateFit
+    from depthstation.evaluate.explain.report import reference_lookalikes
+
+    def fit(effect: str, params: dict[str, float]) -> CandidateFit:
+        return CandidateFit(effect, "bias", "missing_physics", params, {}, "", -40.0, 2e-3, 1e-3, 1e-9)
+
+    (look,) = reference_lookalikes([fit("depth_scale", {"scale_error": 0.0316}),
+                                    fit("disparity_offset", {"offset_px": -0.1})])
+    assert look["effect"] == "depth_scale" and "3.16 % larger" in look["also"] and "too short" in look["also"]
+    (look,) = reference_lookalikes([fit("depth_scale", {"scale_error": -0.01})])
+    assert "1.00 % smaller" in look["also"] and "too long" in look["also"]
+    assert reference_lookalikes([fit("lr_focal_mismatch", {"ratio": 0.001})]) == []

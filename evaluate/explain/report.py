@@ -26,6 +26,25 @@ if TYPE_CHECKING:
     from depthstation.evaluate.explain.run import Explanation
 
 
+def reference_lookalikes(selected: list[Any]) -> list[dict[str, Any]]:
+    """Selected effects that an error of the checkerboard's reference gives too: the board's pose is
+    the truth there, so a depth scale s is also a print s larger than the board file says, or a
+    colour focal length s short (docs/checkerboard-study.md, `absorbed`). Said, so that nobody
+    writes a print error into the camera's model."""
+    out = []
+    for c in selected:
+        s = c.params.get("scale_error") if c.effect == "depth_scale" else None
+        if s is None or not np.isfinite(s) or s == 0:
+            continue
+        pct = f"{100 * abs(s):.2f} %"
+        board, focal = ("larger", "short") if s > 0 else ("smaller", "long")
+        out.append({"effect": c.effect, "scale_error": float(s),
+                    "also": f"a board printed {pct} {board} than its file's square length, or a colour "
+                            f"focal length {pct} too {focal}, gives the same: measure the printed squares "
+                            "before applying it to the camera"})
+    return out
+
+
 def explain_dict(ex: Explanation) -> dict[str, Any]:
     """The content of explain.json (contract of issue 7)."""
     before = ex.before.summary()
@@ -45,6 +64,7 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
         "missing_physics": [c.effect for c in ex.attribution.selected if c.role == "missing_physics"],
         "calibrated": calibrated,
         "near_ties": [{"selected": c.effect, **t} for c in ex.attribution.selected for t in c.near_ties],
+        "reference_lookalikes": reference_lookalikes(ex.attribution.selected),
         "standpoints": list(ex.real.samples.names),
         "standpoints_left_out": _left_out(ex),
         "samples": {"real": len(ex.real.samples), "sim": len(ex.sim.samples)},

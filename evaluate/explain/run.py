@@ -37,7 +37,7 @@ from depthstation.evaluate.explain.locate import (
     locate,
     short_standpoints,
 )
-from depthstation.evaluate.explain.report import write_outputs
+from depthstation.evaluate.explain.report import reference_lookalikes, write_outputs
 from depthstation.evaluate.explain.rerun_log import log_explanation
 from depthstation.evaluate.explain.samples import Samples, board_edge_px, concat, thin, unpaired_standpoints
 from depthstation.evaluate.explain.structure import decompose
@@ -360,6 +360,9 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
         warn(f"discovered {found}, although no region differs significantly (Holm): the term rests on "
              "the pooled fit alone; confirm it on another session before trusting it", None,
              "explain-discovery-unlocated")
+    for look in reference_lookalikes(attr.selected):
+        warn(f"{look['effect']} selected (scale_error {look['scale_error']:+.4f}): {look['also']}", None,
+             "reference-lookalike")
     new_model = improved_model(model, attr, disc, cands)
     resim = after = None
     if resimulate:
