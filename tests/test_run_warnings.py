@@ -167,3 +167,16 @@ def test_a_study_called_from_python_lists_its_warnings_in_result_json(
     for sp in summary["standpoints"]:
         ratio = sp["figures"]["distance_m"] / truth[sp["name"]]
         assert ratio == pytest.approx(0.092 / 0.095, abs=0.002), sp["name"]
+
+
+def test_nested_collectors_leave_the_outer_one_in_place_whatever_they_hold() -> None:
+    """A batch: an item with no warning ends before one with a warning. Lists compare by value, so
+    the ending item's empty list removed the command's empty one: the next item's thread warning
+    then had no collector, and the command ended in a traceback (ValueError) instead of exit 3."""
+    with collecting() as run:
+        with collecting():
+            pass  # the first item: nothing to say
+        with collecting() as item, ThreadPoolExecutor(1) as pool:
+            pool.submit(warn, "cut short", "d.mcap", "truncated-input").result()
+        assert [w.where for w in item] == ["d.mcap"]
+    assert [w.where for w in run] == ["d.mcap"]
