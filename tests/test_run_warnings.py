@@ -180,3 +180,26 @@ def test_nested_collectors_leave_the_outer_one_in_place_whatever_they_hold() -> 
             pool.submit(warn, "cut short", "d.mcap", "truncated-input").result()
         assert [w.where for w in item] == ["d.mcap"]
     assert [w.where for w in run] == ["d.mcap"]
+
+
+def test_a_whole_copy_of_a_cut_recording_still_says_it_holds_only_part(
+        session: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`capture compact` of a cut recording, or the file of a session it was imported into given
+    alone, is a complete MCAP: its study said nothing (exit 0 under --strict) of the frames lost."""
+    cut = tmp_path / "standpoint_02.mcap"
+    data = (session / "standpoint_02.mcap").read_bytes()
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    board = session.parent / "p.toml"
+    assert run_cli(["capture", "compact", str(cut), str(tmp_path / "z.mcap")]) == 0
+    assert run_cli(["capture", "import", str(cut), "--out", str(tmp_path / "imp")]) == 0
+    assert run_cli(["capture", "compact", str(tmp_path / "imp" / "standpoint_02.mcap"),
+                    str(tmp_path / "zz.mcap")]) == 0
+    for copy in (tmp_path / "z.mcap", tmp_path / "imp" / "standpoint_02.mcap", tmp_path / "zz.mcap"):
+        capsys.readouterr()
+        out = tmp_path / f"o-{copy.stem}-{copy.parent.name}"
+        code = run_cli(["--strict", "evaluate", "checkerboard", str(copy), "--board", str(board), "--out",
+                        str(out), "--frames", "12"])
+        err = capsys.readouterr().err
+        assert code == 3 and "cut short" in err and str(cut) in err, err
+        info = json.loads((out / "result.json").read_text())
+        assert str(copy) in info["truncated_inputs"]

@@ -12,8 +12,8 @@ from rich.table import Table
 
 from depthstation.core.capture.export import TARGETS, export_recordings
 from depthstation.core.capture.importer import import_recordings
-from depthstation.core.capture.mcap_reader import McapRecording
-from depthstation.core.capture.mcap_writer import CAPTURE_COMPRESSION, COLOR_ENCODINGS, write_mcap
+from depthstation.core.capture.mcap_reader import McapRecording, cut_source
+from depthstation.core.capture.mcap_writer import CAPTURE_COMPRESSION, COLOR_ENCODINGS, McapFileWriter
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs, open_recording
 from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, TopicChoice, topic_choice
@@ -172,15 +172,19 @@ def compact_cmd(
         raise InputError(src, "compact takes our MCAP recordings; use `capture import` for others")
     temps = [(t, {k: v}) for k, (ts, vs) in rec.temperatures().items() for t, v in zip(ts, vs, strict=True)]
     color_encoding = (rec.metadata.get("format") or {}).get("color_encoding", "rgb8")  # kept as it was
-    n = write_mcap(
-        out,
-        rec.info,
-        rec.frames(),
-        {k: v for k, v in rec.metadata.items() if k != "format"},
-        compression=compression,
-        temperatures=temps,
-        color_encoding=color_encoding if color_encoding in COLOR_ENCODINGS else "rgb8",
-    )
+    with McapFileWriter(out, rec.info, {k: v for k, v in rec.metadata.items() if k != "format"},
+                        compression=compression,
+                        color_encoding=color_encoding if color_encoding in COLOR_ENCODINGS else "rgb8") as w:
+        for t_ns, values in temps:
+            w.write_temperature(t_ns, values)
+        for fs in rec.frames():
+            w.write(fs)
+        cut = cut_source(rec)  # a cut source makes a whole file: it still says it holds only part
+        if cut is not None:
+            w.add_metadata("source", dict(rec.metadata.get("source") or {}, path=str(rec.path),
+                                          truncated=True, cut_path=cut["path"],
+                                          recovered_frames=cut["recovered_frames"]))
+        n = w.frames_written
     typer.echo(
         f"{out}: {n} frames, {out.stat().st_size / 1e6:.1f} MB (from {src.stat().st_size / 1e6:.1f} MB)"
     )

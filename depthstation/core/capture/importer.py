@@ -6,6 +6,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from depthstation.core.capture.mcap_reader import cut_source
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import check_distinct_recordings, open_inputs
 from depthstation.core.capture.session import Session
@@ -61,13 +62,9 @@ def import_recordings(
                 w.write(fs)
                 if on_frame is not None:
                     on_frame(rec, i)
-            earlier = rec.metadata.get("source") or {}  # a session imported again keeps an earlier cut
-            if getattr(rec, "truncated", False) or earlier.get("truncated"):  # every later study warns
-                now = getattr(rec, "truncated", False)
-                cut = {"path": str(rec.path) if now else earlier.get("path"),
-                       "recovered_frames": getattr(rec, "recovered_frames", None) if now
-                       else earlier.get("recovered_frames")}
+            cut = cut_source(rec)  # cut itself, or an earlier cut kept: every later study warns
+            if cut is not None:
                 w.entry["source_truncated"] = cut
-                w.set_metadata("source", dict(meta["source"], truncated=True,
+                w.set_metadata("source", dict(meta["source"], truncated=True, cut_path=cut["path"],
                                               recovered_frames=cut["recovered_frames"]))
     return session

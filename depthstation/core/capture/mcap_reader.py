@@ -99,6 +99,25 @@ def mcap_messages(f: Any, topics: dict[int, str]) -> Iterator[tuple[int, int, me
             yield r.channel_id, r.log_time, memoryview(r.data)
 
 
+def cut_source(rec: Recording) -> dict[str, Any] | None:
+    """The cut a recording carries: itself cut short (the frames recovered so far), or written from
+    one that was (its metadata `source`, by import or compact); None when whole. Why: a copy of a
+    cut recording is a complete file, and a study of it must still say it holds only part."""
+    if getattr(rec, "truncated", False):
+        return {"path": str(rec.path), "recovered_frames": getattr(rec, "recovered_frames", None)}
+    earlier = rec.metadata.get("source")
+    if isinstance(earlier, dict) and earlier.get("truncated"):
+        return {"path": earlier.get("cut_path") or earlier.get("path"),
+                "recovered_frames": earlier.get("recovered_frames")}
+    return None
+
+
+def say_cut_source(name: str, where: str, cut: dict[str, Any]) -> None:
+    """The warning every study of a recording written from a cut one gives (once per place)."""
+    warn(f"standpoint {name} was written from {cut.get('path')}, which is cut short: it holds only the "
+         f"{cut.get('recovered_frames')} frames recovered from it", where, "truncated-input")
+
+
 class McapRecording(Recording):
     """Our capture format (see docs/capture-format.md); tolerates files cut short by a crash.
 
@@ -265,4 +284,7 @@ def open_mcap(path: Path) -> McapRecording:
     name = path.name.split(".")[0]
     rec = McapRecording(name, path, info, docs, frame_count, stream_counts)
     rec.truncated = summary is None  # said with the frames recovered, once they are read
+    cut = None if rec.truncated else cut_source(rec)
+    if cut is not None:
+        say_cut_source(name, str(path), cut)
     return rec
