@@ -192,8 +192,16 @@ def resumed_protocol(session: Session, protocol: str | None) -> Protocol:
     recorded so far). A --protocol given too must plan the same standpoints, else the resume is
     refused (a corrected plan cannot apply to standpoints recorded under the old one)."""
     stored = session.data.get("protocol")
-    if not isinstance(stored, dict):
-        return load_protocol(DEFAULT_PROTOCOL if protocol is None else protocol)
+    if not isinstance(stored, dict):  # an imported session, or one a calibration alone made
+        if protocol is None:
+            raise InputError(session.dir / SESSION_FILE, "stores no protocol (an imported session, or one "
+                                                         "no capture made): give --protocol, the plan to "
+                                                         "resume it with")
+        given = load_protocol(protocol)
+        session.data["protocol"] = given.to_dict()  # what planned the standpoints from here on
+        session._save()
+        say(f"resuming {session.dir} with --protocol {protocol} ({given.name}), now stored in {SESSION_FILE}")
+        return given
     used = protocol_from_dict(drop_none(stored), session.dir / SESSION_FILE)
     if protocol is not None:
         given = load_protocol(protocol)

@@ -295,3 +295,19 @@ def test_calibrating_a_captured_session_keeps_the_earlier_table(done_session: Pa
     (old,) = data["calibration_history"]
     assert old["table_after_b64"] == before["table_after_b64"]
     assert old["standpoints"] == ["standpoint_01", "standpoint_02"]
+
+
+def test_a_session_that_stores_no_protocol_resumes_only_with_one_given(
+        done_session: Path, tiny: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """An imported session stores no protocol: a resume without --protocol ran the default one
+    (1280x720, 150 frames) beside its 640x360 standpoints, without a word and storing nothing."""
+    imported = tmp_path / "imp"
+    assert run_cli(["capture", "import", str(done_session), "--out", str(imported)]) == 0
+    assert json.loads((imported / "session.json").read_text())["protocol"] is None
+    code, err = acq(capsys, "capture", "--camera", "sim", "--session", str(imported), "--resume", *CAP)
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert str(imported / "session.json") in err and "--protocol" in err
+    code, err = acq(capsys, "capture", "--camera", "sim", "--session", str(imported), "--resume",
+                    "--protocol", str(tiny), *CAP)
+    assert code == 0, err
+    assert json.loads((imported / "session.json").read_text())["protocol"]["name"] == "small"
