@@ -278,6 +278,9 @@ def recording_misfits(info: Any, protocol: Protocol) -> list[str]:
     want = protocol.streams
     if (d.width, d.height) != (want.width, want.height):
         out.append(f"depth {d.width}x{d.height}, the protocol asks {want.width}x{want.height}")
+    fps = getattr(info, "fps", None)
+    if fps and abs(float(fps) - want.fps) > 0.5:  # the frames, and the still time, follow the recording
+        out.append(f"{float(fps):g} fps, the protocol asks {want.fps:g}")
     if want.infrared and info.infrared_intrinsics is None:
         out.append("no infrared stream, the protocol asks for one")
     name = str((info.device or {}).get("name") or "")

@@ -82,3 +82,16 @@ def test_a_recording_of_another_model_does_not_fit_the_protocol(tmp_path: Path, 
     assert (said == []) is fits, said
     if not fits:
         assert said == [f"recorded by {name}, the protocol is for a {model}"]
+
+
+def test_a_recording_at_another_frame_rate_does_not_fit_the_protocol(tmp_path: Path) -> None:
+    """A 30 fps recording played for a 15 fps protocol: session.json said 15 fps, no word."""
+    from depthstation.acquire.station import recording_misfits
+    from depthstation.simulate.simulated_camera import SimulatedCamera
+
+    p = tmp_path / "p.toml"
+    p.write_text(TINY_TOML.replace("fps = 30", "fps = 15"))
+    proto = load_protocol(p)
+    info = SimulatedCamera("d455").start(replace(proto.streams, fps=30))
+    assert recording_misfits(info, proto) == ["30 fps, the protocol asks 15"]
+    assert recording_misfits(replace(info, fps=15.0), proto) == []
