@@ -103,3 +103,26 @@ def test_compact_rewrites_with_zstd(tmp_path: Path) -> None:
         np.array_equal(np.asarray(a.depth), np.asarray(b.depth))
         for a, b in zip(frames, rec.frames(), strict=True)
     )
+
+
+def test_a_session_with_no_complete_standpoint_is_refused_by_every_capture_command(tmp_path: Path) -> None:
+    """A session whose only standpoint ended partial (the board never held still long enough):
+    import crashed (IndexError, exit 1), export wrote an empty folder and info printed nothing."""
+    from depthstation.core.capture.session import Session
+
+    sess = tmp_path / "part"
+    session = Session.create(sess)
+    info = sample_info(64, 48)
+    with session.standpoint_writer("standpoint_01", info, {}) as w:
+        for fs in sample_frames(info, 3, seed=1):
+            w.write(fs)
+        w.close(ok=False)  # what a capture that gave up leaves: a partial standpoint
+    assert [e["status"] for e in Session.open(sess).standpoints] == ["partial"]
+    for args in (["capture", "import", str(sess), "--out", str(tmp_path / "i")],
+                 ["capture", "export", str(sess), "--to", "tum", "--out", str(tmp_path / "e")],
+                 ["capture", "info", str(sess)]):
+        r = subprocess.run([EXE, *args], capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2, (args, r.stderr)
+        assert "no complete standpoint" in r.stderr and "standpoint_01 partial" in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "i").exists() and not (tmp_path / "e").exists()

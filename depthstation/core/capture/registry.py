@@ -116,7 +116,12 @@ def open_inputs(paths: Sequence[Path], topics: TopicChoice | None = None) -> lis
             raise InputError(p, "does not exist")
         if p.is_dir() and (p / SESSION_FILE).is_file():
             check_session_topics(p, topics)
-            out.extend(Session.open(p, read_only=True).recordings())
+            session = Session.open(p, read_only=True)
+            found = session.recordings()
+            if not found:  # import, export and info had nothing to work on, and said nothing or crashed
+                held = ", ".join(f"{e.get('name')} {e.get('status')}" for e in session.standpoints) or "none"
+                raise InputError(p, f"is a session with no complete standpoint to read (standpoints: {held})")
+            out.extend(found)
         elif p.is_dir() and recording_format(p) is None and not is_tum_folder(p):
             subs = sorted(d for d in p.iterdir() if is_png_folder(d))
             files = sorted(f for f in p.iterdir() if f.is_file() and f.suffix.lower() in RECORDING_SUFFIXES)
