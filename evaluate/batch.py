@@ -317,11 +317,20 @@ def load_manifest(path: Path) -> Manifest:
     if not isinstance(raw_items, list) or not raw_items:
         raise InputError(path, "no [[items]] in the manifest")
     checked = [_check_item(path, k, raw, base, out, defaults) for k, raw in enumerate(raw_items)]
+    for k, (item, _) in enumerate(checked):  # the batch writing into an input changes it under the item
+        inside = next((p for p in item_paths(item) if _overlap(out, p)), None)
+        if inside is not None:
+            raise InputError(path, f"items[{k}] ({item.name}): the batch's out {out} is (or holds, or lies "
+                                   f"in) its input {inside}: every rerun would find the input changed and "
+                                   "redo it; give the batch an out beside its inputs")
     outs = [a.out.resolve() for a, _ in checked]
     reads = [[x.resolve() for x in fa.recordings] for _, fa in checked]
     for j, (b, fb) in enumerate(checked):
         for i, (a, fa) in enumerate(checked[:j]):
             wa, wb = f"items[{i}] ({a.name})", f"items[{j}] ({b.name})"
+            if a.name == b.name:
+                raise InputError(path, f"{wb}: the name {b.name!r} is also {wa}'s; batch.json and the "
+                                       "combined tables know items by name: give each its own")
             if _overlap(outs[i], outs[j], resolved=True):
                 raise InputError(path, f"{wb}: out folder {b.out} is (or holds, or lies in) the one of {wa}")
             shared = next((x for x in reads[i] for y in reads[j] if _overlap(x, y, resolved=True)), None)

@@ -365,12 +365,25 @@ def real_kinds_manifest(root: Path, text: str) -> Path:
     (scan_item("s1", poses=False), r"items\[0\] \(s1\): a scan item needs inputs .* poses missing"),
     (scan_item("s1") + scan_item("s2", "distance_bin_m = 0.01"),
      r"items\[1\] \(s2\): grid bins .* differ from those of items\[0\] \(s1\)"),
+    # two items of one name: batch.json gave one's done with the other's error
+    (scan_item("s1") + scan_item("s2").replace('name = "s2"', 'name = "s1"'),
+     r"items\[1\] \(s1\): the name 's1' is also items\[0\] \(s1\)'s"),
 ])
 def test_real_kinds_manifest_errors_name_manifest_and_item(tmp_path: Path, text: str, match: str) -> None:
     path = real_kinds_manifest(tmp_path, text)
     with pytest.raises(InputError, match=match) as exc:
         load_manifest(path)
     assert str(exc.value).startswith(f"{path}: ")
+
+
+def test_a_batch_out_inside_an_input_is_refused(tmp_path: Path) -> None:
+    """Its result folder inside a session it evaluates: every rerun found the session changed (by
+    the batch itself), redid the item and warned."""
+    path = real_kinds_manifest(tmp_path, cb_item("a"))
+    path.write_text(path.read_text().replace('out = "res"', 'out = "sess/batch"'))
+    with pytest.raises(InputError, match=r"items\[0\] \(a\): the batch's out .*sess/batch is .* its input "
+                                         r".*sess: every rerun"):
+        load_manifest(path)
 
 
 def test_right_option_types_load(tmp_path: Path) -> None:
