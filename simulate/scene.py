@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from depthstation.core.board import Board
 from depthstation.core.errors import InputError, SimulationError
+from depthstation.core.mesh_checks import check_mesh
 
 WHITE_ALBEDO = 0.85  # matte print paper
 BLACK_ALBEDO = 0.05  # laser-printed black
@@ -222,6 +223,7 @@ def mesh_scene(path: Path, albedo: float = 0.6) -> Scene:
         raise InputError(p, "not a triangle mesh (no triangles read; PLY or OBJ expected)")
     v = np.asarray(mesh.vertices, dtype=np.float64)
     t = np.asarray(mesh.triangles, dtype=np.int64)
+    check_mesh(p, v, t)
     return Scene([Surface(p.stem, v, t, albedo)], None, None, {"kind": "mesh", "path": str(p)})
 
 

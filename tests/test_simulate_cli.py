@@ -131,6 +131,22 @@ def test_bad_trajectories_name_the_file_and_line(tmp_path: Path,
     np.testing.assert_array_equal(np.asarray(poses), read_tum(both).poses)
 
 
+def test_a_broken_scene_mesh_is_bad_input(tmp_path: Path, here: Run) -> None:
+    """A NaN vertex made holes in the rendered depth (half a frame gone, exit 0, NaN copied into the
+    output scene.ply); a face naming a vertex the file lacks was an internal error (exit 1)."""
+    ply = ("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+           "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+           "-5 -5 3\n5 -5 3\n5 5 3\n{v3}\n3 0 1 2\n3 0 2 {i}\n")
+    cases = {"nan.ply": (ply.format(v3="-5 5 nan", i=3), "1 of 4 vertices are not finite numbers"),
+             "index.ply": (ply.format(v3="-5 5 3", i=9), "triangle 1 names vertex 9, which the 4 vertices")}
+    for name, (text, said) in cases.items():
+        (tmp_path / name).write_text(text)
+        r = here("scan", "--scene", str(tmp_path / name), "--out", str(tmp_path / f"o_{name}"),
+                 "--width", "256", "--height", "144", "--frames", "2")
+        assert r.returncode == 2 and f"{tmp_path / name}: {said}" in r.stderr, (name, r.stderr)
+        assert not (tmp_path / f"o_{name}").exists()
+
+
 def test_protocol_mode_error_names_the_protocol(tmp_path: Path,
                                                 here: Run) -> None:
     proto = tmp_path / "p.toml"

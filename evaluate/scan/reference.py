@@ -25,6 +25,7 @@ import numpy as np
 from depthstation.core.camera_model import Intrinsics, pixel_rays
 from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.lazy_open3d import open3d
+from depthstation.core.mesh_checks import check_mesh
 from depthstation.core.run_warnings import warn
 from depthstation.evaluate.scan.trajectory import LOCAL_SHIFT_ABOVE_M, local_shift
 
@@ -149,28 +150,12 @@ def load_reference(path: Path) -> tuple[str, Any]:
     if suffix in MESH_SUFFIXES:
         mesh = o3d.io.read_triangle_mesh(str(path))
         if len(mesh.triangles) > 0:
-            check_finite_vertices(path, np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+            check_mesh(path, np.asarray(mesh.vertices), np.asarray(mesh.triangles))
             return "mesh", mesh
     cloud = o3d.io.read_point_cloud(str(path))
     if len(cloud.points) == 0:
         raise InputError(path, "reference holds neither triangles nor points")
     return "cloud", drop_nonfinite_points(path, cloud)
-
-
-def check_finite_vertices(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
-    """A mesh vertex that is NaN or infinite makes its triangles holes the rays pass through (to
-    the floor behind a table top): the grid would move without a word, so the mesh is refused."""
-    bad = ~np.isfinite(vertices).all(axis=1)
-    if not bad.any():
-        return
-    used = np.zeros(len(vertices), bool)
-    used[triangles.ravel()] = True
-    holes = int(np.count_nonzero(bad[triangles].any(axis=1)))
-    first = int(np.flatnonzero(bad)[0])
-    raise InputError(path, f"{int(bad.sum())} of {len(vertices)} vertices are not finite numbers (NaN or "
-                           f"inf; the first is vertex {first}), {holes} triangles use them: the rays would "
-                           "pass through those holes; repair the mesh or remove them"
-                           + ("" if used[bad].any() else " (they are unused: remove them)"))
 
 
 def drop_nonfinite_points(path: Path, cloud: Any) -> Any:
