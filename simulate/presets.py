@@ -114,8 +114,16 @@ class CameraPreset:
             raise ValueError(f"depth_to_color_translation_m must be in metres (at most 1 m between the "
                              f"imagers), got {list(t)}")
         for name in ("max_range_m", "max_disparity_px", "depth_units_m"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+            if not (getattr(self, name) > 0 and np.isfinite(getattr(self, name))):
+                raise ValueError(f"{name} must be positive and finite, got {getattr(self, name)}")
+        if not 1e-6 <= self.depth_units_m <= 0.01:  # a D4xx's range (1 um to 1 cm); 1.0: mm as m
+            raise ValueError(f"depth_units_m must be metres per depth count (1e-6 to 0.01 on a D4xx), "
+                             f"got {self.depth_units_m}")
+        for name in ("depth_pp_offset_px", "color_pp_offset_px"):
+            v = getattr(self, name)
+            if not all(np.isfinite(v)) or max(abs(x) for x in v) > 640.0:
+                raise ValueError(f"{name} must be finite pixels at 1280 wide (within 640 of the centre), "
+                                 f"got {list(v)}")
         return self
 
     def to_dict(self) -> dict[str, Any]:

@@ -165,6 +165,10 @@ def test_protocol_mode_error_names_the_protocol(tmp_path: Path,
     ("depth_to_color_translation_m = 5", "depth_to_color_translation_m must be a list of 3 numbers"),
     ('baseline_m = "abc"', "baseline_m must be a number, got 'abc'"),
     ("depth_to_color_translation_m = [-59, 0, 0]", "depth_to_color_translation_m must be in metres"),
+    # each ran: every pixel 1 m (a millimetre typed as metres), or an internal error (exit 1)
+    ("depth_units_m = 1.0", "depth_units_m must be metres per depth count (1e-6 to 0.01"),
+    ("depth_units_m = inf", "depth_units_m must be positive and finite"),
+    ("depth_pp_offset_px = [nan, 0.0]", "depth_pp_offset_px must be finite pixels"),
 ])
 def test_model_camera_values_of_the_wrong_shape(tmp_path: Path, line: str, said: str,
         here: Run) -> None:
@@ -205,9 +209,12 @@ def test_model_with_positive_and_sign_changing_terms_loads(tmp_path: Path,
 
 
 def test_a_model_that_renders_no_depth_is_warned(tmp_path: Path, here: Run) -> None:
-    """Depth units of 1e-9 m put every z beyond 16 bits: every pixel 0, exit 0 and no word before."""
+    """A dropout that takes every pixel (base probability 1): every pixel 0, exit 0 and no word
+    before (depth units of 1e-9 m, which put every z beyond 16 bits, are refused now)."""
     model = tmp_path / "tiny.toml"
-    model.write_text('[camera]\npreset = "d455"\ndepth_units_m = 1e-9\n')
+    model.write_text('[camera]\npreset = "d455"\n[effects.dropout]\nmax_disparity_px = 126.0\n'
+                     'range_z50_m = 6.5\nrange_width_m = 0.4\ngrazing_deg50 = 80.0\ngrazing_width_deg = 2.5\n'
+                     'dark_probability = 0.02\nbase_probability = 1.0\n')
     proto = tmp_path / "p.toml"  # the demo protocol at 640x360: a quarter of the rendering
     proto.write_text((Path(__file__).parents[1] / "protocols" / "demo-d455.toml").read_text()
                      .replace("width = 1280", "width = 640").replace("height = 720", "height = 360"))
