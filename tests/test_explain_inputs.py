@@ -137,7 +137,8 @@ def test_model_camera_differing_from_the_recording_is_warned(
     """Model baseline 50 mm / units 0.1 mm on D455 data, and a D435 model: warned (they are never
     simulated: the recording's camera is); the recording's device is in result.json."""
     model = tmp_path / "m.toml"
-    model.write_text('[camera]\npreset = "d455"\nbaseline_m = 0.05\ndepth_units_m = 1e-4\n')
+    model.write_text('[camera]\npreset = "d455"\nbaseline_m = 0.05\ndepth_units_m = 1e-4\n'
+                     'depth_hfov_deg = 70.0\ndepth_to_color_translation_m = [0.0, 0.0, 0.0]\n')
     runs = {"m": str(model), "d435": "d435", "d455": "d455"}
     said = {}
     for key, mdl in runs.items():
@@ -151,6 +152,8 @@ def test_model_camera_differing_from_the_recording_is_warned(
         assert "D455" in result["device"]["name"]
     assert len(said["m"]) == 1 and "baseline 50 mm (the recording's 95 mm)" in said["m"][0]
     assert "depth units 0.0001 m (the recording's 0.001 m)" in said["m"][0]
+    assert "depth_hfov_deg 70.0" in said["m"][0]
+    assert "depth_to_color_translation_m [0.0, 0.0, 0.0]" in said["m"][0]
     assert len(said["d435"]) == 1 and "camera D435" in said["d435"][0]
     assert said["d455"] == []
 
