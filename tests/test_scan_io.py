@@ -61,6 +61,9 @@ def test_similarity_and_pass_point_files(tmp_path: Path) -> None:
     np.savetxt(tmp_path / "bad.txt", bad)
     with pytest.raises(InputError, match="not a scaled rotation"):
         read_similarity(tmp_path / "bad.txt")
+    (tmp_path / "nan.txt").write_text("1 0 0 nan\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")  # was: "no grid cell"
+    with pytest.raises(InputError, match="row 1, column 4 is nan: the matrix must be finite"):
+        read_similarity(tmp_path / "nan.txt")
     (tmp_path / "pp.csv").write_text("x,y,z,x_ref,y_ref,z_ref\n" + "\n".join(
         f"{i},{i * 2},{i * 3},{i + 1},{i},{-i}" for i in range(4)))
     src, dst = read_pass_points(tmp_path / "pp.csv")

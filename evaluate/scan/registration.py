@@ -125,6 +125,9 @@ def read_similarity(path: Path) -> F64:
         m = np.vstack([m, [0, 0, 0, 1]])
     if m.shape != (4, 4) or not np.allclose(m[3], [0, 0, 0, 1]):
         raise InputError(path, f"expected a 4x4 similarity [sR t; 0 0 0 1], got shape {m.shape}")
+    if not np.isfinite(m).all():  # every pose would be NaN: no frame could be evaluated, for no named reason
+        row, col = (int(x) for x in np.argwhere(~np.isfinite(m))[0])
+        raise InputError(path, f"row {row + 1}, column {col + 1} is {m[row, col]}: the matrix must be finite")
     try:
         s, r, _ = decompose_similarity(m)
     except ValueError as exc:
