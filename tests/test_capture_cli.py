@@ -126,3 +126,16 @@ def test_a_session_with_no_complete_standpoint_is_refused_by_every_capture_comma
         assert "no complete standpoint" in r.stderr and "standpoint_01 partial" in r.stderr, r.stderr
         assert len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "i").exists() and not (tmp_path / "e").exists()
+
+
+def test_compact_writes_only_under_an_mcap_name(tmp_path: Path) -> None:
+    """`compact a.mcap arch.db3` wrote an MCAP no reader took for one (exit 0, then exit 2 reading it)."""
+    src = tmp_path / "a.mcap"
+    info = sample_info(64, 48)
+    with McapFileWriter(src, info) as w:
+        for fs in sample_frames(info, 2, seed=2):
+            w.write(fs)
+    r = subprocess.run([EXE, "capture", "compact", str(src), str(tmp_path / "arch.db3")], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and "arch.db3" in r.stderr and ".mcap suffix" in r.stderr, r.stderr
+    assert not (tmp_path / "arch.db3").exists()

@@ -27,6 +27,7 @@ from depthstation.core.protocol import MAX_STANDPOINTS, check_for_acquisition, l
     ("inclinations_deg = [0.0]", "inclinations_deg = [0.0, 15.0, 15.0, 45.0]",
      "'plan.inclinations_deg' lists 15 deg more than once"),
     ("[plan]", '[device]\nmodel = "D45"\n\n[plan]', "'device.model' 'D45' is no RealSense model name"),
+    ("window_minutes = 0.5", "window_minutes = 100.0", "'warmup.window_minutes' (100.0) is longer than"),
 ])
 def test_bad_plan_values_are_refused_at_load(tmp_path: Path, old: str, new: str, says: str) -> None:
     p = tmp_path / "bad.toml"

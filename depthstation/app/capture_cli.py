@@ -167,6 +167,8 @@ def compact_cmd(
 ) -> None:
     """Rewrite a capture with stronger compression (zstd) for archiving; the source is kept."""
 
+    if out.suffix.lower() != ".mcap":  # it writes MCAP: under another name no reader would know it
+        raise InputError(out, "compact writes an MCAP recording: give the new file the .mcap suffix")
     rec = open_recording(src)
     if not isinstance(rec, McapRecording):
         raise InputError(src, "compact takes our MCAP recordings; use `capture import` for others")

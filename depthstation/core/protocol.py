@@ -273,6 +273,10 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
     if w.max_minutes < w.min_minutes:
         raise ProtocolError(source, f"'warmup.max_minutes' ({w.max_minutes}) must be >= warmup.min_minutes "
                                     f"({w.min_minutes})")
+    if w.window_minutes > w.max_minutes:  # the slope is judged over a whole window: never, here
+        raise ProtocolError(source, f"'warmup.window_minutes' ({w.window_minutes}) is longer than "
+                                    f"warmup.max_minutes ({w.max_minutes}): the temperature could never be "
+                                    "judged settled, and every warm-up would run to the maximum")
     c = proto.calibration
     _positive(source, c, "calibration", ("tare_distance_m",))
     _positive(source, c, "calibration", ("min_health", "tare_min_error"), allow_zero=True)
