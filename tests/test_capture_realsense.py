@@ -95,6 +95,24 @@ def test_db3_record_import_read_is_bit_exact(db3: tuple[Path, list], tmp_path: P
         assert abs(a.timestamp_ns - b.timestamp_ns) < 1000  # ms double in the file: sub-microsecond
 
 
+def test_a_depth_only_db3_reads_back(tmp_path: Path) -> None:
+    """A capture without colour frames from a camera that has a colour sensor, exported or
+    simulated as .db3, was unreadable by our own reader (KeyError ''; an empty topic list asked
+    for every message), which the export then reported as a full disk."""
+    from dataclasses import replace
+
+    info = sample_info(64, 48)  # the colour sensor is declared, its stream never delivers
+    frames = [replace(f, color=None) for f in sample_frames(info, 3, seed=4, start_ns=1_700_000_000_000_000)]
+    path = tmp_path / "depth_only.db3"
+    assert write_realsense_recording(path, info, frames) == 3
+    rec = open_recording(path)
+    got = list(rec.frames())
+    assert len(got) == 3
+    for a, b in zip(frames, got, strict=True):
+        np.testing.assert_array_equal(a.depth, b.depth)
+        assert b.color is None
+
+
 def test_write_realsense_refuses_bag_and_overwrite(db3: tuple[Path, list], tmp_path: Path) -> None:  # type: ignore[type-arg]
     info = sample_info(64, 48)
     with pytest.raises(InputError, match=r"\.db3"):

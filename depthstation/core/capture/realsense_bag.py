@@ -393,7 +393,10 @@ def _fill_frames_from_headers(reader: Any, streams: dict[str, _Stream]) -> None:
     }
     if not need:
         return
-    conns = [c for c in reader.connections if _image_topic(c.topic) in need and c.msgtype.endswith("/Image")]
+    conns = [c for c in reader.connections
+             if _image_topic(c.topic) in need and c.msgtype.endswith(("/Image", "/CompressedImage"))]
+    if not conns:  # a declared stream that never delivered (no colour frames): nothing to read, and
+        return     # an empty list would ask the reader for every message of the file
     for conn, bag_t, raw in reader.messages(connections=conns):
         s = need[_image_topic(conn.topic)]
         header = reader.deserialize(raw, conn.msgtype).header
