@@ -20,7 +20,7 @@ from depthstation.core.capture.session import Session
 from depthstation.core.errors import InputError, SimulationError
 from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress
-from depthstation.core.protocol import Protocol, Standpoint, load_protocol
+from depthstation.core.protocol import MAX_FRAMES_PER_STANDPOINT, Protocol, Standpoint, load_protocol
 from depthstation.core.results import write_json
 from depthstation.core.run_warnings import warn
 from depthstation.simulate.model import SensorModel, check_seed, load_model
@@ -157,8 +157,9 @@ def simulate_checkerboard(protocol: Protocol | str | Path, model: SensorModel | 
     if out.exists() and any(out.iterdir()):
         raise InputError(out, "is not empty; simulations never overwrite captures")
     n_frames = frames if frames is not None else proto.plan.frames_per_standpoint
-    if n_frames < 1:
-        raise InputError(None, "--frames must be at least 1")
+    if not 1 <= n_frames <= MAX_FRAMES_PER_STANDPOINT:  # a protocol's own bound: 1e8 filled the disk
+        raise InputError(None, f"--frames must lie in 1..{MAX_FRAMES_PER_STANDPOINT} (an hour at 30 fps), "
+                               f"got {n_frames}")
     check_seed(seed)
     try:
         info = stream_info_for(proto, mdl)

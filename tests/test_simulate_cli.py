@@ -131,6 +131,14 @@ def test_bad_trajectories_name_the_file_and_line(tmp_path: Path,
     np.testing.assert_array_equal(np.asarray(poses), read_tum(both).poses)
 
 
+def test_frames_beyond_a_protocols_bound_are_bad_input(tmp_path: Path, here: Run) -> None:
+    """--frames 100000000 started writing (40 GB in 10 minutes); a protocol holds at most 100000."""
+    r = here("checkerboard", "--frames", "100000000", "--standpoint", "standpoint_01", "--out",
+             str(tmp_path / "o"))
+    assert r.returncode == 2 and "--frames must lie in 1..100000" in r.stderr, r.stderr
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_broken_scene_mesh_is_bad_input(tmp_path: Path, here: Run) -> None:
     """A NaN vertex made holes in the rendered depth (half a frame gone, exit 0, NaN copied into the
     output scene.ply); a face naming a vertex the file lacks was an internal error (exit 1)."""

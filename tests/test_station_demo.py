@@ -82,6 +82,14 @@ def test_unknown_skip_is_input_error(tmp_path: Path) -> None:
         run_demo(tmp_path / "d", steps=[Step("ok", "works", (), _ok)], skip={"nope"})
 
 
+def test_a_file_as_out_is_input_error(tmp_path: Path) -> None:
+    """Every command refuses a file as --out; the demo ran into afile-2/ instead, exit 0."""
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(InputError, match="is a file, not a folder"):
+        run_demo(tmp_path / "afile", steps=[Step("ok", "works", (), _ok)])
+    assert not (tmp_path / "afile-2").exists()
+
+
 def test_step_dependencies() -> None:
     assert missing_requirement(("step:checkerboard",), set()) == "the checkerboard step"
     assert missing_requirement(("step:checkerboard", "json:dumps"), {"checkerboard"}) is None

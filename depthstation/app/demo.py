@@ -21,7 +21,7 @@ from rich.table import Table
 from depthstation.core.errors import DepthstationError, InputError
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
-from depthstation.core.results import write_json, write_result_info
+from depthstation.core.results import check_out_path, write_json, write_result_info
 
 DEMO_PROTOCOL = "demo-d455"
 DEMO_MODEL = "d455"
@@ -173,6 +173,7 @@ def run_demo(out: Path, *, rrd: bool = True, spawn: bool = False, serve: bool = 
 
         raise InputError(None, f"unknown step(s) for --skip: {', '.join(sorted(unknown))} "
                                f"(steps: {', '.join(s.name for s in steps)})")
+    check_out_path(Path(out))  # a file is refused as by every command (it ran into afile-2/)
     target = fresh_dir(out)
     if target != Path(out):
         stderr_console.print(f"{out} is not empty; the demo writes to {target} instead")
