@@ -237,7 +237,9 @@ def test_no_board_pixels_names_the_board_or_the_model(small: Path, tmp_path: Pat
                          "--frames", "3")
     assert code == 2 and f"{board}: the board was found in no frame" in err, err
     model = tmp_path / "neg.toml"
-    model.write_text('[camera]\npreset = "d455"\n[effects.depth_scale]\nscale_error = -1.5\n')
+    model.write_text('[camera]\npreset = "d455"\n[effects.dropout]\nmax_disparity_px = 126.0\n'
+                     'range_z50_m = 6.5\nrange_width_m = 0.4\ngrazing_deg50 = 80.0\ngrazing_width_deg = 2.5\n'
+                     'dark_probability = 0.02\nbase_probability = 1.0\n')  # every pixel lost
     code, err = _explain(capsys, str(small / "s"), "--board", str(small / "p_320.toml"),
                          "--model", str(model), "--out", str(tmp_path / "b"), "--frames", "3")
     assert code == 2 and f"{model}: model 'neg': its simulation of the real standpoints gave no board" in err

@@ -194,6 +194,18 @@ def test_model_camera_values_of_the_wrong_shape(tmp_path: Path, line: str, said:
     ("[effects.term_bias_time_poly1]\nc1 = 0.1", "missing key 'effects.term_bias_time_poly1.ref_time_s'"),
     ("[effects.quantization]\ndisparity_step_px = 0.03125\ndepth_unit_m = 0.0001",
      "'effects.quantization.depth_unit_m' = 0.0001 m differs from the camera's depth units 0.001 m"),
+    # each ran without a word: range dropout off (millimetres), depths thrown to 7.8 m (per cent as a
+    # ratio), a division by zero, a 3.6 TiB allocation
+    ("[effects.dropout]\nmax_disparity_px = 126.0\nrange_z50_m = 6500.0\nrange_width_m = 400.0\n"
+     "grazing_deg50 = 80.0\ngrazing_width_deg = 2.5\ndark_probability = 0.02\nbase_probability = 0.0",
+     "effect 'dropout': range_z50_m (0 to 100)"),
+    ("[effects.flying_pixels]\nedge_probability = 0.3\nwidth_px = 1.0\nspread_ratio = 5.0",
+     "effect 'flying_pixels': spread_ratio is a fraction of z (0 to 1), got 5"),
+    ("[effects.reference_pose_noise]\ncorner_sigma_px = 0.1\nboard_size_m = 0.0",
+     "effect 'reference_pose_noise': corner_sigma_px >= 0"),
+    ("[effects.window_noise]\nsigma_px = 0.07\nwindow_px = 1e6", "effect 'window_noise': sigma_px >= 0"),
+    ("[effects.depth_scale]\nscale_error = 2.0",
+     "effect 'depth_scale': scale_error is relative (-0.5 to 0.5), got 2"),
 ])
 def test_model_effects_checked(tmp_path: Path, table: str, said: str,
         here: Run) -> None:

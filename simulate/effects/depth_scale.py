@@ -19,6 +19,10 @@ class DepthScale(Effect):
         "scale_error": (0.0, "1", "relative error of f*B used for triangulation"),
     }
 
+    def validate(self) -> None:
+        if not -0.5 < self.params["scale_error"] < 0.5:  # a relative error: 2 would be per cent
+            raise ValueError(f"scale_error is relative (-0.5 to 0.5), got {self.params['scale_error']:g}")
+
     def bias_m(self, ctx: PixelContext) -> Array:
         z = np.asarray(ctx.z_m, dtype=np.float64)
         return np.broadcast_to(self.params["scale_error"] * z, ctx.shape()).copy()

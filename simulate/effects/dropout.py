@@ -79,6 +79,15 @@ class Dropout(Effect):
             raise ValueError("probabilities must lie in [0, 1]")
         if p["range_width_m"] <= 0 or p["grazing_width_deg"] <= 0:
             raise ValueError("widths must be positive")
+        # metres and degrees: 6500 and 400 are millimetres, which switched range dropout off unsaid
+        if not (0 < p["range_z50_m"] <= 100 and p["range_width_m"] <= 20):
+            raise ValueError(f"range_z50_m (0 to 100) and range_width_m (at most 20) are metres, got "
+                             f"{p['range_z50_m']:g} and {p['range_width_m']:g}")
+        if not (0 < p["grazing_deg50"] <= 90 and p["grazing_width_deg"] <= 45):
+            raise ValueError(f"grazing_deg50 (0 to 90) and grazing_width_deg (at most 45) are degrees, got "
+                             f"{p['grazing_deg50']:g} and {p['grazing_width_deg']:g}")
+        if not 0 < p["max_disparity_px"] <= 1024:
+            raise ValueError(f"max_disparity_px must lie in (0, 1024], got {p['max_disparity_px']:g}")
 
     def valid_probability(self, ctx: PixelContext) -> Array:
         # keep = [d <= max_d] * (1 - logistic(range)) * (1 - logistic(grazing)) * (1 - p_dark (1 - albedo))

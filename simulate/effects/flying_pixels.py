@@ -30,6 +30,8 @@ class FlyingPixels(Effect):
     def validate(self) -> None:
         if not 0 <= self.params["edge_probability"] <= 1 or self.params["width_px"] <= 0:
             raise ValueError("edge_probability in [0, 1] and width_px > 0 required")
+        if not 0 <= self.params["spread_ratio"] <= 1:  # 5 (per cent as a ratio) threw pixels to 7.8 m
+            raise ValueError(f"spread_ratio is a fraction of z (0 to 1), got {self.params['spread_ratio']:g}")
 
     def probability(self, ctx: PixelContext) -> Array:
         return np.broadcast_to(self.probability_of_distance(ctx.edge_distance_px), ctx.shape()).copy()

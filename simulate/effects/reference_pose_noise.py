@@ -25,6 +25,11 @@ class ReferencePoseNoise(Effect):
         "board_size_m": (0.57, "m", "extent of the corner grid (6 x 0.095 m for the default board)"),
     }
 
+    def validate(self) -> None:
+        if self.params["corner_sigma_px"] < 0 or not 0.01 <= self.params["board_size_m"] <= 10:
+            raise ValueError("corner_sigma_px >= 0 and board_size_m, the corner grid's extent, in 0.01..10 m "
+                             f"required (got {self.params['board_size_m']:g})")
+
     def sigma_m(self, ctx: PixelContext) -> Array:
         z = np.asarray(ctx.z_m, dtype=np.float64)
         inc = np.radians(np.clip(np.asarray(ctx.inclination_deg, dtype=np.float64), 0.0, 85.0))

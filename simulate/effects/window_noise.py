@@ -28,8 +28,9 @@ class WindowNoise(CorrelatedJitter):
     }
 
     def validate(self) -> None:
-        if self.params["sigma_px"] < 0 or self.params["window_px"] < 1:
-            raise ValueError("sigma_px >= 0 and window_px >= 1 required")
+        if self.params["sigma_px"] < 0 or not 1 <= self.params["window_px"] <= 64:
+            raise ValueError("sigma_px >= 0 and window_px, the matching window's width, in 1..64 px required "
+                             f"(got {self.params['window_px']:g})")
 
     def sigma_px(self, ctx: PixelContext) -> Array:
         return np.asarray(self.params["sigma_px"])
