@@ -21,6 +21,7 @@ from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress as make_progress
 from depthstation.core.protocol import Streams
 from depthstation.core.results import write_json
+from depthstation.core.run_warnings import warn
 from depthstation.simulate.checkerboard_session import (
     START_NS,
     TRUTH_FILE,
@@ -78,6 +79,12 @@ def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: Sens
     if width < 1 or height < 1:
         raise InputError(None, f"--width and --height must be positive pixel counts, not {width}x{height}")
     stamps, poses = scan_trajectory(trajectory, sc, fps, frames)
+    if str(trajectory) != "walk" and len(stamps) > 1:  # frames are stamped at the trajectory's times
+        dt = float(np.median(np.diff(stamps)))
+        if dt > 0 and abs(1.0 / dt - fps) > 0.1 * fps:
+            warn(f"its poses are {dt:.4g} s apart ({1.0 / dt:.3g} per second) while --fps is {fps:g}: the "
+                 "frames are stamped at the trajectory's times (TUM times are seconds; times in "
+                 "milliseconds put frames 1000x too far apart)", str(trajectory), "trajectory-rate")
     try:
         info = mdl.camera.stream_info(width, height, fps)
     except SimulationError as exc:

@@ -155,6 +155,21 @@ def test_a_broken_scene_mesh_is_bad_input(tmp_path: Path, here: Run) -> None:
         assert not (tmp_path / f"o_{name}").exists()
 
 
+def test_a_trajectory_in_milliseconds_is_warned(tmp_path: Path, here: Run) -> None:
+    """Times in ms put the frames 33 s apart while the stream said 30 fps, without a word."""
+    q = (0.0, 0.0, 0.0, 1.0)
+    for name, step, warned in (("ms.txt", 33.333, True), ("s.txt", 1 / 30, False)):
+        traj = _tum(tmp_path / name, [(k * step, 0.0, 1.0, 0.0, *q) for k in range(3)])
+        r = here("scan", "--trajectory", str(traj), "--out", str(tmp_path / f"o_{name}"), "--width", "256",
+                 "--height", "144", "--frames", "2")
+        assert r.returncode == 0, r.stderr
+        info = json.loads((tmp_path / f"o_{name}" / "result.json").read_text())
+        codes = [w["code"] for w in info["warnings"]]
+        assert ("trajectory-rate" in codes) is warned, (name, r.stderr)
+        if warned:
+            assert f"{traj}: its poses are 33.33 s apart" in r.stderr
+
+
 def test_protocol_mode_error_names_the_protocol(tmp_path: Path,
                                                 here: Run) -> None:
     proto = tmp_path / "p.toml"
