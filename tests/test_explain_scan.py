@@ -103,6 +103,22 @@ def test_scan_null_selects_nothing(room: Path, tmp_path: Path) -> None:
     data = json.loads((out / "explain.json").read_text())
     assert data["selected"] == [] and data["discovered"] == []
     assert not data["mismatch"]["significant"]
+    # blocks of 4 fit: the figure asked for is the one used, and nothing is said of it
+    codes = [w["code"] for w in json.loads((out / "result.json").read_text())["warnings"]]
+    assert "block-frames" not in codes
+
+
+def test_scan_blocks_longer_than_the_sequence_allows_are_said(room: Path, tmp_path: Path) -> None:
+    """--block-frames beyond a third of the frames was cut to fit, said only in explain.json."""
+    out = tmp_path / "out"
+    r = subprocess.run([str(EXE), "explain", "--scan", str(room / "sequence.mcap"), "--poses",
+                        str(room / "trajectory.txt"), "--reference", str(room / "scene.ply"), "--no-icp",
+                        "--block-frames", "1000", "--out", str(out), "--no-resimulate", "--no-discover"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "--block-frames 1000 leaves fewer than 3 blocks" in r.stderr
+    codes = [w["code"] for w in json.loads((out / "result.json").read_text())["warnings"]]
+    assert "block-frames" in codes
 
 
 def test_scan_discovers_bias_along_distance(room: Path, tmp_path: Path) -> None:

@@ -458,6 +458,9 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
         raise EvaluationError(f"{len(clock.index)} frames: too few for frame blocks (need {MIN_BLOCKS * 2})")
     block = max(1, min(block_frames, len(clock.index) // MIN_BLOCKS))
     n_frames = len(clock.index)
+    if block != block_frames:  # a figure the user asked for is not changed without a word
+        warn(f"--block-frames {block_frames} leaves fewer than {MIN_BLOCKS} blocks of {n_frames} frames: "
+             f"blocks of {block} frames are compared", str(source.path), "block-frames")
     # frames without a pose are skipped by both sides' study: say so, and count what is used
     posed_at = [posed.match(ts * 1e-9, tolerance_s) is not None for ts in clock.timestamp_ns]
     n_posed = int(sum(posed_at))
