@@ -451,6 +451,7 @@ def test_the_session_streams_from_warmup_through_calibration_into_capture(fake: 
                      '[plan]\nframes_per_standpoint = 4\n'
                      'start_distance_m = 1.0\nstep_m = 0.2\nmax_distance_m = 1.0\ninclinations_deg = [0.0]\n'
                      '[tolerances]\nstill_seconds = 0.2\n[warmup]\nmin_minutes = 0.01\nmax_minutes = 0.02\n'
+                     'window_minutes = 0.01\n'
                      '[calibration]\non_chip = true\n[device]\nmodel = "D455"\n')
     unit.scene = board_scene(Board(), 1.0)
     st = Station("live", str(proto), tmp_path / "s", False, 0, False)

@@ -276,7 +276,9 @@ def protocol_from_dict(data: dict[str, Any], source: Path | None = None) -> Prot
     if w.window_minutes > w.max_minutes:  # the slope is judged over a whole window: never, here
         raise ProtocolError(source, f"'warmup.window_minutes' ({w.window_minutes}) is longer than "
                                     f"warmup.max_minutes ({w.max_minutes}): the temperature could never be "
-                                    "judged settled, and every warm-up would run to the maximum")
+                                    "judged settled, and every warm-up would run to the maximum (set "
+                                    f"window_minutes, {Warmup.window_minutes:g} when not given, to at most "
+                                    "max_minutes)")
     c = proto.calibration
     _positive(source, c, "calibration", ("tare_distance_m",))
     _positive(source, c, "calibration", ("min_health", "tare_min_error"), allow_zero=True)
