@@ -309,3 +309,27 @@ def test_a_clouds_normals_facing_both_ways_are_reoriented_and_said(tmp_path: Pat
     scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
     d = scene.compute_distance(o3d.core.Tensor(np.asarray(m.vertices, dtype=np.float32))).numpy()
     assert np.median(d) < 0.03
+
+
+def test_a_session_folder_given_as_the_sequence_names_its_recording(tmp_path: Path) -> None:
+    """`simulate scan` writes a session folder; given as the sequence (explain --scan, evaluate
+    scan) it was 'folder is no recording', without a word of the sequence.mcap inside."""
+    from depthstation.core.capture.session import Session
+
+    Session.create(tmp_path / "scan16")
+    (tmp_path / "scan16" / "sequence.mcap").write_bytes(b"")
+    with pytest.raises(InputError, match=r"is a capture session, and this takes one recording: give one of "
+                                         r"its recordings \(sequence.mcap\)"):
+        open_recording(tmp_path / "scan16")
+
+
+def test_a_scan_session_given_to_the_checkerboard_study_is_named_a_scan(tmp_path: Path) -> None:
+    """A scan walk holds no board: the checkerboard study (and explain) said "the board was found in
+    no frame ... does this board file describe the printed board?", blaming the board file."""
+    from depthstation.core.capture.session import Session
+    from depthstation.evaluate.checkerboard.run import prepare_checkerboard
+
+    Session.create(tmp_path / "walk", scan={"scene": {"kind": "room"}, "trajectory": "walk"})
+    board = Path(__file__).parents[1] / "protocols" / "demo-d455.toml"
+    with pytest.raises(InputError, match=r"walk: is a scan session .* `evaluate scan` or `explain --scan`"):
+        prepare_checkerboard([tmp_path / "walk"], board)

@@ -96,6 +96,11 @@ def open_recording(path: Path, *, intrinsics: Path | None = None,
             raise InputError(path, "--depth-topic / --color-topic / --infrared-topic apply to ROS "
                                    "recordings (.bag, .db3, .mcap, rosbag2 folders)")
     if not formats:
+        if path.is_dir() and (path / SESSION_FILE).is_file():  # `simulate scan` writes one: name its file
+            inside = sorted(p.name for p in path.glob("*.mcap")) or ["none"]
+            listed = ", ".join(inside[:3]) + (", ..." if len(inside) > 3 else "")
+            raise InputError(path, f"is a capture session, and this takes one recording: give one of its "
+                                   f"recordings ({listed})")
         what = "folder is no recording (no frameK_depth.png, no rosbag2 metadata.yaml, no depth.txt)" \
             if path.is_dir() else "is no recording (expected .mcap, .bag, .db3 or a PNG folder)"
         raise InputError(path, what)
