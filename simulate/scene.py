@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from depthstation.core.board import Board
 from depthstation.core.errors import InputError, SimulationError
-from depthstation.core.mesh_checks import check_mesh
+from depthstation.core.mesh_checks import check_mesh, check_mesh_file
 
 WHITE_ALBEDO = 0.85  # matte print paper
 BLACK_ALBEDO = 0.05  # laser-printed black
@@ -218,6 +218,7 @@ def mesh_scene(path: Path, albedo: float = 0.6) -> Scene:
     p = Path(path)
     if not p.is_file():
         raise InputError(p, "scene mesh not found")
+    check_mesh_file(p)
     mesh = o3d.io.read_triangle_mesh(str(p))
     if len(mesh.triangles) == 0:
         raise InputError(p, "not a triangle mesh (no triangles read; PLY or OBJ expected)")

@@ -146,7 +146,8 @@ def test_a_broken_scene_mesh_is_bad_input(tmp_path: Path, here: Run) -> None:
            "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
            "-5 -5 3\n5 -5 3\n5 5 3\n{v3}\n3 0 1 2\n3 0 2 {i}\n")
     cases = {"nan.ply": (ply.format(v3="-5 5 nan", i=3), "1 of 4 vertices are not finite numbers"),
-             "index.ply": (ply.format(v3="-5 5 3", i=9), "triangle 1 names vertex 9, which the 4 vertices")}
+             "index.ply": (ply.format(v3="-5 5 3", i=9), "triangle 1 names vertex 9, which the 4 vertices"),
+             "empty.ply": ("", "is no PLY file (empty, or it does not begin with 'ply')")}
     for name, (text, said) in cases.items():
         (tmp_path / name).write_text(text)
         r = here("scan", "--scene", str(tmp_path / name), "--out", str(tmp_path / f"o_{name}"),

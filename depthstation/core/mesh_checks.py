@@ -11,6 +11,18 @@ from numpy.typing import NDArray
 from depthstation.core.errors import InputError
 
 
+def check_mesh_file(path: Path) -> None:
+    """A PLY that is empty or lacks its magic is refused before Open3D reads it (its reader prints
+    its own C++ line, 'RPly: Unable to read magic number', beside our one-line error)."""
+    p = Path(path)
+    if p.suffix.lower() != ".ply":
+        return
+    with p.open("rb") as f:
+        head = f.read(4)
+    if not head.startswith(b"ply"):
+        raise InputError(p, "is no PLY file (empty, or it does not begin with 'ply')")
+
+
 def check_mesh(path: Path, vertices: NDArray[np.floating], triangles: NDArray[np.integer]) -> None:
     """Triangle indices within the vertex list, and finite vertices: a NaN vertex makes its
     triangles holes the rays pass through (to the floor behind a table top), so the grid, or the

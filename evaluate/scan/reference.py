@@ -25,7 +25,7 @@ import numpy as np
 from depthstation.core.camera_model import Intrinsics, pixel_rays
 from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.lazy_open3d import open3d
-from depthstation.core.mesh_checks import check_mesh
+from depthstation.core.mesh_checks import check_mesh, check_mesh_file
 from depthstation.core.run_warnings import warn
 from depthstation.evaluate.scan.trajectory import LOCAL_SHIFT_ABOVE_M, local_shift
 
@@ -147,6 +147,7 @@ def load_reference(path: Path) -> tuple[str, Any]:
         return "cloud", _read_special(path)[0]
     if suffix not in CLOUD_SUFFIXES + MESH_SUFFIXES:
         raise InputError(path, f"unknown reference format {suffix!r} (PLY, PCD, XYZ, OBJ, STL, E57, LAS)")
+    check_mesh_file(path)
     if suffix in MESH_SUFFIXES:
         mesh = o3d.io.read_triangle_mesh(str(path))
         if len(mesh.triangles) > 0:
