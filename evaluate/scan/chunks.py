@@ -83,8 +83,9 @@ def _file_key(path: str | Path) -> object:
     try:
         st = p.stat()
         if p.is_dir():
-            entries = sorted((e.name, e.stat().st_size, e.stat().st_mtime_ns) for e in os.scandir(p))
-            return (str(path), st.st_mtime_ns, tuple(entries))
+            stats = {e.name: e.stat() for e in os.scandir(p)}
+            entries = tuple(sorted((name, s.st_size, s.st_mtime_ns) for name, s in stats.items()))
+            return (str(path), st.st_mtime_ns, entries)
     except OSError:
         return str(path)
     return (str(path), st.st_size, st.st_mtime_ns)
