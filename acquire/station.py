@@ -118,6 +118,8 @@ class Station:
                                           "resume it with that camera, or start a new session")
             if not isinstance(stored, dict):
                 self.session.set("camera_identity", identity)
+            if not isinstance(opened.data.get("protocol"), dict):  # what plans the standpoints from here on
+                self.session.set("protocol", self.protocol.to_dict())
             self.session.verify_complete()
         else:
             try:
@@ -198,9 +200,8 @@ def resumed_protocol(session: Session, protocol: str | None) -> Protocol:
                                                          "no capture made): give --protocol, the plan to "
                                                          "resume it with")
         given = load_protocol(protocol)
-        session.data["protocol"] = given.to_dict()  # what planned the standpoints from here on
-        session._save()
-        say(f"resuming {session.dir} with --protocol {protocol} ({given.name}), now stored in {SESSION_FILE}")
+        say(f"resuming {session.dir} with --protocol {protocol} ({given.name}), stored in {SESSION_FILE} "
+            "once the camera is accepted")
         return given
     used = protocol_from_dict(drop_none(stored), session.dir / SESSION_FILE)
     if protocol is not None:

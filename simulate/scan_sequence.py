@@ -50,6 +50,11 @@ def scan_trajectory(trajectory: str | Path, scene: Scene, fps: float,
     stamps, poses = read_tum(Path(trajectory))
     if frames is not None:
         stamps, poses = stamps[:frames], poses[:frames]
+    dt = float(np.median(np.diff(stamps))) if len(stamps) > 1 else 0.0
+    if dt > 0 and abs(1.0 / dt - fps) > 0.1 * fps:  # the frames are stamped at the trajectory's times
+        warn(f"its poses are {dt:.4g} s apart ({1.0 / dt:.3g} per second) while --fps is {fps:g}: the "
+             "frames are stamped at the trajectory's times (TUM times are seconds; times in "
+             "milliseconds put frames 1000x too far apart)", str(trajectory), "trajectory-rate")
     return stamps - stamps[0], poses
 
 
@@ -79,12 +84,6 @@ def simulate_scan(scene: str | Path | Scene, trajectory: str | Path, model: Sens
     if width < 1 or height < 1:
         raise InputError(None, f"--width and --height must be positive pixel counts, not {width}x{height}")
     stamps, poses = scan_trajectory(trajectory, sc, fps, frames)
-    if str(trajectory) != "walk" and len(stamps) > 1:  # frames are stamped at the trajectory's times
-        dt = float(np.median(np.diff(stamps)))
-        if dt > 0 and abs(1.0 / dt - fps) > 0.1 * fps:
-            warn(f"its poses are {dt:.4g} s apart ({1.0 / dt:.3g} per second) while --fps is {fps:g}: the "
-                 "frames are stamped at the trajectory's times (TUM times are seconds; times in "
-                 "milliseconds put frames 1000x too far apart)", str(trajectory), "trajectory-rate")
     try:
         info = mdl.camera.stream_info(width, height, fps)
     except SimulationError as exc:

@@ -307,6 +307,12 @@ def test_a_session_that_stores_no_protocol_resumes_only_with_one_given(
     code, err = acq(capsys, "capture", "--camera", "sim", "--session", str(imported), "--resume", *CAP)
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert str(imported / "session.json") in err and "--protocol" in err
+    # a resume refused later (a recording without the colour the protocol asks) stores nothing
+    no_colour = depth_only_recording(tmp_path / "depth.db3")
+    code, err = acq(capsys, "capture", "--camera", str(no_colour), "--session", str(imported), "--resume",
+                    "--protocol", str(tiny), *CAP)
+    assert code == 2, err
+    assert json.loads((imported / "session.json").read_text())["protocol"] is None
     code, err = acq(capsys, "capture", "--camera", "sim", "--session", str(imported), "--resume",
                     "--protocol", str(tiny), *CAP)
     assert code == 0, err

@@ -58,7 +58,7 @@ def collecting(*, forward: bool = False) -> Iterator[list[RunWarning]]:
     finally:
         _COLLECTED.reset(token)
         if main:  # by identity: lists compare by value, and an empty one would match another's
-            del _MAIN[next(i for i in range(len(_MAIN) - 1, -1, -1) if _MAIN[i] is mine)]
+            _MAIN[:] = [c for c in _MAIN if c is not mine]
         if outer is not None:
             outer.extend(w for w in mine if w not in outer)
         elif forward:

@@ -7,7 +7,6 @@ One path for everyone: the command, `evaluate batch`, explain's real side and th
 
 from __future__ import annotations
 
-import json
 import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -18,7 +17,7 @@ import numpy as np
 from depthstation.core.board import Board, load_board
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import check_distinct_recordings, open_inputs
-from depthstation.core.capture.session import SESSION_FILE
+from depthstation.core.capture.session import SESSION_FILE, Session
 from depthstation.core.capture.session import camera_identity as session_camera_identity
 from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import InputError
@@ -85,15 +84,6 @@ class CheckerboardJob:
         return dict(first.metadata.get("device") or first.info.device or {})
 
 
-def _read_session(folder: Path) -> dict[str, Any]:
-    """A session's session.json as a dict ({} when unreadable: opening it says why later)."""
-    try:
-        data = json.loads((folder / SESSION_FILE).read_text())
-    except (OSError, ValueError):
-        return {}
-    return data if isinstance(data, dict) else {}
-
-
 def prepare_checkerboard(inputs: list[Path], board: Path | Board,
                          options: StandpointOptions | None = None, *,
                          one_camera: bool = False) -> CheckerboardJob:
@@ -114,7 +104,7 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
     source = f"{brd.type} {brd.squares_x}x{brd.squares_y}, {brd.square_length_m} m squares (given)" \
         if isinstance(board, Board) else str(board)
     for p in map(Path, inputs):  # a scan walk holds no board: "found in no frame" blamed the board file
-        if (p / SESSION_FILE).is_file() and "scan" in _read_session(p):
+        if (p / SESSION_FILE).is_file() and "scan" in Session.open(p, read_only=True).data:
             raise InputError(p, "is a scan session (a walk past a reference, no board): evaluate it with "
                                 "`evaluate scan` or `explain --scan`, giving its sequence.mcap, --poses and "
                                 "--reference")

@@ -43,8 +43,9 @@ def explain(
                                       "is reported as the depth-scale error it absorbs)."),
     icp: bool | None = typer.Option(None, "--icp/--no-icp", help="--scan, deprecated: --icp is --register "
                                                                  "similarity, --no-icp --register none."),
-    block_frames: int = typer.Option(8, "--block-frames",
-                                     help="--scan: frames per block (unit of independence)."),
+    block_frames: int | None = typer.Option(None, "--block-frames",
+                                            help="--scan: frames per block (unit of independence; 8 when "
+                                                 "not given, fewer in a short sequence)."),
     rrd: Path | None = typer.Option(None, "--rrd", help="Also write a rerun recording here."),
     spawn: bool = typer.Option(False, "--spawn", help="Open a rerun viewer."),
     serve: bool = typer.Option(False, "--serve", help="Serve a local rerun web viewer."),
@@ -119,7 +120,7 @@ def _discovered_text(data: dict[str, object]) -> str:
 
 
 def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, model: str, out: Path,
-                  frames: int, seed: int, similarity: Path | None, register: str, block_frames: int,
+                  frames: int, seed: int, similarity: Path | None, register: str, block_frames: int | None,
                   resimulate: bool, force: bool, topics: TopicChoice | None = None,
                   discover: bool = True) -> None:
     """`explain --scan`: a reference-scan sequence against its simulation along the same trajectory."""
@@ -131,7 +132,7 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
     for p in (poses, reference):
         if not p.exists():
             raise InputError(p, "not found")
-    if block_frames < 1:
+    if block_frames is not None and block_frames < 1:
         raise InputError(None, "--block-frames must be at least 1")
     mdl = load_model(model)
 

@@ -45,7 +45,6 @@ from depthstation.simulate.checkerboard_session import DepthTally
 from depthstation.simulate.effects import PixelContext
 from depthstation.simulate.effects.base import CorrelatedJitter
 from depthstation.simulate.model import SensorModel
-from depthstation.simulate.presets import PRESETS
 from depthstation.simulate.scene import BLACK_ALBEDO, WHITE_ALBEDO, board_scene
 from depthstation.simulate.view_renderer import ViewRenderer
 
@@ -171,11 +170,10 @@ def check_model_camera(model: SensorModel, info: StreamInfo, device: dict[str, A
     name = str(device.get("name") or device.get("model") or "")
     if name and cam.product.lower() not in name.lower() and cam.name.lower() not in name.lower():
         said.append(f"camera {cam.product} (the recording's '{name}')")
-    preset = PRESETS.get(cam.name)  # geometry the model file set: the recording's is rendered instead
     for key in ("depth_hfov_deg", "color_hfov_deg", "depth_pp_offset_px", "color_pp_offset_px",
-                "depth_to_color_translation_m"):
-        mine = getattr(cam, key)
-        if preset is not None and mine != getattr(preset, key):
+                "depth_to_color_translation_m"):  # geometry the model file set: the recording's is rendered
+        if key in model.camera_overrides:
+            mine = getattr(cam, key)
             said.append(f"{key} {list(mine) if isinstance(mine, tuple) else mine} (the recording's "
                         "intrinsics and extrinsics are rendered)")
     if said:

@@ -50,6 +50,7 @@ DISTANCE_BIN_M = 0.1
 INCLINATION_BIN_DEG = 10.0
 MIN_CELL_COUNT = 30          # pixels of one block in one cell before its mean is used
 MIN_BLOCKS = 3               # blocks a cell needs for a standard error
+BLOCK_FRAMES = 8             # frames per block unless --block-frames says otherwise
 ALPHA = 0.05
 BIC_THRESHOLD = -10.0
 WALD_P = 1e-3
@@ -436,7 +437,8 @@ class ScanExplanation:
 
 
 def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorModel, out: Path, *,
-                 frames: int | None = None, block_frames: int = 8, seed: int = 0, register: str = "none",
+                 frames: int | None = None, block_frames: int | None = None, seed: int = 0,
+                 register: str = "none",
                  similarity: Path | None = None, resimulate: bool = True, tolerance_s: float = 0.01,
                  discovery: bool = True, tick: Progress | None = None,
                  topics: TopicChoice | None = None) -> ScanExplanation:
@@ -456,9 +458,10 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
         clock = Clock(clock.index[:frames], clock.timestamp_ns[:frames], clock.temperature_c[:frames])
     if len(clock.index) < MIN_BLOCKS * 2:
         raise EvaluationError(f"{len(clock.index)} frames: too few for frame blocks (need {MIN_BLOCKS * 2})")
-    block = max(1, min(block_frames, len(clock.index) // MIN_BLOCKS))
+    asked = BLOCK_FRAMES if block_frames is None else block_frames
+    block = max(1, min(asked, len(clock.index) // MIN_BLOCKS))
     n_frames = len(clock.index)
-    if block != block_frames:  # a figure the user asked for is not changed without a word
+    if block_frames is not None and block != block_frames:  # a figure asked for is not changed unsaid
         warn(f"--block-frames {block_frames} leaves fewer than {MIN_BLOCKS} blocks of {n_frames} frames: "
              f"blocks of {block} frames are compared", str(source.path), "block-frames")
     # frames without a pose are skipped by both sides' study: say so, and count what is used

@@ -75,6 +75,9 @@ def clear_cache() -> None:
     _CACHE.source_key = _CACHE.source = _CACHE.mesh_key = _CACHE.caster = None
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".pgm", ".ppm")
+
+
 def _file_key(path: str | Path) -> object:
     """A path with its size and modification time: a file rewritten in place is not the one kept.
     A folder (TUM, PNG sequence) by its entries' too: its own time does not move when a list or
@@ -83,7 +86,8 @@ def _file_key(path: str | Path) -> object:
     try:
         st = p.stat()
         if p.is_dir():
-            stats = {e.name: e.stat() for e in os.scandir(p)}
+            # lists and camera files, not the frames' images (read afresh each time; thousands of them)
+            stats = {e.name: e.stat() for e in os.scandir(p) if not e.name.lower().endswith(IMAGE_SUFFIXES)}
             entries = tuple(sorted((name, s.st_size, s.st_mtime_ns) for name, s in stats.items()))
             return (str(path), st.st_mtime_ns, entries)
     except OSError:

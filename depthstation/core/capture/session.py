@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from depthstation.core.camera_model import StreamInfo
-from depthstation.core.capture.mcap_reader import McapRecording, open_mcap, say_cut_source
+from depthstation.core.capture.mcap_reader import McapRecording, cut_source, open_mcap, say_cut_source
 from depthstation.core.capture.mcap_writer import CAPTURE_COMPRESSION, McapFileWriter
 from depthstation.core.errors import CaptureError, InputError
 from depthstation.core.frames import FrameSet
@@ -285,9 +285,10 @@ class Session:
             if e.get("status") not in statuses:
                 continue
             if (self.dir / e["file"]).is_file():
-                out.append(open_mcap(self.dir / e["file"]))  # says a cut its metadata carries
+                rec = open_mcap(self.dir / e["file"])  # says a cut its metadata carries
+                out.append(rec)
                 cut = e.get("source_truncated")
-                if cut:  # the import's own warning is long gone: say it to every study of the session
+                if cut and cut_source(rec) is None:  # an import older than that metadata: say it here
                     say_cut_source(e["name"], str(self.dir / e["file"]), cut)
             else:  # listed as recorded, gone from the disk: a standpoint the study must not drop silently
                 warn(f"standpoint {e['name']} is listed as {e.get('status')} in {SESSION_FILE} but its "
