@@ -96,11 +96,9 @@ def normal_std_deg(pose: NDArray[np.float64], object_points: NDArray[np.float64]
     each of `object_points` (then instead of `frames`).
     """
     jac = pose_jacobian(pose, object_points, intr)
+    seen = np.full(len(jac) // 2, float(max(frames, 1))) if weights is None else weights
     try:
-        if weights is None:
-            cov = sigma_px**2 / max(frames, 1) * np.linalg.inv(jac.T @ jac)
-        else:
-            cov = sigma_px**2 * np.linalg.inv(weighted_information(jac, weights))
+        cov = sigma_px**2 * np.linalg.inv(weighted_information(jac, seen))
     except np.linalg.LinAlgError:
         return float("inf")
     # a small rotation w (camera frame, left-multiplied) moves the normal n by w x n
