@@ -20,7 +20,10 @@ from depthstation.evaluate.checkerboard.dqt import (
 
 
 def _rays(intr: object, x0: int, y0: int, x1: int, y1: int) -> tuple[np.ndarray, np.ndarray]:
-    return ((np.arange(x0, x1) - intr.ppx) / intr.fx, (np.arange(y0, y1) - intr.ppy) / intr.fy)  # type: ignore[attr-defined]
+    rx = (np.arange(x0, x1) - intr.ppx) / intr.fx  # type: ignore[attr-defined]
+    ry = (np.arange(y0, y1) - intr.ppy) / intr.fy  # type: ignore[attr-defined]
+    shape = (ry.size, rx.size)
+    return np.broadcast_to(rx[None, :], shape), np.broadcast_to(ry[:, None], shape)
 
 
 @pytest.mark.parametrize("distance_m", [1.0, 2.5, 4.0])
@@ -84,7 +87,8 @@ def test_plane_fit_and_trimming_are_the_dqts() -> None:
     raw = np.rint(z * 1000 + rng.normal(0, 2, z.shape)).astype(np.uint16)
     inside = np.ones((h, w), bool)
     inside[:10] = False
-    f = frame_metrics(raw, inside, rx, ry, 0.001, inside.size, 600.0, 0.095, np.array([0.0, 0.0, 1.0]))
+    rxx, ryy = np.broadcast_to(rx[None, :], (h, w)), np.broadcast_to(ry[:, None], (h, w))
+    f = frame_metrics(raw, inside, rxx, ryy, 0.001, inside.size, 600.0, 0.095, np.array([0.0, 0.0, 1.0]))
     assert f.distance_mm == pytest.approx(1500, abs=1.0)
     assert f.fill_rate_pct == pytest.approx(100 * 110 / 120)
     zz = raw[inside] * 0.001

@@ -137,7 +137,6 @@ def _residuals(raw: Any, inside: Any, ray_x: Any, ray_y: Any, units: float, nx: 
     h, w = raw.shape
     k = 0
     for i in range(h):
-        ry = np.float64(ray_y[i])
         for j in range(w):
             d = raw[i, j]
             if d == 0 or not inside[i, j] or d < lo or d > hi:
@@ -149,7 +148,8 @@ def _residuals(raw: Any, inside: Any, ray_x: Any, ray_y: Any, units: float, nx: 
                 drop_hi -= 1
                 continue
             z = d * units
-            rx = np.float64(ray_x[j])
+            rx = np.float64(ray_x[i, j])
+            ry = np.float64(ray_y[i, j])
             x = z * rx
             y = z * ry
             e = nx * x + ny * y + nz * z + d0
@@ -170,8 +170,9 @@ def frame_metrics(raw: NDArray[np.uint16], inside: NDArray[np.bool_], ray_x: NDA
                   ray_y: NDArray[np.floating], depth_units_m: float, roi_pixels: int, focal_px: float,
                   baseline_m: float | None, pivot_ray: F64, moments: F64 | None = None) -> DqtFrame:
     """The DQT's figures of one frame from a depth box, the ROI's pixels in it (`inside`), and the
-    rays (x / z, y / z) of its columns and rows. `moments`: the valid points' 4x4 moment matrix
-    about the camera (the study's, `kernels.board_moments`), computed here when not given."""
+    rays (x / z, y / z) of its pixels (h x w each, lens distortion inverted). `moments`: the valid
+    points' 4x4 moment matrix about the camera (the study's, `kernels.board_moments`), computed
+    here when not given."""
     out = DqtFrame(float("nan"), pivot_ray=(float(pivot_ray[0]), float(pivot_ray[1]), float(pivot_ray[2])))
     units = float(depth_units_m)
     if moments is None:

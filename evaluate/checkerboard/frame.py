@@ -9,7 +9,7 @@ from numpy.typing import NDArray
 
 from depthstation.core.board import Board
 from depthstation.core.board_pose import PnPPose, solve_board_pose
-from depthstation.core.camera_model import StreamInfo
+from depthstation.core.camera_model import StreamInfo, ray_planes
 from depthstation.core.frames import FrameSet
 from depthstation.evaluate.checkerboard.detection import BoardDetector, Detection
 from depthstation.evaluate.checkerboard.dqt import DqtFrame, TemporalStack, centred_roi, frame_metrics
@@ -230,10 +230,8 @@ class FrameEvaluator:
             return
         x0, y0, x1, y1 = self.roi_box
         if self._roi_rays is None:
-            di = self.info.depth_intrinsics
-            self._roi_rays = (((np.arange(x0, x1) - di.ppx) / di.fx).astype(np.float64),
-                              ((np.arange(y0, y1) - di.ppy) / di.fy).astype(np.float64),
-                              np.ones((y1 - y0, x1 - x0), dtype=bool))
+            xs, ys = ray_planes(self.info.depth_intrinsics)
+            self._roi_rays = (xs[y0:y1, x0:x1], ys[y0:y1, x0:x1], np.ones((y1 - y0, x1 - x0), dtype=bool))
         rx, ry, every = self._roi_rays
         res.dqt_roi = frame_metrics(depth[y0:y1, x0:x1], every, rx, ry, units,
                                     (x1 - x0) * (y1 - y0), self.focal_px, baseline, self.roi_ray)

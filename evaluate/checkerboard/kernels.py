@@ -37,14 +37,14 @@ def _moments(raw: NDArray[np.uint16], inside: NDArray[np.bool_], colour: NDArray
     h, w = inside.shape
     valid = 0
     for i in range(h):
-        ry = np.float64(ray_y[i])
         for j in range(w):
             d = raw[i, j]
             if d == 0 or not inside[i, j]:
                 continue
             valid += 1
             z = d * units
-            rx = np.float64(ray_x[j])
+            rx = np.float64(ray_x[i, j])
+            ry = np.float64(ray_y[i, j])
             p1 = z * rx - ox
             p2 = z * ry - oy
             p3 = z - oz
@@ -61,7 +61,8 @@ def board_moments(raw: NDArray[np.uint16], inside: NDArray[np.bool_], colour: ND
                   origin: NDArray[np.float64]) -> tuple[int, dict[str, NDArray[np.float64]]]:
     """Valid pixel count and the 4x4 moments ('all', 'black', 'white', 'inverse_depth') of a board box.
 
-    Classes follow `mask`: colour 1 = black, 2 = white, 0 = neither (only in 'all').
+    Classes follow `mask`: colour 1 = black, 2 = white, 0 = neither (only in 'all'). `ray_x`,
+    `ray_y`: x / z and y / z of each box pixel's ray (h x w; a pinhole's column and row broadcast).
     """
     out = np.zeros((4, 4, 4))
     valid = _moments(raw, inside, colour, ray_x, ray_y, float(units), float(origin[0]),

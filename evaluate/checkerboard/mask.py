@@ -9,11 +9,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.core.board import Board
-from depthstation.core.camera_model import Intrinsics
+from depthstation.core.camera_model import Intrinsics, ray_planes
 
 OTHER, BLACK, WHITE = 0, 1, 2
 
@@ -27,8 +28,8 @@ class BoardMask:
     inside: NDArray[np.bool_]        # h x w (box), on the grid within the margin
     colour: NDArray[np.uint8]        # h x w: OTHER (square edge band, marker), BLACK, WHITE
     z_ref_m: NDArray[np.float32]     # h x w: z-depth of the reference plane along each pixel's ray
-    ray_x: NDArray[np.float32]       # w: (u - ppx) / fx of the box columns
-    ray_y: NDArray[np.float32]       # h: (v - ppy) / fy of the box rows
+    ray_x: NDArray[np.float32]       # h x w: x / z of each box pixel's ray (lens distortion inverted)
+    ray_y: NDArray[np.float32]       # h x w: y / z of each box pixel's ray
 
     @property
     def box(self) -> tuple[slice, slice]:
@@ -58,25 +59,20 @@ def board_mask(pose: NDArray[np.float64], intr: Intrinsics, board: Board, margin
     cam = outline @ r.T + t
     if np.any(cam[:, 2] <= 1e-6):
         return None
-    u = cam[:, 0] / cam[:, 2] * intr.fx + intr.ppx
-    v = cam[:, 1] / cam[:, 2] * intr.fy + intr.ppy
-    u0 = max(int(np.floor(u.min())), 0)
-    u1 = min(int(np.ceil(u.max())) + 1, intr.width)
-    v0 = max(int(np.floor(v.min())), 0)
-    v1 = min(int(np.ceil(v.max())) + 1, intr.height)
+    u0, u1, v0, v1 = _box(cam, intr)
     if u1 <= u0 or v1 <= v0:
         return None
-    rx = ((np.arange(u0, u1) - intr.ppx) / intr.fx).astype(np.float64)
-    ry = ((np.arange(v0, v1) - intr.ppy) / intr.fy).astype(np.float64)
+    xs, ys = ray_planes(intr)
+    rx, ry = xs[v0:v1, u0:u1], ys[v0:v1, u0:u1]
     # Ray p = s (rx, ry, 1) meets the plane n.(p - t) = 0 at s = n.t / n.(rx, ry, 1).
     n = r[:, 2]
-    denom = n[0] * rx[None, :] + n[1] * ry[:, None] + n[2]
+    denom = n[0] * rx + n[1] * ry + n[2]
     with np.errstate(divide="ignore", invalid="ignore"):
         s = float(n @ t) / denom
     # Board coordinates of the hit: x = e_x.(p - t), y = e_y.(p - t).
     ex, ey = r[:, 0], r[:, 1]
-    bx = s * (ex[0] * rx[None, :] + ex[1] * ry[:, None] + ex[2]) - float(ex @ t)
-    by = s * (ey[0] * rx[None, :] + ey[1] * ry[:, None] + ey[2]) - float(ey @ t)
+    bx = s * (ex[0] * rx + ex[1] * ry + ex[2]) - float(ex @ t)
+    by = s * (ey[0] * rx + ey[1] * ry + ey[2]) - float(ey @ t)
     inside = (s > 0) & board.inside(bx, by, margin_m)
     sq = board.square_length_m
     charuco = board.type == "charuco" and bool(board.marker_length_m)
@@ -97,3 +93,20 @@ def board_mask(pose: NDArray[np.float64], intr: Intrinsics, board: Board, margin
     colour[white] = WHITE
     return BoardMask(v0, u0, inside, colour, s.astype(np.float32),
                      rx.astype(np.float32), ry.astype(np.float32))
+
+
+def _box(cam: NDArray[np.float64], intr: Intrinsics) -> tuple[int, int, int, int]:
+    """Pixel box (u0, u1, v0, v1) of the board's outline `cam` (four corners, camera frame),
+    through the lens when it has one: its edges bow, so they are projected at 33 points each."""
+    if intr.has_distortion:
+        f = np.linspace(0.0, 1.0, 33)[:, None]
+        edges = np.concatenate([cam[i] + f * (cam[(i + 1) % 4] - cam[i]) for i in range(4)])
+        uv, _ = cv2.projectPoints(edges, np.zeros(3), np.zeros(3), intr.K, intr.opencv_distortion())
+        u, v = uv[:, 0, 0], uv[:, 0, 1]
+        slack = 1
+    else:
+        u = cam[:, 0] / cam[:, 2] * intr.fx + intr.ppx
+        v = cam[:, 1] / cam[:, 2] * intr.fy + intr.ppy
+        slack = 0
+    return (max(int(np.floor(u.min())) - slack, 0), min(int(np.ceil(u.max())) + 1 + slack, intr.width),
+            max(int(np.floor(v.min())) - slack, 0), min(int(np.ceil(v.max())) + 1 + slack, intr.height))

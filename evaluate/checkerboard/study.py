@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from scipy.special import stdtr
 
 from depthstation.core.board import Board
-from depthstation.core.camera_model import Intrinsics, StreamInfo
+from depthstation.core.camera_model import Intrinsics, StreamInfo, ray_xy
 from depthstation.core.capture.recording import Recording
 from depthstation.core.errors import EvaluationError
 from depthstation.core.frames import FrameSet
@@ -519,9 +519,7 @@ def _example(item: tuple[FrameResult, FramePixels], info: StreamInfo, board: Boa
              pose: NDArray[np.float64]) -> ExampleFrame:
     """Per-pixel noise and accuracy residuals of one frame, as images over the board's box."""
     res, px = item
-    intr = info.depth_intrinsics
-    rx = (px.u - intr.ppx) / intr.fx
-    ry = (px.v - intr.ppy) / intr.fy
+    rx, ry = ray_xy(info.depth_intrinsics, px.u, px.v)
     z = px.z_m.astype(np.float64)
     p = np.stack([z * rx, z * ry, z], axis=1)
     c = p.mean(axis=0)
@@ -553,8 +551,7 @@ def _samples(kept: list[tuple[FrameResult, FramePixels]], info: StreamInfo,
     frame = np.repeat(np.array([r.index for r, _ in kept], dtype=np.int32), sizes)
     ts = np.repeat(np.array([r.timestamp_ns for r, _ in kept], dtype=np.int64), sizes)
     temp = np.repeat(np.array([r.temperature_c for r, _ in kept], dtype=np.float32), sizes)
-    rx = (u - intr.ppx) / intr.fx
-    ry = (v - intr.ppy) / intr.fy
+    rx, ry = ray_xy(intr, u, v)
     if use_frame:
         poses = np.repeat(np.stack([r.pose_depth for r, _ in kept]), sizes, axis=0)  # type: ignore[misc]
         n, nt = poses[:, :3, 2], np.einsum("ij,ij->i", poses[:, :3, 2], poses[:, :3, 3])

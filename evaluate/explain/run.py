@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from depthstation.core.board import Board, load_board
-from depthstation.core.camera_model import StreamInfo
+from depthstation.core.camera_model import StreamInfo, ray_xy
 from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSet
@@ -127,10 +127,10 @@ def samples_from_results(results: Sequence[Any], info: StreamInfo, baseline_m: f
 
 def _plane_z(board_to_cam: Any, info: StreamInfo, u: Any, v: Any) -> Any:
     """z-depth of the board plane along the rays of pixels (u, v)."""
-    intr = info.depth_intrinsics
     p = np.asarray(board_to_cam, dtype=np.float64)
     n, t = p[:3, 2], p[:3, 3]
-    dot = n[0] * (np.asarray(u) - intr.ppx) / intr.fx + n[1] * (np.asarray(v) - intr.ppy) / intr.fy + n[2]
+    rx, ry = ray_xy(info.depth_intrinsics, u, v)
+    dot = n[0] * rx + n[1] * ry + n[2]
     return float(n @ t) / dot
 
 

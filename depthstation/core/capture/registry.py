@@ -77,7 +77,16 @@ def open_recording(path: Path, *, intrinsics: Path | None = None,
     """Open one standpoint or sequence: `.mcap`, `.bag`, `.db3` (file or rosbag2 folder; ours, the
     RealSense SDK's or any ROS recording), a PNG standpoint folder, or a TUM RGB-D folder (whose
     intrinsics file `intrinsics` may name). `topics` picks the streams of a ROS recording."""
-    path = Path(path)
+    rec = _open_recording(Path(path), intrinsics, topics)
+    info = rec.info
+    for stream, intr in (("depth", info.depth_intrinsics), ("colour", info.color_intrinsics)):
+        problem = None if intr is None else intr.lens_problem()
+        if problem:  # dropped, every pixel would sit on the wrong ray without a word
+            raise InputError(path, f"{stream} intrinsics: {problem}")
+    return rec
+
+
+def _open_recording(path: Path, intrinsics: Path | None, topics: TopicChoice | None) -> Recording:
     if not path.exists():
         raise InputError(path, "does not exist")
     if topics is not None and not topics.given:

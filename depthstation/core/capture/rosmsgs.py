@@ -221,15 +221,30 @@ def camera_info_msg(intr: Intrinsics, t_ns: int, frame_id: str) -> bytes:
     return serialize(msg, CAMERA_INFO)
 
 
-def intrinsics_from_camera_info(msg: Any, model: str | None = None) -> Intrinsics:
-    """Intrinsics from a ROS 1 or ROS 2 CameraInfo (field names K/k, D/d differ by version)."""
+def intrinsics_from_camera_info(msg: Any, model: str | None = None, rectified: bool = False) -> Intrinsics:
+    """Intrinsics from a ROS 1 or ROS 2 CameraInfo (field names K/k, D/d, P/p differ by version).
+
+    `rectified`: the images are image_proc's rectified ones (`image_rect*`), whose camera is P's
+    left 3x3 without the distortion D (which describes the raw images): REP 104.
+    """
     k = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, dtype=np.float64)
     d = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, dtype=np.float64)
+    if rectified:
+        p = np.asarray(getattr(msg, "p", None) if hasattr(msg, "p") else msg.P, dtype=np.float64)
+        cam = p[[0, 5, 2, 6]] if p.size == 12 and p[0] > 0 and p[5] > 0 else k[[0, 4, 2, 5]]
+        return Intrinsics(int(msg.width), int(msg.height), float(cam[0]), float(cam[1]), float(cam[2]),
+                          float(cam[3]))
     name = model_name(model if model is not None else str(msg.distortion_model))
     coeffs = tuple(float(x) for x in d) if len(d) else (0.0,) * 5
     return Intrinsics(
         int(msg.width), int(msg.height), float(k[0]), float(k[4]), float(k[2]), float(k[5]), name, coeffs
     )
+
+
+def is_rectified_topic(image_topic: str) -> bool:
+    """image_proc's rectified outputs ('.../image_rect', '.../image_rect_color'). realsense-ros'
+    '.../image_rect_raw' are rectified on the device and carry a zero D: read as they are."""
+    return image_topic.rstrip("/").rsplit("/", 1)[-1] in ("image_rect", "image_rect_color")
 
 
 def transform(ext: Extrinsics) -> Any:
