@@ -149,6 +149,27 @@ def test_null_session_selects_nothing(wide_session: Path, tmp_path: Path) -> Non
     data = _explain(real, tmp_path / "out")
     assert data["selected"] == [] and data["discovered"] == []
     assert not data["mismatch"]["significant"]
+    fills = data["valid_depth"]
+    assert {f["standpoint"] for f in fills} == set(data["standpoints"])
+    assert not [f for f in fills if f["significant"]]
+
+
+def test_depth_the_real_camera_loses_is_said(plain_session: Path, tmp_path: Path) -> None:
+    """A dark-print dropout (30 % of the pixels on black squares lose their depth) is invisible to
+    every bias and noise test, which see only pixels with depth: before, explain said nothing."""
+
+    def dark_dropout(z, u, v, black, t, temp, cam, rng):  # type: ignore[no-untyped-def]
+        return np.where(black & (rng.random(z.shape) < 0.3), np.nan, 0.0)
+
+    real = conceal(plain_session, tmp_path / "real", dark_dropout, noise_seed=5)
+    r = subprocess.run([str(EXE), "explain", str(real), "--board", str(ROOT / "protocols" / "demo-d455.toml"),
+                        "--model", "d455", "--out", str(tmp_path / "out"), "--frames", "6", "--seed", "3",
+                        "--no-resimulate", "--no-discover"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    fills = json.loads((tmp_path / "out" / "explain.json").read_text())["valid_depth"]
+    assert fills and all(f["significant"] and f["diff"] < -0.05 for f in fills), fills
+    said = [line for line in r.stderr.splitlines() if "loses depth the simulation keeps" in line]
+    assert len(said) == len(fills)
 
 
 def test_bad_input_exit_code(tmp_path: Path) -> None:

@@ -65,6 +65,7 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
         "calibrated": calibrated,
         "near_ties": [{"selected": c.effect, **t} for c in ex.attribution.selected for t in c.near_ties],
         "reference_lookalikes": reference_lookalikes(ex.attribution.selected),
+        "valid_depth": [t.to_dict() for t in ex.valid_depth],
         "standpoints": list(ex.real.samples.names),
         "standpoints_left_out": _left_out(ex),
         "samples": {"real": len(ex.real.samples), "sim": len(ex.sim.samples)},

@@ -28,6 +28,7 @@ from depthstation.evaluate.checkerboard.run import check_usable, prepare_checker
 from depthstation.evaluate.checkerboard.study import evaluate_frames
 from depthstation.evaluate.explain.attribute import Attribution, attribute
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
+from depthstation.evaluate.explain.coverage import FillTest, fill_message, fill_tests
 from depthstation.evaluate.explain.discover import Discovery, discover, remaining
 from depthstation.evaluate.explain.library import library
 from depthstation.evaluate.explain.locate import (
@@ -337,6 +338,7 @@ class Explanation:
     discovery: Discovery | None = None
     library: list[Candidate] | None = None
     remaining: list[dict[str, Any]] | None = None   # regions significant after, and what would explain them
+    valid_depth: list[FillTest] = field(default_factory=list)   # fill rates real vs sim per standpoint
 
 
 def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, seed: int = 0,
@@ -347,6 +349,10 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     present = present_effects(model)
     warn_unpaired(real.samples, sim.samples, "simulation")
     warn_short(real.samples, sim.samples)
+    fills = fill_tests(real.figures, sim.figures, _frame_counts(real), _frame_counts(sim))
+    for t in fills:
+        if t.significant:
+            warn(fill_message(t), t.standpoint, "explain-valid-depth")
     if tick:
         tick("locate")
     structures = (decompose(real.samples), decompose(sim.samples))
@@ -380,7 +386,11 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     summary = after.summary() if after is not None else None
     rest = (remaining(summary["regions"], attr, lib, disc, FAMILY_AXES, cands, present,
                       summary.get("noise_correlation")) if summary is not None and lib else None)
-    return Explanation(real, sim, before, attr, model, new_model, resim, after, cands, disc, lib, rest)
+    return Explanation(real, sim, before, attr, model, new_model, resim, after, cands, disc, lib, rest, fills)
+
+
+def _frame_counts(side: Side) -> dict[str, int]:
+    return {name: len(clock.index) for name, clock in side.clocks.items()}
 
 
 def run_explain(real: Sequence[Path], board: Board | Path, model: SensorModel, out: Path, *,
