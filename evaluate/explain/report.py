@@ -9,6 +9,7 @@ import numpy as np
 
 from depthstation.core.results import write_json, write_result_info
 from depthstation.evaluate.explain.attribute import NEAR_TIE
+from depthstation.evaluate.explain.coverage import fit_domain
 from depthstation.evaluate.explain.figures import (
     _frame_binned,
     residual_grid_figure,
@@ -66,6 +67,7 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
         "near_ties": [{"selected": c.effect, **t} for c in ex.attribution.selected for t in c.near_ties],
         "reference_lookalikes": reference_lookalikes(ex.attribution.selected),
         "valid_depth": [t.to_dict() for t in ex.valid_depth],
+        "fit_domain": fit_domain(ex.real.samples),
         "standpoints": list(ex.real.samples.names),
         "standpoints_left_out": _left_out(ex),
         "samples": {"real": len(ex.real.samples), "sim": len(ex.sim.samples)},

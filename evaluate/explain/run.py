@@ -28,7 +28,7 @@ from depthstation.evaluate.checkerboard.run import check_usable, prepare_checker
 from depthstation.evaluate.checkerboard.study import evaluate_frames
 from depthstation.evaluate.explain.attribute import Attribution, attribute
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
-from depthstation.evaluate.explain.coverage import FillTest, fill_message, fill_tests
+from depthstation.evaluate.explain.coverage import FillTest, extrapolation_messages, fill_message, fill_tests
 from depthstation.evaluate.explain.discover import Discovery, discover, remaining
 from depthstation.evaluate.explain.library import library
 from depthstation.evaluate.explain.locate import (
@@ -372,6 +372,8 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
         warn(f"discovered {found}, although no region differs significantly (Holm): the term rests on "
              "the pooled fit alone; confirm it on another session before trusting it", None,
              "explain-discovery-unlocated")
+    for message in extrapolation_messages(disc.terms if disc is not None else [], real.samples):
+        warn(message, None, "explain-extrapolation")
     for look in reference_lookalikes(attr.selected):
         warn(f"{look['effect']} selected (scale_error {look['scale_error']:+.4f}): {look['also']}", None,
              "reference-lookalike")
