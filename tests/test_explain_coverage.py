@@ -52,3 +52,23 @@ def test_a_field_fitted_on_a_band_of_rows_is_said_to_extrapolate() -> None:
     across = _samples(rng.uniform(5, 635, 4000), rng.uniform(5, 355, 4000))
     assert extrapolation_messages([term], across) == []  # type: ignore[list-item]
     assert extrapolation_messages([SimpleNamespace(axes=["distance"], effect="t")], band) == []  # type: ignore[list-item]
+
+
+def test_regions_the_refit_leaves_are_a_warning() -> None:
+    from depthstation.core.run_warnings import collecting
+    from depthstation.evaluate.explain.locate import GroupTest, LocateResult
+    from depthstation.evaluate.explain.run import warn_remaining
+
+    def test(significant: bool, family: str) -> GroupTest:
+        return GroupTest(family, "bias", "x", {}, 0.0, 0.0, 1e-3, 1e-4, 10.0, 20.0, 1e-6, 100, 100,
+                         significant=significant)
+
+    chosen = SimpleNamespace(selected=[SimpleNamespace(effect="disparity_offset")])
+    with collecting() as said:
+        warn_remaining(LocateResult([test(False, "grid")]), chosen)  # type: ignore[arg-type]
+        assert said == []
+        warn_remaining(LocateResult([test(True, "albedo"), test(True, "grid"), test(False, "u")]),
+                       chosen)  # type: ignore[arg-type]
+    assert [w.code for w in said] == ["explain-remains"]
+    assert "2 test(s)" in said[0].message and "albedo, grid" in said[0].message
+    assert "disparity_offset" in said[0].message
