@@ -72,9 +72,10 @@ def test_demo_records_every_study_by_default(tmp_path: Path, capsys: pytest.Capt
         target.rrd.write_bytes(b"")  # what the study's recording would be
         return folder, "recorded"
 
-    run_demo(tmp_path / "d", steps=[Step("study", "a study", (), study)])
-    err = " ".join(capsys.readouterr().err.split())
-    assert f"depthstation view {tmp_path / 'd' / 'study' / 'study.rrd'}" in err
+    out = tmp_path / ("a-long-folder-name-" * 4) / "d"   # a command longer than the console is wide
+    run_demo(out, steps=[Step("study", "a study", (), study)])
+    err = capsys.readouterr().err
+    assert f"  depthstation view {out / 'study' / 'study.rrd'}\n" in err   # whole: it can be pasted
 
 
 def test_unknown_skip_is_input_error(tmp_path: Path) -> None:

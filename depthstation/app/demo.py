@@ -159,8 +159,10 @@ def print_report(ctx: DemoContext, outcomes: dict[str, StepOutcome], steps: list
     rrds = sorted(ctx.out.rglob("*.rrd"))
     if rrds:
         lines = [f"  depthstation view {p}" for p in rrds]
+        # soft_wrap: a long path broken across lines by the console is a command nobody can paste
         stderr_console.print("recordings (heatmaps, blueprints, descriptions), one per study; open one with\n"
-                             + "\n".join(lines) + "\n  (add --serve for a web viewer)", highlight=False)
+                             + "\n".join(lines) + "\n  (add --serve for a web viewer)", highlight=False,
+                             soft_wrap=True)
 
 
 def run_demo(out: Path, *, rrd: bool = True, spawn: bool = False, serve: bool = False,
