@@ -24,15 +24,20 @@ BOARD = {"type": "charuco", "squares_x": 7, "squares_y": 5, "square_length_m": 0
 
 def rays(k: NDArray[np.float64], dist: NDArray[np.float64], w: int, h: int,
          offset: tuple[float, float] = (0.0, 0.0)) -> NDArray[np.float64]:
-    """h x w x 3 rays (z = 1) of the pixel centres shifted by `offset`, through the lens."""
+    """h x w x 3 rays (z = 1) of the pixel centres shifted by `offset`, through the lens (OpenCV's
+    k1 k2 p1 p2 k3 [k4 k5 k6])."""
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     xd = (u + offset[0] - k[0, 2]) / k[0, 0]
     yd = (v + offset[1] - k[1, 2]) / k[1, 1]
     x, y = xd.copy(), yd.copy()
-    k1, k2, p1, p2, k3 = dist
+    k1, k2, p1, p2, k3, k4, k5, k6 = (*dist, 0.0, 0.0, 0.0)[:8]
+
+    def radial(r2: NDArray[np.float64]) -> NDArray[np.float64]:  # OpenCV's rational model (k4-k6 = 0: 5)
+        return (1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3) / (1 + k4 * r2 + k5 * r2 ** 2 + k6 * r2 ** 3)
+
     for _ in range(200):
         r2 = x * x + y * y
-        rad = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+        rad = radial(r2)
         x_new = (xd - (2 * p1 * x * y + p2 * (r2 + 2 * x * x))) / rad
         y_new = (yd - (p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)) / rad
         step = max(np.abs(x_new - x).max(), np.abs(y_new - y).max())
@@ -40,7 +45,7 @@ def rays(k: NDArray[np.float64], dist: NDArray[np.float64], w: int, h: int,
         if step < 1e-15:
             break
     r2 = x * x + y * y
-    rad = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+    rad = radial(r2)
     assert np.abs(x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd).max() < 1e-10
     return np.stack([x, y, np.ones_like(x)], axis=-1)
 
@@ -131,9 +136,11 @@ def write_camera_json(out: Path, truth: dict[str, Any], **colour_keys: Any) -> N
 def write_ros2_bag(src: Path, bag: Path, truth: dict[str, Any], *, encoding: str = "16UC1",
                    colour_topic: str = "/camera/camera/color/image_raw",
                    depth_topic: str = "/camera/camera/aligned_depth_to_color/image_raw",
-                   distortion_model: str = "plumb_bob", d: tuple[float, ...] | None = None) -> None:
+                   distortion_model: str = "plumb_bob", d: tuple[float, ...] | None = None,
+                   k_info: NDArray[np.float64] | None = None) -> None:
     """The rendered frames as a realsense-ros ROS 2 bag (rosbags' writer): colour rgb8, depth
-    16UC1 millimetres or 32FC1 metres, one CameraInfo per image topic (K, D, P = [K|0])."""
+    16UC1 millimetres or 32FC1 metres, one CameraInfo per image topic (K, D, P = [K'|0] with K'
+    the rendered camera; `k_info`: another K, the raw camera of rectified images)."""
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -151,7 +158,9 @@ def write_ros2_bag(src: Path, bag: Path, truth: dict[str, Any], *, encoding: str
 
     def info(t_ns: int) -> Any:
         return info_t(header=header(t_ns), height=truth["height"], width=truth["width"],
-                      distortion_model=distortion_model, d=coeffs, k=k.ravel(), r=np.eye(3).ravel(), p=p,
+                      distortion_model=distortion_model, d=coeffs,
+                      k=(k if k_info is None else k_info).ravel(),
+                      r=np.eye(3).ravel(), p=p,
                       binning_x=0, binning_y=0,
                       roi=roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
 

@@ -33,6 +33,8 @@ def test_a_gap_in_valid_depth_must_be_significant_and_material() -> None:
            "edge": {"fill_rate": 0.985, "fill_rate_std": 0.001},   # 10 SE apart, but 1 point: edge handling
            "noisy": {"fill_rate": 0.99, "fill_rate_std": 0.2}}     # 9 points, within its frames' spread
     tests = {t.standpoint: t for t in fill_tests(real, sim, {k: 6 for k in real}, {k: 6 for k in sim})}
+    one = fill_tests(real, sim, {**{k: 6 for k in real}, "near": 1}, {k: 6 for k in sim})
+    assert "near" not in {t.standpoint for t in one}   # one frame: no spread, no test
     assert tests["near"].significant and tests["near"].diff == pytest.approx(-0.14)
     assert tests["near"].se == pytest.approx(np.hypot(0.01, 0.01) / np.sqrt(6))
     assert not tests["edge"].significant and abs(tests["edge"].diff) < MIN_GAP
@@ -48,7 +50,9 @@ def test_a_field_fitted_on_a_band_of_rows_is_said_to_extrapolate() -> None:
     assert dom["distance_m"][0] == pytest.approx(1.0, abs=0.02) and dom["inclination_deg"][1] < 30.0
     term = SimpleNamespace(axes=["v"], effect="term_bias_v_poly2")
     said = extrapolation_messages([term], band)  # type: ignore[list-item]
-    assert len(said) == 1 and "rows 1" in said[0] and "33 %" in said[0]
+    assert len(said) == 1 and "imager rows 1" in said[0] and "33 %" in said[0]
+    field = SimpleNamespace(axes=["tile"], effect="term_bias_tile_field2")   # a 2-D field: rows narrow
+    assert len(extrapolation_messages([field], band)) == 1  # type: ignore[list-item]
     across = _samples(rng.uniform(5, 635, 4000), rng.uniform(5, 355, 4000))
     assert extrapolation_messages([term], across) == []  # type: ignore[list-item]
     assert extrapolation_messages([SimpleNamespace(axes=["distance"], effect="t")], band) == []  # type: ignore[list-item]

@@ -108,11 +108,14 @@ def test_topics_by_name_and_colour_stamps_apart(tmp_path: Path) -> None:
     assert len(got) == 3 and all(f.color is not None for f in got)
     assert got[1].metadata["stream_timestamps_ns"]["color"] == frames[1].timestamp_ns + 7_000_000
     np.testing.assert_allclose(rec.info.depth_to_color.matrix, info.depth_to_color.matrix, atol=1e-12)
-    # 32FC1 through compressedDepth (inverse depth, quantised): within its step, rounded to 1 mm
-    a, b = frames[0].depth, got[0].depth
-    keep = (a > 200) & (a < 9000)
+    # 32FC1 through compressedDepth (inverse depth, quantised): finer than 1 mm, so read at 0.1 mm
+    # counts (ros_bag.depth_units_for), within its step; beyond 6.55 m, their range, no depth
+    assert rec.info.depth_units_m == pytest.approx(1e-4)
+    a, b = frames[0].depth, got[0].depth * rec.info.depth_units_m * 1000.0   # mm
+    keep = (a > 200) & (a < 6500)
     step_mm = (a[keep] / 1000.0) ** 2 / (100 * 101 / 1000.0)
-    assert np.all(np.abs(b[keep].astype(float) - a[keep]) <= step_mm + 1.0)
+    assert np.all(np.abs(b[keep] - a[keep]) <= step_mm + 0.1)
+    assert not np.any(b[a > 6600])
 
 
 def test_one_topic_for_two_streams_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -18,6 +18,14 @@ FloatArray = NDArray[np.float64]
 OPENCV_MODELS = ("brown_conrady", "inverse_brown_conrady", "modified_brown_conrady", "opencv",
                  "plumb_bob", "rational_polynomial")
 OPENCV_LENGTHS = (4, 5, 8, 12, 14)  # the distortion vector lengths OpenCV takes
+
+
+def model_name(name: str) -> str:
+    """Our spelling of a lens model: librealsense's ('Inverse Brown Conrady',
+    'distortion.brown_conrady') and ROS's ('plumb_bob', 'equidistant') normalised, so that a file
+    written with either is read, not refused or dropped."""
+    n = str(name).split(".")[-1].strip().lower().replace(" ", "_").replace("-", "_")
+    return {"plumb_bob": "brown_conrady", "equidistant": "kannala_brandt4", "": "none"}.get(n, n)
 # OpenCV's default five steps leave pixels off by up to ~5 px for an 8-coefficient lens.
 _UNDISTORT_CRITERIA = (3, 50, 1e-12)  # cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS
 
@@ -46,7 +54,7 @@ class Intrinsics:
         librealsense's Brown-Conrady variants (including `inverse_brown_conrady`, which
         `rs2_project_point_to_pixel` applies forward) are OpenCV's k1 k2 p1 p2 k3.
         """
-        if self.model.lower() in OPENCV_MODELS and any(c != 0.0 for c in self.coeffs):
+        if model_name(self.model) in OPENCV_MODELS and any(c != 0.0 for c in self.coeffs):
             return np.asarray(self.coeffs, dtype=np.float64)
         return np.zeros(5)
 
@@ -54,9 +62,10 @@ class Intrinsics:
         """Why the station cannot invert this lens (None when it can): a model OpenCV does not
         know, or a coefficient count it does not take, with non-zero coefficients. Dropping such
         a distortion would put every pixel on the wrong ray without a word."""
-        if not any(c != 0.0 for c in self.coeffs) or self.model.lower() == "none":
+        model = model_name(self.model)
+        if not any(c != 0.0 for c in self.coeffs) or model == "none":
             return None
-        if self.model.lower() not in OPENCV_MODELS:
+        if model not in OPENCV_MODELS:
             return (f"lens model {self.model!r} with non-zero coefficients: the station inverts "
                     "Brown-Conrady (plumb_bob) and rational_polynomial lenses; rectify the images first")
         if len(self.coeffs) not in OPENCV_LENGTHS:
@@ -112,7 +121,7 @@ class Intrinsics:
         coeffs = tuple(float(c) for c in d.get("coeffs", d.get("distortion", [0.0] * 5)))
         model = d.get("model", "opencv" if any(c != 0.0 for c in coeffs) else "none")
         return cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]),
-                   float(ppx), float(ppy), str(model), coeffs).check()
+                   float(ppx), float(ppy), model_name(str(model)), coeffs).check()
 
 
 @dataclass(frozen=True)
@@ -204,8 +213,10 @@ def ray_planes(intr: Intrinsics) -> tuple[NDArray[np.float64], NDArray[np.float6
     if np.any(dist != 0.0):
         v, u = np.mgrid[0:h, 0:w].astype(np.float64)
         pts = np.stack([u.ravel(), v.ravel()], axis=-1).reshape(-1, 1, 2)
-        und = cv2.undistortPoints(pts, intr.K, dist, None, np.eye(3), np.eye(3),
-                                  _UNDISTORT_CRITERIA).reshape(h, w, 2)
+        # OpenCV 4 names the iterated form undistortPointsIter; OpenCV 5 gives undistortPoints the criteria
+        iterated = getattr(cv2, "undistortPointsIter", cv2.undistortPoints)
+        und = iterated(pts, intr.K, dist, R=np.eye(3), P=np.eye(3),
+                       criteria=_UNDISTORT_CRITERIA).reshape(h, w, 2)
         x = np.ascontiguousarray(und[..., 0], dtype=np.float64)
         y = np.ascontiguousarray(und[..., 1], dtype=np.float64)
         x.flags.writeable = False

@@ -16,7 +16,7 @@ import numpy as np
 
 from depthstation.core.board import Board, load_board
 from depthstation.core.capture.recording import Recording
-from depthstation.core.capture.registry import check_distinct_recordings, open_inputs
+from depthstation.core.capture.registry import check_distinct_recordings, check_lenses, open_inputs
 from depthstation.core.capture.session import SESSION_FILE, Session
 from depthstation.core.capture.session import camera_identity as session_camera_identity
 from depthstation.core.capture.topics import TopicChoice
@@ -121,6 +121,8 @@ def prepare_checkerboard(inputs: list[Path], board: Path | Board,
                                      "evaluate them in separate runs")
         seen[r.name] = r.path
     check_distinct_recordings(recs)
+    for r in recs:
+        check_lenses(r)
     check_recorded_board(brd, recs, source)
     check_one_camera(recs, refuse=one_camera)
     return CheckerboardJob(list(inputs), source, brd, recs, opt)

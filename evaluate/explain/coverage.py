@@ -59,7 +59,10 @@ def fill_tests(real: Mapping[str, Mapping[str, float]], sim: Mapping[str, Mappin
         fr, fs = float(r.get("fill_rate", math.nan)), float(s.get("fill_rate", math.nan))
         if not (math.isfinite(fr) and math.isfinite(fs)):
             continue
-        se = math.hypot(_se(r, frames_real.get(name, 0)), _se(s, frames_sim.get(name, 0)))
+        n_r, n_s = frames_real.get(name, 0), frames_sim.get(name, 0)
+        if min(n_r, n_s) < 2:   # no frame-to-frame spread: no standard error, no test
+            continue
+        se = math.hypot(_se(r, n_r), _se(s, n_s))
         diff = fr - fs
         out.append(FillTest(name, fr, fs, diff, se, float(r.get("distance_m", math.nan)),
                             float(r.get("inclination_deg", math.nan)),
@@ -93,7 +96,7 @@ def fit_domain(s: Samples) -> dict[str, list[float]]:
     """The span (0.5th to 99.5th percentile) of each axis the compared pixels covered: what every
     fitted term is known over (explain.json `fit_domain`)."""
     x, y = (s.u - s.ppx) / s.fx, (s.v - s.ppy) / s.fx
-    axes = {"u_px": s.u, "v_px": s.v, "radius": np.hypot(x, y), "distance_m": s.z_ref_m,
+    axes = {"u_imager_px": s.u, "v_imager_px": s.v, "radius": np.hypot(x, y), "distance_m": s.z_ref_m,
             "inclination_deg": s.inclination_deg, "time_s": s.time_s, "temperature_c": s.temperature_c}
     out = {}
     for name, values in axes.items():
@@ -105,15 +108,16 @@ def fit_domain(s: Samples) -> dict[str, list[float]]:
 
 
 def image_share(s: Samples, axis: str) -> tuple[float, float, float] | None:
-    """(low, high, share of the image) the data covered along an image axis (u, v in px, radius
-    normalised); None for an axis that is not one of the image's."""
+    """(low, high, share of the image) the data covered along an image axis (u, v in the stereo
+    imager's px, where disparity lives; radius normalised); None for an axis that is not one of
+    the image's."""
     dom = fit_domain(s)
     width, height = 2 * s.ppx + 1, 2 * s.ppy + 1
-    if axis == "u" and "u_px" in dom:
-        lo, hi = dom["u_px"]
+    if axis == "u" and "u_imager_px" in dom:
+        lo, hi = dom["u_imager_px"]
         return lo, hi, (hi - lo) / width
-    if axis == "v" and "v_px" in dom:
-        lo, hi = dom["v_px"]
+    if axis == "v" and "v_imager_px" in dom:
+        lo, hi = dom["v_imager_px"]
         return lo, hi, (hi - lo) / height
     if axis == "radius" and "radius" in dom:
         lo, hi = dom["radius"]
@@ -125,12 +129,14 @@ def extrapolation_messages(terms: Sequence[DiscoveredTerm], s: Samples) -> list[
     """What a discovered image-axis field covered and that model.toml applies it beyond."""
     out = []
     for t in terms:
-        for axis in t.axes:
+        # a tile field is a smooth 2-D field over the image: it extrapolates along u and v alike
+        for axis in [a for ax in t.axes for a in (("u", "v") if ax == "tile" else (ax,))]:
             span = image_share(s, axis)
             if span is None or span[2] >= MIN_IMAGE_SHARE:
                 continue
             lo, hi, share = span
-            where = (f"rows {lo:.0f}-{hi:.0f}" if axis == "v" else f"columns {lo:.0f}-{hi:.0f}" if axis == "u"
+            where = (f"imager rows {lo:.0f}-{hi:.0f}" if axis == "v"
+                     else f"imager columns {lo:.0f}-{hi:.0f}" if axis == "u"
                      else f"normalised radii up to {hi:.2f}")
             out.append(f"the discovered {t.effect} was fitted on {where} ({100 * share:.0f} % of the image "
                        f"along {axis}); model.toml applies it over the whole image, where it extrapolates. "

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.core.capture.recording import Recording
-from depthstation.core.capture.registry import open_recording
+from depthstation.core.capture.registry import check_lenses, open_recording
 from depthstation.core.capture.topics import TopicChoice, topic_choice
 from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSource
@@ -199,6 +199,7 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
             raise InputError(path, f"{role} not found")
     out.mkdir(parents=True, exist_ok=True)
     source = open_recording(Path(sequence), intrinsics=opt.intrinsics, topics=opt.topics)
+    check_lenses(source, ("depth",))
     n_frames = source.frame_count
     if opt.figure_frame is not None and n_frames and opt.figure_frame >= n_frames:
         raise InputError(Path(sequence), f"--figure-frame {opt.figure_frame}: the sequence has {n_frames} "

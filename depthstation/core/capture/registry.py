@@ -77,13 +77,19 @@ def open_recording(path: Path, *, intrinsics: Path | None = None,
     """Open one standpoint or sequence: `.mcap`, `.bag`, `.db3` (file or rosbag2 folder; ours, the
     RealSense SDK's or any ROS recording), a PNG standpoint folder, or a TUM RGB-D folder (whose
     intrinsics file `intrinsics` may name). `topics` picks the streams of a ROS recording."""
-    rec = _open_recording(Path(path), intrinsics, topics)
+    return _open_recording(Path(path), intrinsics, topics)
+
+
+def check_lenses(rec: Recording, streams: Sequence[str] = ("depth", "colour")) -> None:
+    """A study's refusal of a lens it cannot invert, in the streams it uses (depth; colour for the
+    board's pose): dropped, every pixel would sit on the wrong ray without a word. Reading,
+    `capture info` and export keep working on such a file."""
     info = rec.info
-    for stream, intr in (("depth", info.depth_intrinsics), ("colour", info.color_intrinsics)):
+    for stream in streams:
+        intr = info.depth_intrinsics if stream == "depth" else info.color_intrinsics
         problem = None if intr is None else intr.lens_problem()
-        if problem:  # dropped, every pixel would sit on the wrong ray without a word
-            raise InputError(path, f"{stream} intrinsics: {problem}")
-    return rec
+        if problem:
+            raise InputError(rec.path, f"{stream} intrinsics: {problem}")
 
 
 def _open_recording(path: Path, intrinsics: Path | None, topics: TopicChoice | None) -> Recording:

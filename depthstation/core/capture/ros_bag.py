@@ -50,26 +50,24 @@ DEPTH_UNITS_M = 0.001  # 16UC1 is millimetres (REP 118, realsense-ros); 32FC1 me
 FINE_DEPTH_UNITS_M = 0.0001  # float depth finer than 1 mm (a D405, a filtered pipeline): 6.55 m of range
 
 
-def depth_units_for(first: NDArray[Any]) -> tuple[float, str | None]:
-    """Depth units for a recording from its first depth image, and what they cost (None: nothing).
+def depth_units_for(first: NDArray[Any]) -> float:
+    """Depth units for a recording, from its first depth image.
 
     16-bit images are millimetres. Float metres (32FC1) that are whole millimetres (a z16 stream
-    republished) stay at 1 mm; finer ones, rounded to 1 mm, gained 0.29 mm rms of rounding noise
-    in every noise figure without a word (a D405's 0.1 mm depth): they are read at 0.1 mm where
-    the first image stays within 6 m, else at 1 mm with a note.
+    republished) stay at 1 mm. Finer ones are read at 0.1 mm: rounded to 1 mm, a D405's 0.2 mm
+    noise read as 0.33 mm without a word. Not by the first image's range: bags of one session
+    would then differ in units, and explain refuses a session of two cameras. Pixels beyond
+    6.55 m, the 16-bit range at 0.1 mm, are said when they come (`RosRecording._depth`).
     """
     if first.dtype == np.uint16:
-        return DEPTH_UNITS_M, None
+        return DEPTH_UNITS_M
     z = np.asarray(first, dtype=np.float64)
     z = z[np.isfinite(z) & (z > 0)]
     if z.size == 0 or float(np.max(np.abs(z * 1000.0 - np.rint(z * 1000.0)))) < 0.01:
-        return DEPTH_UNITS_M, None
-    far = float(z.max())
-    if far < 6.0:
-        return FINE_DEPTH_UNITS_M, ("float metres finer than 1 mm, read at 0.1 mm "
-                                    "(pixels beyond 6.55 m, if any, have no depth)")
-    return DEPTH_UNITS_M, (f"float metres finer than 1 mm reaching {far:.1f} m, rounded to 1 mm: "
-                           "that adds 0.29 mm rms to every noise figure")
+        return DEPTH_UNITS_M
+    return FINE_DEPTH_UNITS_M
+
+
 _EXTRINSICS_DEFS = {
     "realsense2_camera_msgs/msg/Extrinsics": "float64[9] rotation\nfloat64[3] translation",
     "realsense2_camera/msg/Extrinsics": "std_msgs/Header header\nfloat64[9] rotation\nfloat64[3] translation",
@@ -380,7 +378,7 @@ class RosRecording(Recording):
 
     def _frameset(self, order: int, stamp: int, depth: tuple[Any, str], parts: dict[str, tuple[Any, str]],
                   stamps: dict[str, int], record: dict[str, Any] | None) -> FrameSet:
-        d = rosmsgs.depth_to_units(self._pixels("depth", *depth), self.info.depth_units_m)
+        d = self._depth(self._pixels("depth", *depth))
         if d.ndim != 2:
             raise InputError(self.path, f"depth topic {self.streams['depth'].topic} holds no "
                                         f"single-channel image (shape {d.shape})")
@@ -401,6 +399,19 @@ class RosRecording(Recording):
             meta = dict(record.get("metadata") or {})
             return FrameSet(int(record["index"]), stamp, d, color, infrared, meta)
         return FrameSet(order, stamp, d, color, infrared, {mw.STREAM_STAMPS_KEY: stamps} if stamps else {})
+
+    def _depth(self, image: NDArray[Any]) -> NDArray[np.uint16]:
+        """z16 counts of a depth image; float depth beyond the counts' range is said, not lost
+        without a word (0.1 mm counts end at 6.55 m)."""
+        units = self.info.depth_units_m
+        if image.dtype != np.uint16:
+            with np.errstate(invalid="ignore"):
+                beyond = int(np.count_nonzero(np.asarray(image, dtype=np.float64) >= 65535.5 * units))
+            if beyond:
+                warn(f"depth {self.streams['depth'].topic}: float depth beyond {65535 * units:.2f} m, the "
+                     f"16-bit range at {units * 1000:g} mm counts, is read as no depth", str(self.path),
+                     code="ros-reading")
+        return rosmsgs.depth_to_units(image, units)
 
     def _pixels(self, kind: str, msg: Any, msgtype: str) -> NDArray[Any]:
         """An image's pixels; an encoding we cannot read is bad input naming the bag and topic."""
@@ -516,9 +527,10 @@ def _open(path: Path, reader: Any, choice: TopicChoice | None) -> RosRecording:
                 del streams[kind]
                 continue
             raise InputError(path, f"no CameraInfo {s.info_topic} for the {kind} images {s.topic}")
-        rectified = rosmsgs.is_rectified_topic(s.topic)
+        rectified = rosmsgs.is_rectified_topic(transport_base(s.topic))   # .../image_rect/compressed too
         s.intrinsics = rosmsgs.intrinsics_from_camera_info(msg, rectified=rectified)
-        if rectified:
+        raw = rosmsgs.intrinsics_from_camera_info(msg)
+        if rectified and (raw.has_distortion or raw.K.tolist() != s.intrinsics.K.tolist()):
             rect_notes.append(f"{kind} {s.topic} is rectified: its camera is {s.info_topic}'s P, "
                               f"without the distortion ({msg.distortion_model}) of the raw images")
         s.frame_id = str(msg.header.frame_id).lstrip("/")
@@ -550,13 +562,11 @@ def _open(path: Path, reader: Any, choice: TopicChoice | None) -> RosRecording:
                              "depth and colour taken as one frame")
             else:
                 d2c, source = e, "/tf_static"
-    units, units_note = DEPTH_UNITS_M, None
+    units = DEPTH_UNITS_M
     first_depth = _first(reader, by_topic[depth.topic])
     if first_depth is not None:
         with contextlib.suppress(ValueError):  # an unreadable encoding is refused with the frames
-            units, units_note = depth_units_for(_pixels(first_depth, depth.msgtype))
-    if units_note:
-        notes.append(f"depth {depth.topic}: {units_note}")
+            units = depth_units_for(_pixels(first_depth, depth.msgtype))
     for note in notes:  # what the reading assumed: on stderr, in result.json, --strict
         warn(note, str(path), code="ros-reading")
     stereo = None

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 from rosbags.typesys import Stores, get_typestore
 
-from depthstation.core.camera_model import Extrinsics, Intrinsics
+from depthstation.core.camera_model import Extrinsics, Intrinsics, model_name
 from depthstation.core.capture import yuv
 from depthstation.core.geometry import matrix_to_quaternion, quaternion_to_matrix
 
@@ -57,12 +57,6 @@ def serialize(msg: Any, msgtype: str) -> bytes:
 
 def deserialize(data: bytes | memoryview, msgtype: str) -> Any:
     return typestore().deserialize_cdr(data, msgtype)
-
-
-def model_name(name: str) -> str:
-    """Normalise librealsense spellings ('Brown Conrady', 'distortion.brown_conrady') to ours."""
-    n = str(name).split(".")[-1].strip().lower().replace(" ", "_")
-    return {"plumb_bob": "brown_conrady", "equidistant": "kannala_brandt4", "": "none"}.get(n, n)
 
 
 def _header(t_ns: int, frame_id: str) -> Any:
