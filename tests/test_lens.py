@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from depthstation.core.board import load_board
-from depthstation.core.camera_model import Intrinsics, ray_planes
+from depthstation.core.camera_model import Intrinsics, StreamInfo, ray_planes
 from depthstation.core.capture.registry import open_recording
 from depthstation.core.capture.ros_bag import transport_base
 from depthstation.core.capture.rosmsgs import is_rectified_topic
@@ -182,3 +182,19 @@ def test_float_depth_finer_than_a_millimetre_keeps_its_noise(tmp_path: Path,
     with collecting() as said:   # beyond the 16-bit range of 0.1 mm counts: said, not lost silently
         counts = rec._depth(np.array([[7.0, 0.45]], dtype=np.float32))  # type: ignore[attr-defined]
     assert counts.tolist() == [[0, 4500]] and [w.code for w in said] == ["ros-reading"]
+
+
+def test_aligned_depth_pixels_reach_the_stereo_imager_along_their_lens_ray() -> None:
+    """Explain's disparity lives in the stereo imager's pixels: an aligned depth pixel is carried
+    there along its own ray, which the colour lens bends (a pinhole scaling put it ~3.5 px off
+    at the corners of a D455 colour image)."""
+    k = np.array([[320.0, 0, 319.5], [0, 320.0, 179.5], [0, 0, 1]])
+    colour = Intrinsics(640, 360, 320.0, 320.0, 319.5, 179.5, "inverse_brown_conrady",
+                        lens_render.D455_COLOUR_LENS)
+    stereo = Intrinsics(848, 480, 424.0, 424.0, 423.5, 239.5)
+    info = StreamInfo(colour, colour, depth_aligned_to_color=True, stereo_intrinsics=stereo)
+    u, v = np.array([0, 319, 639, 10]), np.array([0, 179, 359, 300])
+    us, vs = info.to_stereo_pixels(u, v)
+    rays = lens_render.rays(k, np.asarray(lens_render.D455_COLOUR_LENS), 640, 360)[v, u]
+    np.testing.assert_allclose(us, 423.5 + 424.0 * rays[:, 0], atol=1e-6)
+    np.testing.assert_allclose(vs, 239.5 + 424.0 * rays[:, 1], atol=1e-6)

@@ -281,6 +281,9 @@ class StreamInfo:
         v = np.asarray(v, dtype=np.float64)
         if s is d:
             return u, v
+        if d.has_distortion:   # depth aligned to a camera with a lens: the pixel's ray through it
+            x, y = ray_xy(d, np.rint(u), np.rint(v))
+            return s.ppx + x * s.fx, s.ppy + y * s.fy
         return s.ppx + (u - d.ppx) * (s.fx / d.fx), s.ppy + (v - d.ppy) * (s.fy / d.fy)
 
     def to_dict(self) -> dict[str, Any]:

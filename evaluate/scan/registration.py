@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import stdtrit
 
+from depthstation.core.camera_model import ray_planes
 from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSource
 from depthstation.core.geometry import rodrigues, rotation_angle_deg
@@ -204,9 +205,9 @@ def depth_band_frames(source: FrameSource, trajectory: Trajectory, *,
     """
     info = source.info
     intr = info.depth_intrinsics
-    v, u = np.mgrid[0:intr.height:stride, 0:intr.width:stride].astype(np.float64)
-    x = ((u - intr.ppx) / intr.fx).ravel()
-    y = ((v - intr.ppy) / intr.fy).ravel()
+    xs, ys = ray_planes(intr)   # through the lens, when the stream has one
+    x = np.ascontiguousarray(xs[::stride, ::stride]).ravel()
+    y = np.ascontiguousarray(ys[::stride, ::stride]).ravel()
     parts = []
     posed = 0
     nearest = np.inf
