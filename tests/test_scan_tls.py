@@ -193,3 +193,22 @@ def test_tum_export_of_a_walk_gives_the_same_grid(walk: dict[str, Any],
     np.testing.assert_allclose(tum.mean, original.mean, atol=1e-9)
     assert s_tum["sequence"]["depth_units_m"] == pytest.approx(walk["seq"].info.depth_units_m)  # 0.1 mm kept
     assert json.loads((folder / "camera.json").read_text())["fx"] == walk["seq"].info.depth_intrinsics.fx
+
+
+def test_meshed_surface_off_the_scanned_points_is_measured() -> None:
+    """Two walls meeting in a corner, scanned with 2 mm noise: vertices on the walls lie on the
+    points' planes, vertices of a chamfered corner 20-40 mm off (what Poisson invents there)."""
+    from depthstation.evaluate.scan.reference import SURFACE_GAP_M, surface_to_points
+
+    rng = np.random.default_rng(4)
+    a, b = rng.uniform(0.0, 1.0, (2, 20_000))
+    wall_x = np.stack([np.zeros_like(a), a, b], axis=1)           # x = 0, normal (1, 0, 0)
+    wall_y = np.stack([a, np.zeros_like(a), b], axis=1)           # y = 0, normal (0, 1, 0)
+    points = np.concatenate([wall_x, wall_y]) + rng.normal(0, 0.002, (40_000, 3))
+    normals = np.concatenate([np.tile([1.0, 0, 0], (20_000, 1)), np.tile([0, 1.0, 0], (20_000, 1))])
+    on_walls = np.concatenate([wall_x[:900], wall_y[:900]])
+    s = rng.uniform(0.02, 0.04, 200)                              # a chamfer across the corner
+    rounded = np.stack([s, s, rng.uniform(0.2, 0.8, 200)], axis=1)  # 20-40 mm off each wall
+    stats = surface_to_points(np.concatenate([on_walls, rounded]), points, normals)
+    assert stats["share_beyond_gap"] == pytest.approx(200 / 2000, abs=0.01)
+    assert stats["median_m"] < 0.002 and stats["max_m"] > SURFACE_GAP_M

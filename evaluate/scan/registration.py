@@ -81,7 +81,7 @@ class Registration:
                 "depth_scale_error_band95": band,
                 "meaning": "the registration's scale maps a trajectory (and the depth it was built on) too "
                            "long by this fraction onto the reference; with exact poses it would be depth "
-                           "error moved into the poses, hidden from the grid"}
+                           "error moved into the poses, and the grid's errors would not be the camera's"}
 
     def caption(self) -> str:
         """One line for figure captions and the console."""

@@ -212,6 +212,7 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
         Path(reference), out, PoissonParams(depth=opt.poisson_depth, density_quantile=opt.density_quantile,
                                          threads=opt.poisson_threads),
         viewpoints=camera_centres(given, similarity, pass_points))
+    say_meshing(mesh_info, Path(reference))
     # far-away coordinates (survey frames) are shifted before anything is registered or cast
     centres = given.poses[:, :3, 3]
     local = LocalFrames(np.asarray(mesh_info.get("local_shift_m", [0.0, 0.0, 0.0]), dtype=np.float64),
@@ -272,6 +273,22 @@ def check_clocks(source: FrameSource, trajectory: Trajectory, poses: Path, toler
                                 "another clock? TUM time stamps are seconds on the frames' clock)")
 
 
+UNMEASURED_SHARE = 0.01  # of the meshed reference's vertices beyond the cloud's gap
+
+
+def say_meshing(mesh_info: dict[str, Any], reference: Path) -> None:
+    """A reference meshed from a cloud holds surface nobody measured (Poisson's rounded edges and
+    closed holes): pixels that see it compare with it, and u95 does not include that error."""
+    gap = mesh_info.get("surface_to_points")
+    if not isinstance(gap, dict) or gap.get("share_beyond_gap", 0.0) <= UNMEASURED_SHARE:
+        return
+    warn(f"{100 * gap['share_beyond_gap']:.1f} % of the reference mesh made from the cloud lies more than "
+         f"{1000 * gap['gap_m']:.0f} mm off the scanned surface (up to {1000 * gap['max_m']:.0f} mm: "
+         "Poisson's rounded edges and closed holes): pixels that see it compare with a surface nobody "
+         "measured, and their cells' u95 does not include that (raise --density-quantile, or give a "
+         "mesh)", str(reference), "reference-meshing")
+
+
 def say_registration(reg: Registration, fit: FitCheck | None, sequence: Path) -> None:
     """The two things a registration can hide, said where the user looks: a trajectory that does
     not fit the reference, and a scale that absorbs the depth-scale error."""
@@ -291,9 +308,18 @@ def say_registration(reg: Registration, fit: FitCheck | None, sequence: Path) ->
              str(sequence), "registration-fit")
     if reg.absorbed() is not None:
         warn(f"{reg.caption()}: that is the depth-scale error of the depth the trajectory was built on "
-             "(RGB-D SLAM); if the poses are exact instead, the scale has moved that much depth error "
-             "into the poses and the grid hides it (--register rigid or none keeps it)", str(sequence),
-             "absorbed-scale")
+             "(RGB-D SLAM); if the poses are exact instead, the scale has moved the cameras to fit that "
+             "depth error, and the grid measures against the moved cameras: its errors are then not the "
+             "camera's, too small near the registration band and wrong beyond it (--register none keeps "
+             "them, with poses in the reference frame)", str(sequence), "absorbed-scale")
+    if reg.mode in ("rigid", "similarity"):
+        band = reg.icp.get("band_m") if isinstance(reg.icp, dict) else None
+        within = f" ({band[0]:g}-{band[1]:g} m)" if isinstance(band, list | tuple) and len(band) == 2 else ""
+        warn(f"--register {reg.mode} fitted the trajectory to the reference on this camera's own depth"
+             f"{within}: a depth error there (an offset, a scale) is partly taken into the pose, so the "
+             "grid reads it near zero in that band and misplaced beyond it. For the camera's absolute "
+             "error give poses in the reference frame (--register none) or register on independent "
+             "targets (--register pass-points)", str(sequence), "registration-absorbs")
 
 
 def camera_centres(trajectory: Trajectory, similarity: NDArray[np.float64] | None,
