@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from scan_expect import model_grids
 
+from depthstation.core.errors import InputError
 from depthstation.core.grid import Grid
 from depthstation.core.run_warnings import collecting
 from depthstation.evaluate.scan.registration import Registration
@@ -223,3 +224,17 @@ def test_a_registration_on_the_cameras_own_depth_says_it_absorbs_its_error(tmp_p
         if said:
             text = next(w.message for w in warnings if w.code == "registration-absorbs")
             assert "0.5-2 m" in text and "--register pass-points" in text
+
+
+def test_a_trajectory_too_far_to_register_is_bad_input(walk: dict[str, Any], tmp_path: Path) -> None:
+    """Rigid registration from a trajectory 20 m and 30 deg off: nothing to start from. An input
+    the user can mend (a start by --similarity or pass points), exit 2; before, exit 1."""
+    d = walk["dir"]
+    truth = read_tum(d / "trajectory.txt")
+    c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    far = truth.transformed(np.array([[c, -s, 0, 20.0], [s, c, 0, 0.0], [0, 0, 1, 0.5], [0, 0, 0, 1.0]]))
+    write_tum(tmp_path / "far.txt", far.timestamps_s, far.poses)
+    with pytest.raises(InputError, match="--similarity FILE or --pass-points FILE") as err:
+        run_scan(d / "sequence.mcap", tmp_path / "far.txt", d / "scene.ply", tmp_path / "o",
+                 ScanOptions(min_count_sequence=100, frames=4, register="rigid", **BINS))  # type: ignore[arg-type]
+    assert err.value.path == tmp_path / "far.txt"

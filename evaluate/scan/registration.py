@@ -185,6 +185,11 @@ def umeyama(src: F64, dst: F64, with_scale: bool = True) -> F64:
     return compose_similarity(s, r, mu_d - s * r @ mu_s)
 
 
+class NoStart(EvaluationError):
+    """The trajectory lies too far from the reference for the registration's refinement to start:
+    the input's frame, not a failure of the station (exit 2, with what gives a start)."""
+
+
 class NoPosedFrame(EvaluationError):
     """No frame of the sequence has a pose within the tolerance (`nearest_s`: the smallest gap
     between a frame and a pose): the trajectory's fault, said by the caller naming its file."""
@@ -308,7 +313,8 @@ def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float =
         ok = np.linalg.norm(p - q, axis=1) < max_distance_m
         used = int(ok.sum())
         if used < 10:
-            raise EvaluationError("mesh refinement: fewer than 10 points near the reference surface")
+            raise NoStart(f"fewer than 10 of its depth points lie within {max_distance_m:g} m of the "
+                          "reference surface, so the fit has nothing to start from")
         qc = q[ok] - q[ok].mean(0)  # centred: better conditioned scale/translation
         cols = [np.cross(qc, n[ok]), n[ok]] + ([(n[ok] * qc).sum(1)] if with_scale else [])
         a = np.column_stack(cols)

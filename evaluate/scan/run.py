@@ -42,6 +42,7 @@ from depthstation.evaluate.scan.reference import PoissonParams, reference_mesh, 
 from depthstation.evaluate.scan.registration import (
     REGISTER_MODES,
     NoPosedFrame,
+    NoStart,
     Registration,
     initial_similarity,
     read_pass_points,
@@ -225,6 +226,10 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                        tolerance_s=opt.tolerance_s, every=opt.icp_every, local=local if local.any else None)
     except NoPosedFrame as exc:  # the trajectory's stamps sit between the frames' (another rate, an offset)
         raise InputError(Path(poses), str(exc)) from exc
+    except NoStart as exc:   # a frame far from the reference's: exit 1 before, as if the station failed
+        raise InputError(Path(poses), f"--register {opt.register_mode}: {exc}; give a start with "
+                                      "--similarity FILE or --pass-points FILE, or check the pose file's "
+                                      "frame and units") from exc
     posed = traj.transformed(reg.matrix)
     config = StudyConfig(opt.distance_bin_m, opt.inclination_bin_deg, opt.distance_max_m, 90.0,
                          every=opt.every, max_frames=opt.frames, tolerance_s=opt.tolerance_s,
