@@ -11,13 +11,13 @@ than a millimetre (rounded to 1 mm).
 from __future__ import annotations
 
 import csv
-import sys
 from pathlib import Path
 from typing import Any
 
 import lens_render
 import numpy as np
 import pytest
+from console import run_console as _cli
 
 from depthstation.core.board import load_board
 from depthstation.core.camera_model import Intrinsics, StreamInfo, ray_planes
@@ -26,22 +26,6 @@ from depthstation.core.capture.ros_bag import transport_base
 from depthstation.core.capture.rosmsgs import is_rectified_topic
 from depthstation.core.run_warnings import collecting
 from depthstation.evaluate.checkerboard.mask import board_mask
-
-
-def _cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    from depthstation.app import cli
-
-    old = sys.argv
-    sys.argv = ["depthstation", *args]
-    code = 0
-    try:
-        cli.main()
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    finally:
-        sys.argv = old
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from console import run_console as _cli
 from ros_bags import write_bag
 
 from depthstation.core.camera_model import Extrinsics
@@ -289,23 +290,6 @@ def test_tum_export_says_what_it_cannot_hold(tmp_path: Path, capsys: pytest.Capt
     folder = tmp_path / "tum" / "a"
     lines = [x for x in (folder / "depth.txt").read_text().splitlines() if not x.startswith("#")]
     assert len(lines) == 2 and len(list((folder / "depth").iterdir())) == 2
-
-
-def _cli(args: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    """Run the console script's main() in-process: (exit code, stdout, stderr)."""
-    from depthstation.app import cli
-
-    old = sys.argv
-    sys.argv = ["depthstation", *args]
-    code = 0
-    try:
-        cli.main()
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    finally:
-        sys.argv = old
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
 
 
 def test_aligned_depth_keeps_its_baseline_and_stereo_imager(tmp_path: Path) -> None:
