@@ -18,6 +18,8 @@ FloatArray = NDArray[np.float64]
 OPENCV_MODELS = ("brown_conrady", "inverse_brown_conrady", "modified_brown_conrady", "opencv",
                  "plumb_bob", "rational_polynomial")
 OPENCV_LENGTHS = (4, 5, 8, 12, 14)  # the distortion vector lengths OpenCV takes
+# OpenCV's default five steps leave pixels off by up to ~5 px for an 8-coefficient lens
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
 
 
 def model_name(name: str) -> str:
@@ -26,8 +28,6 @@ def model_name(name: str) -> str:
     written with either is read, not refused or dropped."""
     n = str(name).split(".")[-1].strip().lower().replace(" ", "_").replace("-", "_")
     return {"plumb_bob": "brown_conrady", "equidistant": "kannala_brandt4", "": "none"}.get(n, n)
-# OpenCV's default five steps leave pixels off by up to ~5 px for an 8-coefficient lens.
-_UNDISTORT_CRITERIA = (3, 50, 1e-12)  # cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS
 
 
 @dataclass(frozen=True)
