@@ -44,9 +44,9 @@ def test_a_gap_in_valid_depth_must_be_significant_and_material() -> None:
 def test_a_field_fitted_on_a_band_of_rows_is_said_to_extrapolate() -> None:
     rng = np.random.default_rng(1)
     band = _samples(rng.uniform(100, 540, 4000), rng.uniform(120, 240, 4000))   # rows 120-240 of 360
-    lo, hi, share = image_share(band, "v")  # type: ignore[misc]
-    assert 119 < lo < 122 and 238 < hi < 241 and share == pytest.approx(120 / 360, abs=0.01)
     dom = fit_domain(band)
+    lo, hi, share = image_share(dom, band, "v")  # type: ignore[misc]
+    assert 119 < lo < 122 and 238 < hi < 241 and share == pytest.approx(120 / 360, abs=0.01)
     assert dom["distance_m"][0] == pytest.approx(1.0, abs=0.02) and dom["inclination_deg"][1] < 30.0
     term = SimpleNamespace(axes=["v"], effect="term_bias_v_poly2")
     said = extrapolation_messages([term], band)  # type: ignore[list-item]

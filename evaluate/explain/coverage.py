@@ -107,11 +107,10 @@ def fit_domain(s: Samples) -> dict[str, list[float]]:
     return out
 
 
-def image_share(s: Samples, axis: str) -> tuple[float, float, float] | None:
+def image_share(dom: Mapping[str, list[float]], s: Samples, axis: str) -> tuple[float, float, float] | None:
     """(low, high, share of the image) the data covered along an image axis (u, v in the stereo
-    imager's px, where disparity lives; radius normalised); None for an axis that is not one of
-    the image's."""
-    dom = fit_domain(s)
+    imager's px, where disparity lives; radius normalised) from `fit_domain(s)`; None for an axis
+    that is not one of the image's."""
     width, height = 2 * s.ppx + 1, 2 * s.ppy + 1
     if axis == "u" and "u_imager_px" in dom:
         lo, hi = dom["u_imager_px"]
@@ -127,11 +126,12 @@ def image_share(s: Samples, axis: str) -> tuple[float, float, float] | None:
 
 def extrapolation_messages(terms: Sequence[DiscoveredTerm], s: Samples) -> list[str]:
     """What a discovered image-axis field covered and that model.toml applies it beyond."""
-    out = []
+    out: list[str] = []
+    dom = fit_domain(s) if terms else {}   # once: percentiles over every sample
     for t in terms:
         # a tile field is a smooth 2-D field over the image: it extrapolates along u and v alike
         for axis in [a for ax in t.axes for a in (("u", "v") if ax == "tile" else (ax,))]:
-            span = image_share(s, axis)
+            span = image_share(dom, s, axis)
             if span is None or span[2] >= MIN_IMAGE_SHARE:
                 continue
             lo, hi, share = span

@@ -529,8 +529,8 @@ def _open(path: Path, reader: Any, choice: TopicChoice | None) -> RosRecording:
             raise InputError(path, f"no CameraInfo {s.info_topic} for the {kind} images {s.topic}")
         rectified = rosmsgs.is_rectified_topic(transport_base(s.topic))   # .../image_rect/compressed too
         s.intrinsics = rosmsgs.intrinsics_from_camera_info(msg, rectified=rectified)
-        raw = rosmsgs.intrinsics_from_camera_info(msg)
-        if rectified and (raw.has_distortion or raw.K.tolist() != s.intrinsics.K.tolist()):
+        raw = rosmsgs.intrinsics_from_camera_info(msg) if rectified else None
+        if raw is not None and (raw.has_distortion or raw.K.tolist() != s.intrinsics.K.tolist()):
             rect_notes.append(f"{kind} {s.topic} is rectified: its camera is {s.info_topic}'s P, "
                               f"without the distortion ({msg.distortion_model}) of the raw images")
         s.frame_id = str(msg.header.frame_id).lstrip("/")
