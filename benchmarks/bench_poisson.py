@@ -37,7 +37,7 @@ def main() -> None:
     for _ in range(args.repeats):
         for threads in (1, 0):
             t = time.perf_counter()
-            mesh, _ = poisson_mesh(o3d.geometry.PointCloud(base),
+            mesh, _, _ = poisson_mesh(o3d.geometry.PointCloud(base),
                                    PoissonParams(depth=args.depth, threads=threads))
             times[threads].append(time.perf_counter() - t)
             verts[threads].append(np.asarray(mesh.vertices).copy())

@@ -98,7 +98,7 @@ def bench_pass(old: ModuleType, mesh: Any, intr: Any, poses: Any, depth: Any, fr
 
     ro, rn = OldReplay(intr), NewReplay(intr)
     grid = StudyConfig().empty_grid()
-    acc = {k: (new.CellAccumulator.for_grid(grid), FrameMoments.zeros(grid.shape), np.zeros(5, np.int64))
+    acc = {k: (new.CellAccumulator.for_grid(grid), FrameMoments.zeros(grid.shape), np.zeros(6, np.int64))
            for k in "on"}
     times: dict[str, list[float]] = {"o": [], "n": []}
     for f in range(frames):

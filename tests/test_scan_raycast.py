@@ -27,7 +27,7 @@ def _pass_bins(c: np.ndarray, g: Grid) -> Any:
     dirs = np.zeros((n, 3), np.float32)
     dirs[:, 0] = 1.0
     kk, sj, se = np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n)
-    start, stats = np.empty(nd + 1, np.int64), np.zeros(5, np.int64)
+    start, stats = np.empty(nd + 1, np.int64), np.zeros(6, np.int64)
     _pixel_bins(np.ones(n, np.float32), np.zeros(n, np.int32), np.array([[1.0, 0.0, 0.0]], np.float32),
                 dirs, np.eye(3), c.astype(np.float64), np.full(n, 1000, np.uint16), 0.001, d_lo, d_step,
                 nd, ce, inclination_guess(ce), ni, kk, sj, se, start, stats)

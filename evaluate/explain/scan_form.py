@@ -36,8 +36,8 @@ from depthstation.evaluate.explain.figures import residual_grid_figure
 from depthstation.evaluate.explain.library import library
 from depthstation.evaluate.explain.run import check_model_camera, known_baseline, present_effects
 from depthstation.evaluate.explain.samples import FloatArray, Samples
-from depthstation.evaluate.scan.chunks import chunk_ranges
-from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, make_renderer
+from depthstation.evaluate.scan.chunks import chunk_ranges, new_renderer
+from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER
 from depthstation.evaluate.scan.run import ScanOptions, prepare_scan
 from depthstation.evaluate.scan.study import StudyConfig, evaluate_chunk
 from depthstation.evaluate.scan.trajectory import Trajectory
@@ -118,11 +118,13 @@ def read_clock(source: FrameSource) -> Clock:
 
 
 def block_grids(source: FrameSource, mesh_path: Path, trajectory: Trajectory, block_frames: int,
-                tolerance_s: float = 0.01) -> list[Grid]:
-    """One coarse distance x inclination Grid per block of `block_frames` consecutive frames."""
+                tolerance_s: float = 0.01, unmeasured: Path | None = None) -> list[Grid]:
+    """One coarse distance x inclination Grid per block of `block_frames` consecutive frames;
+    `unmeasured`: the mesh's mask of surface nobody scanned (its pixels leave both sides' grids)."""
 
-    config = StudyConfig(DISTANCE_BIN_M, INCLINATION_BIN_DEG, 6.0, 90.0, tolerance_s=tolerance_s)
-    caster = make_renderer(DEFAULT_RENDERER, mesh_path, source.info.depth_intrinsics)
+    config = StudyConfig(DISTANCE_BIN_M, INCLINATION_BIN_DEG, 6.0, 90.0, tolerance_s=tolerance_s,
+                         renderer=DEFAULT_RENDERER, unmeasured=unmeasured)
+    caster = new_renderer(mesh_path, source.info.depth_intrinsics, config)
     n = source.frame_count
     if n is None:
         raise EvaluationError("the sequence does not say how many frames it has")
@@ -489,14 +491,14 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
 
     if tick:
         tick(f"evaluate real ({n_posed} frames with a pose, blocks of {block})")
-    real = block_grids(_Limited(), mesh_path, posed, block, tolerance_s)
+    real = block_grids(_Limited(), mesh_path, posed, block, tolerance_s, job.config.unmeasured)
     info = known_baseline(source.info, model.camera.baseline_m, f"model '{model.name}' ([camera] baseline_m)",
                           str(sequence))
     check_model_camera(model, info, dict(source.info.device or {}), str(sequence))
 
     def side(mdl: SensorModel, s: int) -> list[Grid]:
         seq = SimulatedSequence(mesh_path, mdl, info, posed, clock, seed=s, tolerance_s=tolerance_s)
-        return block_grids(seq, mesh_path, posed, block, tolerance_s)
+        return block_grids(seq, mesh_path, posed, block, tolerance_s, job.config.unmeasured)
 
     if tick:
         tick("simulate and evaluate")

@@ -30,6 +30,7 @@ from depthstation.core.grid import PackedGrid, pack_grid, unpack_grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn
 from depthstation.evaluate.scan.rasterise import MeshRasteriser, make_renderer
 from depthstation.evaluate.scan.raycast import FrameRenderer
+from depthstation.evaluate.scan.reference import load_unmeasured
 from depthstation.evaluate.scan.study import (
     ChunkCells,
     ChunkResult,
@@ -99,12 +100,21 @@ def renderer_for(mesh: str | Path, intr: Intrinsics, config: StudyConfig) -> Fra
     """The renderer of `config` over `mesh` for frames of `intr`, kept for the next chunks (and the
     report's figure frame) of this process: the mesh is loaded and prepared once (again when the
     file changed)."""
-    key = (_file_key(mesh), intr, config.nthreads, config.renderer)
+    key = (_file_key(mesh), intr, config.nthreads, config.renderer,
+           None if config.unmeasured is None else _file_key(config.unmeasured))
     if _CACHE.caster is None or _CACHE.mesh_key != key:
         _CACHE.caster = None
-        _CACHE.caster = make_renderer(config.renderer, Path(mesh), intr, config.nthreads)
+        _CACHE.caster = new_renderer(mesh, intr, config)
         _CACHE.mesh_key = key
     return _CACHE.caster
+
+
+def new_renderer(mesh: str | Path, intr: Intrinsics, config: StudyConfig) -> FrameRenderer:
+    """A fresh renderer of `config` over `mesh`, with the mesh's unmeasured triangles marked."""
+    renderer = make_renderer(config.renderer, Path(mesh), intr, config.nthreads)
+    if config.unmeasured is not None:
+        renderer.mark_unmeasured(load_unmeasured(Path(config.unmeasured), renderer.n_triangles))
+    return renderer
 
 
 def _context(chunk: ScanChunk) -> tuple[FrameRenderer, FrameSource]:
@@ -314,7 +324,7 @@ def _run_here(source: FrameSource, mesh: str | Path, chunks: list[ScanChunk], co
     renderers.put(base)
     for _ in range(n - 1):
         renderers.put(base.sibling() if isinstance(base, MeshRasteriser)
-                      else make_renderer(config.renderer, Path(mesh), intr, config.nthreads))
+                      else new_renderer(mesh, intr, config))
     frames = iter(source.frames())
     spare: Queue[ChunkCells] = Queue()  # accumulators drained by `fold`, for the next chunks
 

@@ -36,13 +36,15 @@ def frame_figure(images: FrameImages, path: Path, title: str = "",
     both = np.concatenate([images.measured_m[np.isfinite(images.measured_m)],
                            images.reference_m[np.isfinite(images.reference_m)]])
     vmax = float(np.percentile(both, 99.5)) if both.size else 1.0
-    err_mm = images.error_m * 1000.0
+    unmeasured = images.unmeasured
+    err_mm = np.where(unmeasured, np.nan, images.error_m * 1000.0)  # as the grid: not those pixels
     finite = err_mm[np.isfinite(err_mm)]
     lim = float(np.percentile(np.abs(finite), 98)) if finite.size else 1.0
+    blank = " (blank: surface not scanned)" if unmeasured.any() else ""
     panels = [
         (images.measured_m, "(a) measured depth", "depth (m)", "viridis", 0.0, vmax),
         (images.reference_m, "(b) reference depth (ray cast)", "depth (m)", "viridis", 0.0, vmax),
-        (images.inclination_deg, "(c) inclination", "inclination (deg)", "magma", 0.0, 90.0),
+        (images.inclination_deg, f"(c) inclination{blank}", "inclination (deg)", "magma", 0.0, 90.0),
         (err_mm, "(d) depth error, measured - reference", "error (mm)", "RdBu_r", -lim, lim),
     ]
     for ax, (img, name, unit, cmap, lo, hi) in zip(axes.ravel(), panels, strict=True):

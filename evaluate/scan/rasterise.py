@@ -47,6 +47,7 @@ class MeshRasteriser(FrameRenderer):
             vertices, triangles = mesh_arrays(mesh)
             raster = MeshRaster(vertices, triangles)
         self.raster = raster
+        self.n_triangles = raster.n_triangles
         n = self.dirs.shape[0]
         self._t = np.empty(n, np.float32)
         self._ids = np.empty(n, np.int32)
@@ -56,20 +57,26 @@ class MeshRasteriser(FrameRenderer):
         """(t_hit, normals) as Open3D would cast them; the arrays are reused by the next frame."""
         pose = np.asarray(pose, dtype=np.float64)
         self.raster.render(self.intr, pose, self._t, self._ids, self._normals)
+        self._blank_unmeasured(self._ids, self._normals)
         return self._t, self._normals
 
     def cast_indexed(self, pose: F64) -> tuple[F32, NDArray[np.int32], F32]:
         """(t_hit, hit triangle ids, per-triangle normals): the pass reads each pixel's normal from
         the table, so no per-pixel normal array is gathered (7 MB written and read per frame)."""
         self.raster.render(self.intr, np.asarray(pose, dtype=np.float64), self._t, self._ids, None)
-        return self._t, self._ids, self.raster.normal_table()
+        table = self.raster.normal_table()
+        if self._unmeasured_ids is not None:  # the winners' normals were just written: blanked again
+            table[self._unmeasured_ids] = np.nan
+        return self._t, self._ids, table
 
     def describe(self) -> dict[str, Any]:
         return {"renderer": self.name, **arithmetic_report()}
 
     def sibling(self) -> MeshRasteriser:
         """Another renderer over the same prepared mesh (for another thread)."""
-        return MeshRasteriser(None, self.intr, self.raster.sibling())
+        other = MeshRasteriser(None, self.intr, self.raster.sibling())
+        other.mark_unmeasured(self.unmeasured)
+        return other
 
 
 class _FallbackCaster(MeshCaster):
@@ -85,12 +92,17 @@ def check_renderer(name: str) -> str:
     return name
 
 
-def make_renderer(name: str, mesh: Any, intr: Intrinsics, nthreads: int = 0) -> FrameRenderer:
+def make_renderer(name: str, mesh: Any, intr: Intrinsics, nthreads: int = 0,
+                  unmeasured: NDArray[np.bool_] | None = None) -> FrameRenderer:
     """The renderer `name` ('raster' or 'raycast') over `mesh` for frames of `intr`;
-    `nthreads`: Open3D's ray-casting threads (0 = all)."""
+    `nthreads`: Open3D's ray-casting threads (0 = all); `unmeasured`: per triangle, surface
+    nobody scanned (`FrameRenderer.mark_unmeasured`)."""
     check_renderer(name)
+    renderer: FrameRenderer
     if name == "raster":
-        if not intr.has_distortion:
-            return MeshRasteriser(mesh, intr)
-        return _FallbackCaster(mesh, intr, nthreads)
-    return MeshCaster(mesh, intr, nthreads)
+        renderer = (MeshRasteriser(mesh, intr) if not intr.has_distortion
+                    else _FallbackCaster(mesh, intr, nthreads))
+    else:
+        renderer = MeshCaster(mesh, intr, nthreads)
+    renderer.mark_unmeasured(unmeasured)
+    return renderer

@@ -92,6 +92,7 @@ def _pixel_bins(t_hit: Any, index: Any, normals: Any, dirs: Any, rot: Any, inv_n
     no_hit = 0
     evaluated = 0
     binned = 0
+    unmeasured = 0
     for k in range(nd + 1):
         start[k] = 0
     for i in range(n):
@@ -126,7 +127,8 @@ def _pixel_bins(t_hit: Any, index: Any, normals: Any, dirs: Any, rot: Any, inv_n
         m = index[i]
         nx, ny, nz = normals[m, 0], normals[m, 1], normals[m, 2]
         nn = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if nn == 0.0:
+        if not nn > 0.0:  # NaN: surface nobody measured (the renderer's mask); 0: a degenerate triangle
+            unmeasured += nn != nn
             continue
         dx, dy, dz = _world_dir(r00, r01, r02, r10, r11, r12, r20, r21, r22, dirs[i, 0], dirs[i, 1],
                                 dirs[i, 2])
@@ -158,6 +160,7 @@ def _pixel_bins(t_hit: Any, index: Any, normals: Any, dirs: Any, rot: Any, inv_n
     stats[2] += no_hit
     stats[3] += evaluated
     stats[4] += binned
+    stats[5] += unmeasured
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
@@ -232,7 +235,7 @@ def _frame_images(t_hit: Any, normals: Any, rays: Any, depth: Any, depth_scale: 
                   z_ref: Any, inc: Any, z_meas: Any) -> None:
     for i in range(depth.shape[0]):
         z_meas[i] = depth[i] * depth_scale if depth[i] != 0 else np.nan
-        if np.isfinite(t_hit[i]):
+        if np.isfinite(t_hit[i]):  # a NaN normal (unmeasured surface): NaN inclination
             z_ref[i] = t_hit[i]
             inc[i] = _inclination_deg(normals[i, 0], normals[i, 1], normals[i, 2],
                                       rays[i, 3], rays[i, 4], rays[i, 5])
@@ -279,13 +282,17 @@ def cos_edges(grid: Grid) -> NDArray[np.float64]:
 _COS_CACHE: dict[tuple[int, float, float], NDArray[np.float64]] = {}
 _GUESS_CACHE: dict[tuple[int, float, float], Any] = {}
 
-STAT_NAMES = ("pixels", "no_depth", "no_hit", "evaluated", "binned")
+# unmeasured_surface: evaluated pixels whose hit triangle is reference surface nobody scanned
+# (`reference.unmeasured_triangles`), left out of the grid
+STAT_NAMES = ("pixels", "no_depth", "no_hit", "evaluated", "binned", "unmeasured_surface")
 _NO_MOMENTS = FrameMoments.zeros((1, 1))  # a stand-in the pass does not touch (moments not kept)
 
 
 @dataclass
 class FrameImages:
-    """Per-pixel maps of one frame (paper Fig. 8), HxW float32, NaN where undefined."""
+    """Per-pixel maps of one frame (paper Fig. 8), HxW float32, NaN where undefined: the reference
+    where the ray meets no surface, the inclination also where the surface met was not scanned
+    (`FrameRenderer.mark_unmeasured`: those pixels are not in the grid)."""
 
     measured_m: F32
     reference_m: F32
@@ -294,6 +301,11 @@ class FrameImages:
     @property
     def error_m(self) -> F32:
         return self.measured_m - self.reference_m
+
+    @property
+    def unmeasured(self) -> NDArray[np.bool_]:
+        """Pixels whose ray meets reference surface nobody scanned (left out of the grid)."""
+        return np.asarray(np.isfinite(self.reference_m) & np.isnan(self.inclination_deg))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -349,6 +361,7 @@ class FrameRenderer:
     per-pixel pass on top (`bin_frame`, `images`). Subclasses fill `cast`."""
 
     name = "renderer"
+    n_triangles = 0  # of the mesh (the ids of `cast_indexed` and of `mark_unmeasured`)
 
     def __init__(self, intr: Intrinsics) -> None:
         self.intr = intr
@@ -357,6 +370,25 @@ class FrameRenderer:
         self.rays = np.empty((self.dirs.shape[0], 6), dtype=np.float32)
         self._scratch: tuple[NDArray[Any], ...] | None = None
         self._identity = np.zeros(0, np.int32)
+        self.unmeasured: NDArray[np.bool_] | None = None
+        self._unmeasured_ids: NDArray[np.int64] | None = None
+
+    def mark_unmeasured(self, mask: NDArray[np.bool_] | None) -> None:
+        """Triangles of reference surface nobody scanned (`reference.unmeasured_triangles`, by the
+        mesh's triangle id): a hit on one keeps its depth (it hides what lies behind it) and gets a
+        NaN normal, so the pass leaves the pixel out of the grid and counts it."""
+        self.unmeasured = None if mask is None or not np.any(mask) else np.asarray(mask, dtype=bool)
+        self._unmeasured_ids = None if self.unmeasured is None else np.flatnonzero(self.unmeasured)
+
+    def _blank_unmeasured(self, ids: NDArray[Any], normals: NDArray[np.float32]) -> None:
+        """Per-pixel normals (hit triangle `ids`, negative or out of range = miss) to NaN where
+        the hit triangle is unmeasured."""
+        if self.unmeasured is None:
+            return
+        ids = np.asarray(ids).reshape(-1).astype(np.int64)
+        on = (ids >= 0) & (ids < self.unmeasured.shape[0])
+        on[on] = self.unmeasured[ids[on]]
+        normals.reshape(-1, 3)[on] = np.nan
 
     def cast(self, pose: F64) -> tuple[F32, F32]:
         """(t_hit (inf = miss), unit normals) of every pixel for a camera-to-reference pose (the rays
@@ -432,6 +464,7 @@ class MeshCaster(FrameRenderer):
             mesh = o3d.t.geometry.TriangleMesh.from_legacy(mesh)
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(mesh)
+        self.n_triangles = int(mesh.triangle.indices.shape[0])
         self.nthreads = int(nthreads)
         self._rays_t = o3d.core.Tensor.from_numpy(self.rays)
 
@@ -440,4 +473,6 @@ class MeshCaster(FrameRenderer):
         pose = np.asarray(pose, dtype=np.float64)
         fill_rays(self.rays, pose[:3, 3].copy(), pose[:3, :3].copy(), self.dirs)
         ans = self.scene.cast_rays(self._rays_t, nthreads=self.nthreads)
-        return ans["t_hit"].numpy(), ans["primitive_normals"].numpy()
+        normals = ans["primitive_normals"].numpy()
+        self._blank_unmeasured(ans["primitive_ids"].numpy(), normals)
+        return ans["t_hit"].numpy(), normals

@@ -32,6 +32,7 @@ from depthstation.evaluate.scan.trajectory import LOCAL_SHIFT_ABOVE_M, local_shi
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".gltf", ".glb")
 MESH_CACHE = "reference_mesh.ply"
+UNMEASURED_CACHE = "reference_mesh_unmeasured.npy"  # per triangle: surface no scanned point supports
 TLS_EXTRA = "pip install -e '.[tls]'"
 
 
@@ -42,6 +43,9 @@ class PoissonParams:
     `threads`: 1 meshes the same cloud to the same mesh, bit for bit. Open3D's multi-threaded
     Poisson (0: all cores) sums in a varying order, so two runs move the surface by micrometres
     and, at silhouettes, a pixel's hit by millimetres: a study that cannot be repeated exactly.
+
+    `surface_gap_m`: a triangle with a vertex this far off the scanned points' planes is surface
+    nobody measured (`unmeasured_triangles`); the study leaves the pixels that see it out (0: keep).
     """
 
     depth: int = 9
@@ -49,11 +53,12 @@ class PoissonParams:
     normal_radius_m: float = 0.05
     normal_max_nn: int = 30
     threads: int = 1
+    surface_gap_m: float = 0.01
 
     def to_dict(self) -> dict[str, Any]:
         return {"depth": self.depth, "density_quantile": self.density_quantile,
                 "normal_radius_m": self.normal_radius_m, "normal_max_nn": self.normal_max_nn,
-                "threads": self.threads}
+                "threads": self.threads, "surface_gap_m": self.surface_gap_m}
 
 
 def _appearance(rgb: np.ndarray | None, intensity: np.ndarray | None) -> np.ndarray | None:
@@ -221,8 +226,9 @@ def facing_away(cloud: Any, viewpoints: np.ndarray) -> np.ndarray:
 
 def poisson_mesh(cloud: Any, params: PoissonParams = PoissonParams(), scans: Scans | None = None,
                  viewpoints: np.ndarray | None = None,
-                 where: str | None = None) -> tuple[Any, dict[str, Any]]:
-    """Poisson surface of the cloud, minus vertices whose density is below the quantile."""
+                 where: str | None = None) -> tuple[Any, dict[str, Any], np.ndarray]:
+    """Poisson surface of the cloud, minus vertices whose density is below the quantile; with
+    the triangles that lie off the scanned surface (`unmeasured_triangles`)."""
     o3d = open3d()
 
     normals = "given"
@@ -252,20 +258,28 @@ def poisson_mesh(cloud: Any, params: PoissonParams = PoissonParams(), scans: Sca
     if len(mesh.triangles) == 0:
         raise EvaluationError("Poisson reconstruction left no triangles after density trimming")
     mesh.compute_triangle_normals()
+    vertices = np.asarray(mesh.vertices)
+    off = vertex_offsets(vertices, np.asarray(cloud.points), np.asarray(cloud.normals))
+    unmeasured = unmeasured_triangles(np.asarray(mesh.triangles), off, params.surface_gap_m)
     info = {"poisson": params.to_dict(), "density_threshold": threshold, "normals": normals,
             "triangles": len(mesh.triangles), "vertices": len(mesh.vertices),
-            "surface_to_points": surface_to_points(np.asarray(mesh.vertices), np.asarray(cloud.points),
-                                                   np.asarray(cloud.normals))}
-    return mesh, info
+            "surface_to_points": offset_summary(off, params.surface_gap_m or SURFACE_GAP_M),
+            "unmeasured": {"triangles": int(np.count_nonzero(unmeasured)),
+                           "share": float(np.mean(unmeasured)) if len(unmeasured) else 0.0,
+                           "gap_m": params.surface_gap_m,
+                           "rule": "a triangle with a vertex more than gap_m off the scanned points' "
+                                   "planes (median over its 8 nearest points); the pixels that see one "
+                                   "are left out of the grid (pixels.unmeasured_surface)"
+                                   if params.surface_gap_m > 0 else "kept (--surface-gap-m 0)"}}
+    return mesh, info, unmeasured
 
 
 SURFACE_GAP_M = 0.01  # a meshed surface this far off the scanned points' planes was not measured
 
 
-def surface_to_points(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray,
-                      k: int = 8) -> dict[str, float]:
-    """How far the meshed surface lies off the scanned surface: per vertex, the median over its k
-    nearest points of the distance to each point's tangent plane (the cloud's normals). Poisson
+def vertex_offsets(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray, k: int = 8) -> np.ndarray:
+    """How far each vertex of the meshed surface lies off the scanned surface: the median over its
+    k nearest points of the distance to each point's tangent plane (the cloud's normals). Poisson
     rounds edges and corners and closes holes with surface nobody measured, which the density
     trimming leaves in part (an audit: 1.8 % of a room's pixels in cells 100 mm off, against a
     u95 of 0.5 mm, with no word). On that room this tracks the true deviation (correlation 0.90);
@@ -273,12 +287,36 @@ def surface_to_points(vertices: np.ndarray, points: np.ndarray, normals: np.ndar
     from scipy.spatial import cKDTree
 
     if len(vertices) == 0 or len(points) < k:
-        return {"gap_m": SURFACE_GAP_M, "median_m": 0.0, "p99_m": 0.0, "max_m": 0.0, "share_beyond_gap": 0.0}
+        return np.zeros(len(vertices))
     _, near = cKDTree(points).query(vertices, k=k)
     off = np.abs(np.einsum("ikj,ikj->ik", normals[near], vertices[:, None, :] - points[near]))
-    d = np.median(off, axis=1)
-    return {"gap_m": SURFACE_GAP_M, "median_m": float(np.median(d)), "p99_m": float(np.percentile(d, 99)),
-            "max_m": float(np.max(d)), "share_beyond_gap": float(np.mean(d > SURFACE_GAP_M))}
+    return np.asarray(np.median(off, axis=1), dtype=np.float64)
+
+
+def offset_summary(off: np.ndarray, gap_m: float = SURFACE_GAP_M) -> dict[str, float]:
+    """Median, 99th percentile, largest vertex offset and the share of vertices beyond the gap."""
+    if len(off) == 0:
+        return {"gap_m": gap_m, "median_m": 0.0, "p99_m": 0.0, "max_m": 0.0, "share_beyond_gap": 0.0}
+    return {"gap_m": gap_m, "median_m": float(np.median(off)), "p99_m": float(np.percentile(off, 99)),
+            "max_m": float(np.max(off)), "share_beyond_gap": float(np.mean(off > gap_m))}
+
+
+def surface_to_points(vertices: np.ndarray, points: np.ndarray, normals: np.ndarray,
+                      k: int = 8) -> dict[str, float]:
+    """`offset_summary` of `vertex_offsets`."""
+    return offset_summary(vertex_offsets(vertices, points, normals, k))
+
+
+def unmeasured_triangles(triangles: np.ndarray, vertex_off: np.ndarray, gap_m: float) -> np.ndarray:
+    """Per triangle: does a vertex lie more than gap_m off the scanned surface (none when gap_m is 0)?
+
+    Why: a pixel that sees such a triangle compares the camera with surface Poisson invented (a
+    rounded corner, a closed hole), not with the scan, and its error is the meshing's. The triangle
+    stays in the mesh: it still hides what lies behind it, as the real object did."""
+    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    if gap_m <= 0 or len(tri) == 0:
+        return np.zeros(len(tri), dtype=bool)
+    return np.asarray(np.max(vertex_off[tri], axis=1) > gap_m)
 
 
 def _shift_geometry(geom: Any, kind: str) -> np.ndarray:
@@ -318,9 +356,11 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
                 stored = json.loads(meta.read_text())
             except json.JSONDecodeError:
                 stored = {}
-            if stored.get("key") == key:
+            info_kept = stored.get("info", {})
+            if stored.get("key") == key and (unmeasured_file(cached, info_kept) is None
+                                             or (Path(cache_dir) / UNMEASURED_CACHE).is_file()):
                 mesh = o3d.io.read_triangle_mesh(str(cached))
-                return mesh, cached, {**stored.get("info", {}), "cached": True}
+                return mesh, cached, {**info_kept, "cached": True}
     scans: Scans | None = None
     if path.suffix.lower() in (".e57", ".las", ".laz"):
         kind, (geom, look, scans) = "cloud", _read_special(path)
@@ -331,6 +371,7 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
     if scans is not None:
         scans = [(a, b, o - shift) for a, b, o in scans]
     local_views = None if viewpoints is None else np.asarray(viewpoints, dtype=np.float64) - shift
+    unmeasured: np.ndarray | None = None
     if kind == "mesh":
         geom.compute_triangle_normals()
         info: dict[str, Any] = {"kind": "mesh", "triangles": len(geom.triangles),
@@ -339,7 +380,7 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
             return geom, path, {**info, "local_shift_m": [0.0, 0.0, 0.0], "appearance": look}
         mesh = geom
     else:
-        mesh, info = poisson_mesh(geom, params, scans, local_views, str(path))
+        mesh, info, unmeasured = poisson_mesh(geom, params, scans, local_views, str(path))
         info = {"kind": "cloud", "points": len(geom.points), **info}
     info.update({"local_shift_m": shift.tolist(), "appearance": look})
     if cache_dir is None:
@@ -347,8 +388,39 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
     Path(cache_dir).mkdir(parents=True, exist_ok=True)
     cached = Path(cache_dir) / MESH_CACHE
     o3d.io.write_triangle_mesh(str(cached), mesh)
+    mask = Path(cache_dir) / UNMEASURED_CACHE
+    if unmeasured is not None and np.any(unmeasured):
+        np.save(mask, unmeasured)
+    elif mask.is_file():
+        mask.unlink()
     cached.with_suffix(".json").write_text(json.dumps({"key": key, "info": info}, indent=2))
     return mesh, cached, {**info, "cached": False}
+
+
+def unmeasured_file(mesh_path: Path, info: dict[str, Any]) -> Path | None:
+    """The per-triangle mask of surface nobody measured beside a mesh made from a cloud (None: the
+    mesh was given, or all of it lies on the scan)."""
+    um = info.get("unmeasured")
+    if not isinstance(um, dict) or not um.get("triangles"):
+        return None
+    return Path(mesh_path).parent / UNMEASURED_CACHE
+
+
+def load_unmeasured(path: Path | None, triangles: int) -> np.ndarray | None:
+    """The mask `unmeasured_file` names, checked against the mesh's triangle count."""
+    if path is None:
+        return None
+    try:
+        mask = np.load(path)
+    except (OSError, ValueError) as exc:
+        raise EvaluationError(f"{path}: cannot read the mask of unmeasured reference surface "
+                              f"({exc})") from exc
+    if mask.dtype != np.bool_ or mask.shape != (triangles,):
+        raise EvaluationError(f"{path}: the mask of unmeasured surface has {mask.shape} {mask.dtype} "
+                              "entries, "
+                              f"the reference mesh {triangles} triangles (delete the folder's "
+                              f"{MESH_CACHE} and mesh again)")
+    return np.asarray(mask)
 
 
 def appearance_image(mesh: Any, intr: Intrinsics, pose: np.ndarray) -> np.ndarray | None:

@@ -17,6 +17,8 @@ from depthstation.evaluate.scan.figures import frame_figure, grid_figure
 from depthstation.evaluate.scan.reference import appearance_image
 from depthstation.evaluate.scan.study import ChunkResult, StudyConfig, evaluate_chunk, frame_images
 
+UNMEASURED_PIXELS = 0.01  # of the evaluated pixels on unmeasured reference surface: worth a warning
+
 if TYPE_CHECKING:
     from depthstation.evaluate.scan.run import ScanJob
 
@@ -60,6 +62,14 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
     figures["sequence_grid"] = grid_figure(grid, out / "fig10_sequence_grid.png", opt.min_count_sequence,
                                            f"Fig. 10: {source.name} ({stream}, {len(result.used)} frames); "
                                            f"{job.registration.caption()}").name
+    unmeasured, evaluated = int(result.stats[5]), int(result.stats[3])
+    if evaluated and unmeasured > UNMEASURED_PIXELS * evaluated:
+        warn(f"{100 * unmeasured / evaluated:.1f} % of the pixels with depth and a reference hit "
+             f"({unmeasured} of {evaluated}) saw reference surface that lies more than "
+             f"{1000 * opt.surface_gap_m:.0f} mm off every scanned point (Poisson's invention): left out of "
+             "the grid, so its cells miss those distances and inclinations (--surface-gap-m 0 keeps them, "
+             "with the meshing's error)",
+             str(job.reference), "unmeasured-surface")
     if grid.total == 0:
         warn(f"no pixel was gridded: {result.stats[3]} pixels had depth and a reference hit, of "
              f"{result.stats[0]} in {len(result.used)} frames; check the depth units, the trajectory's "

@@ -38,7 +38,13 @@ from depthstation.evaluate.scan.chunks import (
     split_last,
 )
 from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, check_renderer
-from depthstation.evaluate.scan.reference import PoissonParams, reference_mesh, sample_reference_points
+from depthstation.evaluate.scan.reference import (
+    SURFACE_GAP_M,
+    PoissonParams,
+    reference_mesh,
+    sample_reference_points,
+    unmeasured_file,
+)
 from depthstation.evaluate.scan.registration import (
     REGISTER_MODES,
     NoPosedFrame,
@@ -89,6 +95,7 @@ class ScanOptions:
     poisson_depth: int = 9
     density_quantile: float = 0.05
     poisson_threads: int = 1
+    surface_gap_m: float = SURFACE_GAP_M
     depth_topic: str | None = None      # ROS recordings: topics (None: the realsense-ros layout)
     color_topic: str | None = None
     infrared_topic: str | None = None
@@ -121,6 +128,9 @@ class ScanOptions:
             raise InputError(None, f"--pose-tolerance-s must be 0 or more seconds, not {self.tolerance_s}")
         if self.figure_frame is not None and self.figure_frame < 0:
             raise InputError(None, f"--figure-frame counts from 0, not {self.figure_frame}")
+        if not (math.isfinite(self.surface_gap_m) and self.surface_gap_m >= 0):
+            raise InputError(None, f"--surface-gap-m must be 0 (keep all the meshed surface) or more metres, "
+                                   f"not {self.surface_gap_m}")
         if self.poisson_threads < 0:
             raise InputError(None, "--poisson-threads must be 0 (all cores) or more, "
                                    f"not {self.poisson_threads}")
@@ -211,7 +221,7 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     pass_points = read_pass_points(opt.pass_points) if opt.pass_points is not None else None
     mesh, mesh_path, mesh_info = reference_mesh(
         Path(reference), out, PoissonParams(depth=opt.poisson_depth, density_quantile=opt.density_quantile,
-                                         threads=opt.poisson_threads),
+                                         threads=opt.poisson_threads, surface_gap_m=opt.surface_gap_m),
         viewpoints=camera_centres(given, similarity, pass_points))
     say_meshing(mesh_info, Path(reference))
     # far-away coordinates (survey frames) are shifted before anything is registered or cast
@@ -235,7 +245,7 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                          every=opt.every, max_frames=opt.frames, tolerance_s=opt.tolerance_s,
                          nthreads=0 if in_process else 1,
                          per_frame_dir=out / PER_FRAME_DIR if opt.per_frame_grids else None,
-                         renderer=opt.renderer)
+                         renderer=opt.renderer, unmeasured=unmeasured_file(mesh_path, mesh_info))
     fit = fit_check(renderer_for(mesh_path, source.info.depth_intrinsics, config), source, posed,
                     tolerance_s=opt.tolerance_s)
     say_registration(reg, fit, Path(sequence))
@@ -287,11 +297,17 @@ def say_meshing(mesh_info: dict[str, Any], reference: Path) -> None:
     gap = mesh_info.get("surface_to_points")
     if not isinstance(gap, dict) or gap.get("share_beyond_gap", 0.0) <= UNMEASURED_SHARE:
         return
+    um = mesh_info.get("unmeasured")
+    triangles = int(um.get("triangles", 0)) if isinstance(um, dict) else 0
+    effect = (f"its {triangles} triangles are kept as occluders, and the pixels that see them are left "
+              "out of the grid (summary: pixels.unmeasured_surface; --surface-gap-m 0 keeps them)"
+              if triangles else
+              "pixels that see it compare with a surface nobody measured, and their cells' u95 does not "
+              "include that (--surface-gap-m leaves them out)")
     warn(f"{100 * gap['share_beyond_gap']:.1f} % of the reference mesh made from the cloud lies more than "
          f"{1000 * gap['gap_m']:.0f} mm off the scanned surface (up to {1000 * gap['max_m']:.0f} mm: "
-         "Poisson's rounded edges and closed holes): pixels that see it compare with a surface nobody "
-         "measured, and their cells' u95 does not include that (raise --density-quantile, or give a "
-         "mesh)", str(reference), "reference-meshing")
+         f"Poisson's rounded edges and closed holes): {effect}; raise --density-quantile, or give a mesh",
+         str(reference), "reference-meshing")
 
 
 def say_registration(reg: Registration, fit: FitCheck | None, sequence: Path) -> None:

@@ -30,8 +30,9 @@ PER_FRAME_DIR = "frame_grids"
 
 @dataclass(frozen=True)
 class StudyConfig:
-    """Grid bins, frame selection and pose matching; the renderer ('raster' or 'raycast') and
-    Open3D's ray-casting threads per process."""
+    """Grid bins, frame selection and pose matching; the renderer ('raster' or 'raycast'),
+    Open3D's ray-casting threads per process, and the mesh's unmeasured triangles (a file, so that
+    worker processes read it as they read the mesh)."""
 
     distance_bin_m: float = 0.005
     inclination_bin_deg: float = 0.1
@@ -43,6 +44,7 @@ class StudyConfig:
     nthreads: int = 0
     per_frame_dir: Path | None = None
     renderer: str = "raster"
+    unmeasured: Path | None = None  # per-triangle mask of reference surface nobody scanned (.npy)
 
     def empty_grid(self) -> Grid:
         return Grid.empty(self.distance_bin_m, self.inclination_bin_deg, self.distance_max_m,
@@ -208,7 +210,7 @@ def fit_check(caster: FrameRenderer, source: FrameSource, trajectory: Trajectory
         images = frame_images(caster, source, trajectory, k, tolerance_s)
         if images is None:
             continue
-        has_depth = np.isfinite(images.measured_m)
+        has_depth = np.isfinite(images.measured_m) & ~images.unmeasured  # the grid's pixels only
         ok = has_depth & np.isfinite(images.reference_m)
         measured += int(np.count_nonzero(has_depth))
         missed += int(np.count_nonzero(has_depth & ~ok))
