@@ -11,6 +11,7 @@ than a millimetre (rounded to 1 mm).
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 from typing import Any
 
@@ -123,6 +124,21 @@ def test_a_lens_the_station_cannot_invert_is_refused(standpoint: tuple[Path, dic
     assert code == 2
     assert str(bag) in err and "kannala_brandt4" in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_a_lens_model_none_with_coefficients_is_said(standpoint: tuple[Path, dict[str, Any]], tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """A CameraInfo whose distortion_model is empty (no model) but whose D is the lens: read as the
+    model says (no lens), and the user told, since unrectified images would sit on wrong rays."""
+    src, truth = standpoint
+    bag = tmp_path / "nomodel"
+    lens_render.write_ros2_bag(src, bag, truth, distortion_model="", d=tuple(truth["lens"]))
+    code, _, err = _cli(["evaluate", "checkerboard", str(bag), "--board", str(src / "board.json"),
+                         "--out", str(tmp_path / "r")], capsys)
+    assert code == 0, err
+    assert "lens model 'none' with non-zero coefficients" in err and str(bag) in err
+    info = json.loads((tmp_path / "r" / "result.json").read_text())
+    assert any(w["code"] == "lens-model-none" for w in info["warnings"])
 
 
 def test_rectified_topics_are_read_without_the_raw_distortion(tmp_path: Path,

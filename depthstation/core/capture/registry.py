@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from depthstation.core.camera_model import model_name
 from depthstation.core.capture import mcap_writer as mw
 from depthstation.core.capture.mcap_reader import MCAP_MAGIC, open_mcap
 from depthstation.core.capture.png_folder import is_png_folder, open_png
@@ -24,6 +25,7 @@ from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.capture.tum_folder import is_tum_folder, open_tum_folder
 from depthstation.core.errors import InputError
 from depthstation.core.results import fingerprint
+from depthstation.core.run_warnings import warn
 
 
 @dataclass(frozen=True)
@@ -90,6 +92,11 @@ def check_lenses(rec: Recording, streams: Sequence[str] = ("depth", "colour")) -
         problem = None if intr is None else intr.lens_problem()
         if problem:
             raise InputError(rec.path, f"{stream} intrinsics: {problem}")
+        if intr is not None and model_name(intr.model) == "none" and any(c != 0.0 for c in intr.coeffs):
+            warn(f"{stream} intrinsics: lens model 'none' with non-zero coefficients "
+                 f"({', '.join(f'{c:g}' for c in intr.coeffs)}): read as no lens, as the model says. If "
+                 "the images are not rectified, every pixel sits on the wrong ray: give the model "
+                 "(brown_conrady, plumb_bob, rational_polynomial)", str(rec.path), "lens-model-none")
 
 
 def _open_recording(path: Path, intrinsics: Path | None, topics: TopicChoice | None) -> Recording:
