@@ -71,6 +71,10 @@ def scan(
                                         help="Threads for meshing a cloud: 1 gives the same mesh from "
                                              "the same cloud on every run; 0 uses all cores (faster, "
                                              "but the mesh differs by micrometres from run to run)."),
+    poses_of: str = typer.Option("depth", "--poses-of",
+                                 help="The camera the trajectory describes: 'depth' (the depth stream's) or "
+                                      "'color' (RGB-D SLAM on depth aligned to colour, e.g. ORB-SLAM3 on a "
+                                      "RealSense); moved to the depth camera by the recording's extrinsics."),
     surface_gap_m: float = typer.Option(0.01, "--surface-gap-m",
                                         help="A cloud's meshed triangles with a vertex this far (m) off the "
                                              "scanned points' planes are surface nobody measured: they still "
@@ -97,7 +101,7 @@ def scan(
                        min_count_sequence=min_count_sequence, figure_frame=figure_frame,
                        intrinsics=intrinsics, poisson_depth=poisson_depth,
                        density_quantile=density_quantile, poisson_threads=poisson_threads,
-                       surface_gap_m=surface_gap_m, force=force, depth_topic=depth_topic,
+                       surface_gap_m=surface_gap_m, poses_of=poses_of, force=force, depth_topic=depth_topic,
                        color_topic=color_topic, infrared_topic=infrared_topic, renderer=renderer,
                        target=RerunTarget(rrd, spawn, serve, force))
     s = run_scan(sequence, poses, reference, out, opts)

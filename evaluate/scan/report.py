@@ -90,6 +90,7 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
         "registration": reg.to_dict(),
         "registration_caption": reg.caption(),
         "fit_check": None if job.fit is None else job.fit.to_dict(),
+        "poses_camera": job.camera,
         "local_shift": (reg.local.to_dict() if reg.local is not None
                         else {"reference_m": [0.0, 0.0, 0.0], "trajectory_m": [0.0, 0.0, 0.0]}),
         "frames": {"used": len(result.used), "skipped_no_pose": len(result.no_pose),

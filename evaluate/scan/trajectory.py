@@ -58,6 +58,12 @@ class Trajectory:
         out[:, :3, 3] = (s * (r @ self.poses[:, :3, 3].T)).T + t
         return Trajectory(self.timestamps_s.copy(), out)
 
+    def camera_moved(self, camera_to_given: NDArray[np.float64]) -> Trajectory:
+        """Poses of another camera on the same rig: T_world_other = T_world_given @ camera_to_given
+        (4x4 rigid, points of the other camera into the given one's frame)."""
+        move = np.asarray(camera_to_given, dtype=np.float64)
+        return Trajectory(self.timestamps_s.copy(), self.poses @ move)
+
     def translated(self, offset: NDArray[np.float64]) -> Trajectory:
         """The same poses with `offset` added to every camera centre (float64)."""
         out = self.poses.copy()
