@@ -41,6 +41,9 @@ def explain(
     register: str = typer.Option("none", "--register",
                                  help="--scan: none (trajectory as given), rigid or similarity (its scale "
                                       "is reported as the depth-scale error it absorbs)."),
+    poses_of: str = typer.Option("depth", "--poses-of",
+                                 help="--scan: the camera the trajectory describes, 'depth' or 'color' "
+                                      "(RGB-D SLAM on depth aligned to colour), as evaluate scan."),
     icp: bool | None = typer.Option(None, "--icp/--no-icp", help="--scan, deprecated: --icp is --register "
                                                                  "similarity, --no-icp --register none."),
     block_frames: int | None = typer.Option(None, "--block-frames",
@@ -76,13 +79,15 @@ def explain(
         raise InputError(None, f"--frames must be at least 3, not {frames} (the noise tests need a temporal "
                                "variance over 3 frames or more)")
     if scan:
-        mode = ScanOptions(register=register, icp=icp).register_mode
+        scan_opt = ScanOptions(register=register, icp=icp, poses_of=poses_of)
+        scan_opt.check()
+        mode = scan_opt.register_mode
         if mode == "pass-points":   # evaluate scan's --pass-points has no counterpart here
             raise InputError(None, "explain --scan registers with none, rigid or similarity; pass-points "
                                    "registration is evaluate scan's (--pass-points FILE): give the "
                                    "trajectory in the reference frame, or --similarity M")
         _explain_scan(real, poses, reference, model, out, frames or EXPLAIN_FRAMES, seed, similarity, mode,
-                      block_frames, not no_resimulate, force, topics, discover)
+                      block_frames, not no_resimulate, force, topics, discover, poses_of)
         return
     if board is None:
         raise InputError(None, "--board is needed for checkerboard sessions")
@@ -122,7 +127,7 @@ def _discovered_text(data: dict[str, object]) -> str:
 def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, model: str, out: Path,
                   frames: int, seed: int, similarity: Path | None, register: str, block_frames: int | None,
                   resimulate: bool, force: bool, topics: TopicChoice | None = None,
-                  discover: bool = True) -> None:
+                  discover: bool = True, poses_of: str = "depth") -> None:
     """`explain --scan`: a reference-scan sequence against its simulation along the same trajectory."""
 
     if len(real) != 1:
@@ -144,9 +149,10 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
     with result_folder(out, force=force, inputs=inputs, kind="explain-scan") as tmp:
         ex = explain_scan(real[0], poses, reference, mdl, tmp, frames=frames, block_frames=block_frames,
                           seed=seed, register=register, similarity=similarity, resimulate=resimulate,
-                          discovery=discover, tick=tick, topics=topics)
+                          discovery=discover, tick=tick, topics=topics, poses_of=poses_of)
         data = write_scan_outputs(ex, tmp, [str(p) for p in inputs],
                                   {"model": model, "frames": frames, "seed": seed, "register": register,
+                                   "poses_of": poses_of,
                                    "block_frames": block_frames, "discover": discover,
                                    "similarity": str(similarity) if similarity else None})
     verdict = "significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch"

@@ -443,13 +443,14 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
                  register: str = "none",
                  similarity: Path | None = None, resimulate: bool = True, tolerance_s: float = 0.01,
                  discovery: bool = True, tick: Progress | None = None,
-                 topics: TopicChoice | None = None) -> ScanExplanation:
+                 topics: TopicChoice | None = None, poses_of: str = "depth") -> ScanExplanation:
     """Evaluate the real sequence and its simulation in frame blocks, locate, attribute, re-simulate."""
 
     if tick:
         tick("prepare: reference mesh and registration")
     job = prepare_scan(sequence, poses, reference, out,
                        ScanOptions(similarity=similarity, register=register, tolerance_s=tolerance_s,
+                                   poses_of=poses_of,
                                    depth_topic=topics.depth if topics else None,
                                    color_topic=topics.color if topics else None,
                                    infrared_topic=topics.infrared if topics else None))
