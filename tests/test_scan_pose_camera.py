@@ -1,7 +1,9 @@
-"""Which camera of the rig the trajectory describes. RGB-D SLAM on depth aligned to colour (ORB-SLAM3
-on a RealSense, as in the paper) gives the colour camera's poses; put on the depth camera's rays they
-are off by the lever arm (59 mm on a D455), an error that grows with the inclination. The study
-checks the other camera's poses on the data and says so; `--poses-of color` moves them."""
+"""Which camera of the rig the trajectory describes, and on which clock. RGB-D SLAM on depth
+aligned to colour (ORB-SLAM3 on a RealSense, as in the paper) gives the colour camera's poses; put
+on the depth camera's rays they are off by the lever arm (59 mm on a D455), an error that grows
+with the inclination. The study checks the other camera's poses on the data and says so;
+`--poses-of color` moves them. Poses stamped a frame or two off the frames' clock are found the
+same way (`--pose-offset-s`)."""
 
 from __future__ import annotations
 
@@ -39,17 +41,19 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Path:
     t = np.asarray(seq.timestamps_ns) * 1e-9
     write_tum(root / "depth_poses.txt", t, seq.poses)
     write_tum(root / "colour_poses.txt", t, seq.poses @ np.linalg.inv(colour_from_depth))
+    write_tum(root / "late_poses.txt", t + 2 / seq.info.fps, seq.poses)  # another clock, 2 frames late
     np.savetxt(root / "identity.txt", np.eye(4))
     open3d().io.write_triangle_mesh(str(root / "room.ply"), Room().mesh(segments=128))
     return root
 
 
-def _study(root: Path, poses: str, poses_of: str = "depth") -> tuple[ScanJob, Grid, list[RunWarning]]:
+def _study(root: Path, poses: str, poses_of: str = "depth",
+           offset_s: float = 0.0) -> tuple[ScanJob, Grid, list[RunWarning]]:
     opt = ScanOptions(similarity=root / "identity.txt", distance_bin_m=0.25, inclination_bin_deg=5.0,
-                      min_count_sequence=20, poses_of=poses_of)
+                      min_count_sequence=20, poses_of=poses_of, pose_offset_s=offset_s)
     with collecting() as said, ChunkRunner(1) as runner:
-        job = prepare_scan(root / "seq.mcap", root / poses, root / "room.ply", root / f"{poses}_{poses_of}",
-                           opt)
+        job = prepare_scan(root / "seq.mcap", root / poses, root / "room.ply",
+                           root / f"{poses}_{poses_of}_{offset_s:g}", opt)
         grid = run_prepared(job, runner).grid
     return job, grid, list(said)
 
@@ -60,7 +64,7 @@ def _mean(g: Grid) -> float:
 
 def test_depth_poses_are_used_as_they_are_and_checked(rig: Path) -> None:
     job, _, said = _study(rig, "depth_poses.txt")
-    assert not [w for w in said if w.code == "poses-camera"], said
+    assert not [w for w in said if w.code in ("poses-camera", "pose-time")], said
     cam: dict[str, Any] = job.camera
     assert cam["checked"] and cam["poses_of"] == "depth" and cam["other"] == "color"
     assert cam["lever_arm_m"] == pytest.approx(0.0591, abs=1e-3)
@@ -101,3 +105,16 @@ def test_an_unknown_camera_is_a_usage_error(rig: Path, tmp_path: Path,
                          str(tmp_path / "r"), "--poses-of", "infrared"], capsys)
     assert code == 2 and "--poses-of" in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_poses_on_a_clock_two_frames_late_are_found_and_offset(rig: Path) -> None:
+    truth = _study(rig, "depth_poses.txt")[1]
+    job, _, said = _study(rig, "late_poses.txt")
+    warned = [w for w in said if w.code == "pose-time"]
+    assert len(warned) == 1 and "--pose-offset-s -0.0667" in warned[0].message, said
+    assert job.camera["time"]["better_offset_s"] == pytest.approx(-2 / 30, abs=1e-6)
+    job, grid, said = _study(rig, "late_poses.txt", offset_s=-2 / 30)
+    assert not [w for w in said if w.code == "pose-time"], said
+    assert np.abs(grid.count - truth.count).sum() <= 4
+    both = (grid.count >= 20) & (truth.count >= 20)
+    np.testing.assert_allclose(grid.mean[both], truth.mean[both], atol=1e-6)

@@ -47,6 +47,10 @@ def scan(
                                        help="Address of a Dask distributed scheduler (tcp://host:8786)."),
     chunk_frames: int = typer.Option(64, "--chunk-frames", min=1, help="Frames per task."),
     tolerance_s: float = typer.Option(0.01, "--pose-tolerance-s", help="Max |t_frame - t_pose| (s)."),
+    pose_offset_s: float = typer.Option(0.0, "--pose-offset-s",
+                                        help="Seconds added to the trajectory's time stamps (its clock onto "
+                                             "the frames'); the study suggests one when the poses fit better "
+                                             "shifted by a frame or two."),
     intrinsics: Path | None = typer.Option(None, "--intrinsics",
                                            help="Intrinsics file for a TUM folder (camera.json or "
                                                 "'fx fy cx cy \\[w h] \\[factor]')."),
@@ -95,7 +99,7 @@ def scan(
     opts = ScanOptions(similarity=similarity, pass_points=pass_points, register=register, icp=icp,
                        icp_band_m=(icp_min_m, icp_max_m), frames=frames, every=every,
                        per_frame_grids=per_frame_grids, workers=workers, cluster=cluster,
-                       chunk_frames=chunk_frames, tolerance_s=tolerance_s,
+                       chunk_frames=chunk_frames, tolerance_s=tolerance_s, pose_offset_s=pose_offset_s,
                        distance_bin_m=distance_bin_m, inclination_bin_deg=inclination_bin_deg,
                        distance_max_m=distance_max_m, min_count_frame=min_count_frame,
                        min_count_sequence=min_count_sequence, figure_frame=figure_frame,

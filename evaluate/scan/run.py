@@ -84,6 +84,7 @@ class ScanOptions:
     cluster: str | None = None
     chunk_frames: int = 64
     tolerance_s: float = 0.01
+    pose_offset_s: float = 0.0  # added to the trajectory's time stamps (its clock onto the frames')
     distance_bin_m: float = 0.005
     inclination_bin_deg: float = 0.1
     distance_max_m: float = 6.0
@@ -132,6 +133,8 @@ class ScanOptions:
         if not (math.isfinite(self.surface_gap_m) and self.surface_gap_m >= 0):
             raise InputError(None, f"--surface-gap-m must be 0 (keep all the meshed surface) or more metres, "
                                    f"not {self.surface_gap_m}")
+        if not math.isfinite(self.pose_offset_s):
+            raise InputError(None, f"--pose-offset-s must be a number of seconds, not {self.pose_offset_s}")
         if self.poses_of not in POSES_OF:
             raise InputError(None, f"--poses-of must be one of {', '.join(sorted(set(POSES_OF)))}, "
                                    f"not '{self.poses_of}'")
@@ -221,6 +224,8 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
         raise InputError(Path(sequence), f"--figure-frame {opt.figure_frame}: the sequence has {n_frames} "
                                          f"frames (0 to {n_frames - 1})")
     given = read_tum(Path(poses))
+    if opt.pose_offset_s:
+        given = Trajectory(given.timestamps_s + opt.pose_offset_s, given.poses)
     check_clocks(source, given, Path(poses), opt.tolerance_s)
     rig = depth_to_colour(source)
     depth_poses = given.camera_moved(rig) if POSES_OF[opt.poses_of] == "color" and rig is not None else given
@@ -262,6 +267,8 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     say_registration(reg, fit, Path(sequence))
     camera = check_pose_camera(renderer, source, posed, fit, rig, POSES_OF[opt.poses_of], opt.tolerance_s,
                                Path(sequence))
+    camera["time"] = check_pose_time(renderer, source, posed, fit, opt.tolerance_s, opt.pose_offset_s,
+                                     Path(sequence))
     t_reg = time.perf_counter()
     chunks = split_last(scan_chunks(Path(sequence), mesh_path, posed, config, chunk_frames=opt.chunk_frames,
                                     intrinsics=opt.intrinsics, source=source, topics=opt.topics))
@@ -312,6 +319,68 @@ def depth_to_colour(source: Recording) -> NDArray[np.float64] | None:
     None where it is the identity (aligned depth, or no extrinsics recorded)."""
     m = np.asarray(source.info.depth_to_color.matrix, dtype=np.float64)
     return None if np.allclose(m, np.eye(4), atol=1e-9) else m
+
+
+MAX_SHIFT_FRAMES = 5  # frame periods the search for a better clock offset goes out to
+
+
+def check_pose_time(renderer: Any, source: Recording, posed: Trajectory, fit: FitCheck | None,
+                    tolerance_s: float, offset_s: float, sequence: Path) -> dict[str, Any]:
+    """The trajectory's clock against the frames', checked on the data: poses stamped a frame or two
+    late or early (a tracker on another clock, an off-by-one association) put each frame at a
+    neighbour's pose. While the camera turns that is tens of millimetres at a few metres, yet
+    inside the fit check's limits. The stamps are tried one frame period either way, and further
+    (up to MAX_SHIFT_FRAMES) the way the fit improves; a shift that fits clearly better is a
+    warning naming the `--pose-offset-s` that gives it. Two extra fit checks when the clock is right."""
+    period = 1.0 / source.info.fps if source.info.fps else None
+    out: dict[str, Any] = {"offset_s": offset_s}
+    if fit is None or period is None or not np.isfinite(fit.median_abs_error_m):
+        return {**out, "checked": False, "reason": "no fit check or no frame rate"}
+    tried: dict[str, dict[str, float]] = {}
+
+    def at(k: int) -> FitCheck | None:
+        alt = fit_check(renderer, source, Trajectory(posed.timestamps_s + k * period, posed.poses),
+                        tolerance_s=tolerance_s)
+        if alt is None or not np.isfinite(alt.median_abs_error_m):
+            return None
+        tried[f"{k * period:+.6f}"] = {"median_abs_error_m": alt.median_abs_error_m,
+                                       "off_share": alt.off_share}
+        return alt
+
+    def clearly_better(alt: FitCheck | None) -> bool:
+        return (alt is not None and fit is not None
+                and alt.median_abs_error_m < OTHER_CAMERA_GAIN * fit.median_abs_error_m
+                and alt.off_share <= fit.off_share)
+
+    # the better side of the clock as given, then further that way while the fit improves
+    best: tuple[int, FitCheck] | None = None
+    for step in (-1, 1):
+        alt = at(step)
+        if alt is not None and alt.median_abs_error_m < fit.median_abs_error_m and (
+                best is None or alt.median_abs_error_m < best[1].median_abs_error_m):
+            best = (step, alt)
+    while best is not None and abs(best[0]) < MAX_SHIFT_FRAMES:
+        k = best[0] + (1 if best[0] > 0 else -1)
+        nxt = at(k)
+        if nxt is None or nxt.median_abs_error_m >= best[1].median_abs_error_m:
+            break
+        best = (k, nxt)
+    if best is not None and not clearly_better(best[1]):
+        best = None
+    out.update({"checked": True, "period_s": period, "tried_shifts_s": tried})
+    if best is None:
+        out["better_offset_s"] = None
+        return out
+    frames_off, alt = best
+    shift = frames_off * period
+    out["better_offset_s"] = offset_s + shift
+    warn(f"the trajectory fits the reference better with its time stamps shifted by about "
+         f"{1000 * shift:+.0f} ms ({frames_off:+d} frames): median |error| "
+         f"{1000 * alt.median_abs_error_m:.1f} mm against {1000 * fit.median_abs_error_m:.1f} mm "
+         "as given. The poses' clock is off the frames' (another clock, an association off by "
+         f"frames): give --pose-offset-s {offset_s + shift:+.4f} if so (near the best shift the "
+         "camera's own noise flattens the fit: try a frame either side)", str(sequence), "pose-time")
+    return out
 
 
 def check_pose_camera(renderer: Any, source: Recording, posed: Trajectory, fit: FitCheck | None,
