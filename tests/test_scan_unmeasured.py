@@ -166,6 +166,8 @@ def test_the_study_leaves_out_what_poisson_invented_and_says_so(table_scanned_fr
     assert kept["reference_mesh"]["unmeasured"]["triangles"] == 0
     assert not (w["root"] / "kept" / UNMEASURED_CACHE).exists()
     assert any(x.code == "reference-meshing" and "left out of the grid" in x.message for x in said), said
+    share = px_left["unmeasured_surface"] / (px_left["binned"] + px_left["unmeasured_surface"])
+    assert (share > 0.01) == any(x.code == "unmeasured-surface" for x in said), (share, said)
     info = json.loads((w["root"] / "left" / "result.json").read_text())
     assert info["parameters"]["surface_gap_m"] == 0.01
 
@@ -198,3 +200,121 @@ def test_the_pixels_left_out_are_those_whose_reference_is_off(table_scanned_from
         n_kept += int(kept.sum())
     assert n_left > 50 and n_kept > 10 * n_left
     assert off_left / n_left > 10 * (off_kept / n_kept), (off_left, n_left, off_kept, n_kept)
+
+
+def test_ties_on_a_shared_edge_leave_out_the_same_pixels_with_either_renderer() -> None:
+    """A plane split along a diagonal that runs through pixel centres: rays on it meet both
+    triangles at one depth, and ray casting's choice decides whether the pixel is left out."""
+    o3d = open3d()
+    v = np.array([[-1, -1, 2], [1, -1, 2], [1, 1, 2], [-1, 1, 2]], dtype=np.float64)
+    t = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t))
+    depth = np.full((INTR.height, INTR.width), 2000, np.uint16)
+    for mask in (np.array([True, False]), np.array([False, True])):
+        seen = {}
+        for name in ("raster", "raycast"):
+            r = make_renderer(name, mesh, INTR, 1, unmeasured=mask)
+            _, normals = r.cast(np.eye(4))
+            cells = CellAccumulator.for_grid(Grid.empty(0.05, 1.0, 6.0, 90.0))
+            stats = np.zeros(len(STAT_NAMES), np.int64)
+            r.bin_frame(np.eye(4), depth, 0.001, cells, stats)
+            seen[name] = (np.isnan(normals[:, 0]).copy(), stats)
+        np.testing.assert_array_equal(seen["raster"][0], seen["raycast"][0])
+        np.testing.assert_array_equal(seen["raster"][1], seen["raycast"][1])
+        assert 0 < seen["raster"][1][UNMEASURED] == seen["raster"][0].sum()
+
+
+def test_threads_and_worker_processes_leave_out_the_same_pixels(tmp_path: Path) -> None:
+    """The mask travels to worker processes as a file beside the mesh, and to thread siblings."""
+    from depthstation.core.parallel import ChunkRunner
+    from depthstation.evaluate.scan.chunks import clear_cache, run_scan_chunks
+    from depthstation.evaluate.scan.study import StudyConfig
+    from depthstation.evaluate.scan.trajectory import Trajectory
+
+    mesh = Room().mesh(segments=64)
+    open3d().io.write_triangle_mesh(str(tmp_path / "room.ply"), mesh)
+    floor = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)].mean(axis=1)[:, 2] < 1e-6
+    np.save(tmp_path / "mask.npy", floor)
+    seq = make_sequence(frames=6, width=48, height=36, seed=3)
+    write_mcap(tmp_path / "seq.mcap", seq.info, seq.frames())
+    traj = Trajectory(np.asarray(seq.timestamps_ns) * 1e-9, seq.poses)
+    out = {}
+    for workers in (1, 2):
+        clear_cache()
+        config = StudyConfig(0.1, 5.0, 6.0, 90.0, nthreads=0 if workers == 1 else 1,
+                             unmeasured=tmp_path / "mask.npy")
+        with ChunkRunner(workers) as runner:
+            res = run_scan_chunks(tmp_path / "seq.mcap", tmp_path / "room.ply", traj, config, runner,
+                                  chunk_frames=2)
+        out[workers] = res
+    assert out[1].stats[UNMEASURED] > 100
+    np.testing.assert_array_equal(out[1].stats, out[2].stats)
+    np.testing.assert_array_equal(out[1].grid.count, out[2].grid.count)
+    np.testing.assert_allclose(out[1].grid.mean, out[2].grid.mean, atol=1e-12)
+
+
+def test_the_fit_check_counts_neither_miss_nor_error_on_unmeasured_surface() -> None:
+    from depthstation.evaluate.scan.study import fit_check
+    from depthstation.evaluate.scan.trajectory import Trajectory
+
+    mesh = Room().mesh(segments=64)
+    floor = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)].mean(axis=1)[:, 2] < 1e-6
+    seq = make_sequence(frames=4, width=48, height=36, seed=3)
+    traj = Trajectory(np.asarray(seq.timestamps_ns) * 1e-9, seq.poses)
+    plain = fit_check(make_renderer("raster", mesh, seq.info.depth_intrinsics), seq, traj, frames=4)
+    masked_r = make_renderer("raster", mesh, seq.info.depth_intrinsics, unmeasured=floor)
+    masked = fit_check(masked_r, seq, traj, frames=4)
+    assert plain is not None and masked is not None
+    on_floor = sum(int(masked_r.images(p, fs.depth, seq.info.depth_units_m).unmeasured.sum())
+                   for fs, p in zip(seq.frames(), seq.poses, strict=True))
+    assert on_floor > 100 and masked.pixels == plain.pixels - on_floor
+    assert masked.miss_share == plain.miss_share == 0.0
+
+
+def test_the_mask_is_kept_with_the_cached_mesh_and_checked(table_scanned_from_above: dict[str, Any],
+                                                            tmp_path: Path) -> None:
+    from depthstation.core.errors import EvaluationError
+    from depthstation.evaluate.scan.reference import (
+        PoissonParams,
+        load_unmeasured,
+        reference_mesh,
+        unmeasured_file,
+    )
+
+    cloud = table_scanned_from_above["root"] / "cloud.ply"
+    params = PoissonParams(depth=7, density_quantile=0.0)
+    inside = np.array([[3.0, 2.5, 1.5]])  # where the cloud's normals face (else a slow orientation)
+    mesh, path, info = reference_mesh(cloud, tmp_path, params, viewpoints=inside)
+    assert not info["cached"] and info["unmeasured"]["triangles"] > 0
+    mask_path = unmeasured_file(path, info)
+    assert mask_path == tmp_path / UNMEASURED_CACHE and mask_path.is_file()
+    assert load_unmeasured(mask_path, len(mesh.triangles)).sum() == info["unmeasured"]["triangles"]
+    assert reference_mesh(cloud, tmp_path, params, viewpoints=inside)[2]["cached"]
+    mask_path.unlink()  # a cache without its mask is meshed again
+    _, _, again = reference_mesh(cloud, tmp_path, params, viewpoints=inside)
+    assert not again["cached"] and mask_path.is_file()
+    with pytest.raises(EvaluationError, match="triangles"):
+        load_unmeasured(mask_path, len(mesh.triangles) + 1)
+    no_gap = PoissonParams(depth=7, density_quantile=0.0, surface_gap_m=0.0)
+    _, _, kept = reference_mesh(cloud, tmp_path, no_gap, viewpoints=inside)
+    assert kept["unmeasured"]["triangles"] == 0 and not mask_path.exists()
+
+
+def test_a_negative_gap_is_bad_input() -> None:
+    from depthstation.core.errors import InputError
+
+    with pytest.raises(InputError, match="--surface-gap-m"):
+        ScanOptions(surface_gap_m=-0.01).check()
+
+
+def test_registration_fits_to_the_measured_part_only(tmp_path: Path) -> None:
+    from depthstation.evaluate.scan.reference import measured_part
+
+    o3d = open3d()
+    v, t = _wall_and_panel()
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(t))
+    np.save(tmp_path / "m.npy", np.array([False, False, True, True]))
+    part = measured_part(mesh, tmp_path / "m.npy")
+    assert len(part.triangles) == 2 and np.allclose(np.asarray(part.vertices)[:, 2], 3.0)
+    assert len(mesh.triangles) == 4  # the study's own mesh keeps the panel as an occluder
+    assert measured_part(mesh, None) is mesh

@@ -40,7 +40,7 @@ def frame_figure(images: FrameImages, path: Path, title: str = "",
     err_mm = np.where(unmeasured, np.nan, images.error_m * 1000.0)  # as the grid: not those pixels
     finite = err_mm[np.isfinite(err_mm)]
     lim = float(np.percentile(np.abs(finite), 98)) if finite.size else 1.0
-    blank = " (grey: surface not scanned)" if unmeasured.any() else ""
+    blank = " (grey: no surface, or not scanned)" if unmeasured.any() else ""
     panels = [
         (images.measured_m, "(a) measured depth", "depth (m)", "viridis", 0.0, vmax),
         (images.reference_m, "(b) reference depth (ray cast)", "depth (m)", "viridis", 0.0, vmax),

@@ -65,8 +65,13 @@ class MeshRasteriser(FrameRenderer):
         the table, so no per-pixel normal array is gathered (7 MB written and read per frame)."""
         self.raster.render(self.intr, np.asarray(pose, dtype=np.float64), self._t, self._ids, None)
         table = self.raster.normal_table()
-        if self._unmeasured_ids is not None:  # the winners' normals were just written: blanked again
-            table[self._unmeasured_ids] = np.nan
+        um = self._unmeasured_ids
+        if um is not None and self.unmeasured is not None:  # the winners' normals were just written
+            if um.size <= self._ids.size // 4:
+                table[um] = np.nan
+            else:  # many unmeasured triangles: only those hit this frame (a pass over the pixels)
+                hit = self._ids[self._ids >= 0]
+                table[hit[self.unmeasured[hit]]] = np.nan
         return self._t, self._ids, table
 
     def describe(self) -> dict[str, Any]:

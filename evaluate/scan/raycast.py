@@ -282,8 +282,8 @@ def cos_edges(grid: Grid) -> NDArray[np.float64]:
 _COS_CACHE: dict[tuple[int, float, float], NDArray[np.float64]] = {}
 _GUESS_CACHE: dict[tuple[int, float, float], Any] = {}
 
-# unmeasured_surface: evaluated pixels whose hit triangle is reference surface nobody scanned
-# (`reference.unmeasured_triangles`), left out of the grid
+# unmeasured_surface: pixels within the grid's distance range whose hit triangle is reference
+# surface nobody scanned (`reference.unmeasured_triangles`), left out of the grid
 STAT_NAMES = ("pixels", "no_depth", "no_hit", "evaluated", "binned", "unmeasured_surface")
 _NO_MOMENTS = FrameMoments.zeros((1, 1))  # a stand-in the pass does not touch (moments not kept)
 

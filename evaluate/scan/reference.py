@@ -14,6 +14,7 @@ rides on the cloud (and Poisson carries it to the mesh) for the figures.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 from dataclasses import dataclass
@@ -445,6 +446,18 @@ def appearance_image(mesh: Any, intr: Intrinsics, pose: np.ndarray) -> np.ndarra
     u, v = uv[hit, 0:1], uv[hit, 1:2]
     out[hit] = (1.0 - u - v) * col[tri[:, 0]] + u * col[tri[:, 1]] + v * col[tri[:, 2]]
     return out.reshape(intr.height, intr.width, 3)
+
+
+def measured_part(mesh: Any, unmeasured: Path | None) -> Any:
+    """The mesh without its triangles of surface nobody scanned (`unmeasured_file`), for the
+    registration: fitted to Poisson's own surface, a pose would move every pixel of the study."""
+    if unmeasured is None:
+        return mesh
+    mask = load_unmeasured(unmeasured, len(mesh.triangles))
+    part = copy.deepcopy(mesh)
+    part.remove_triangles_by_mask(mask)
+    part.remove_unreferenced_vertices()
+    return part
 
 
 def sample_reference_points(mesh: Any, n: int = 400_000, seed: int = 0) -> Any:

@@ -62,14 +62,13 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
     figures["sequence_grid"] = grid_figure(grid, out / "fig10_sequence_grid.png", opt.min_count_sequence,
                                            f"Fig. 10: {source.name} ({stream}, {len(result.used)} frames); "
                                            f"{job.registration.caption()}").name
-    unmeasured, evaluated = int(result.stats[5]), int(result.stats[3])
-    if evaluated and unmeasured > UNMEASURED_PIXELS * evaluated:
-        warn(f"{100 * unmeasured / evaluated:.1f} % of the pixels with depth and a reference hit "
-             f"({unmeasured} of {evaluated}) saw reference surface that lies more than "
-             f"{1000 * opt.surface_gap_m:.0f} mm off every scanned point (Poisson's invention): left out of "
-             "the grid, so its cells miss those distances and inclinations (--surface-gap-m 0 keeps them, "
-             "with the meshing's error)",
-             str(job.reference), "unmeasured-surface")
+    unmeasured, in_range = int(result.stats[5]), int(result.stats[4] + result.stats[5])
+    if in_range and unmeasured > UNMEASURED_PIXELS * in_range:
+        warn(f"{100 * unmeasured / in_range:.1f} % of the pixels within the grid's range ({unmeasured} of "
+             f"{in_range}) saw reference triangles with a vertex more than {1000 * opt.surface_gap_m:.0f} mm "
+             "off the scanned surface (surface Poisson made up, and its borders): left out of the grid, so "
+             "its cells miss those distances and inclinations (--surface-gap-m 0 keeps them, with the "
+             "meshing's error)", str(job.reference), "unmeasured-surface")
     if grid.total == 0:
         warn(f"no pixel was gridded: {result.stats[3]} pixels had depth and a reference hit, of "
              f"{result.stats[0]} in {len(result.used)} frames; check the depth units, the trajectory's "

@@ -41,6 +41,7 @@ from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, check_rendere
 from depthstation.evaluate.scan.reference import (
     SURFACE_GAP_M,
     PoissonParams,
+    measured_part,
     reference_mesh,
     sample_reference_points,
     unmeasured_file,
@@ -246,8 +247,10 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                         local_shift(centres.min(axis=0), centres.max(axis=0)))
     traj = depth_poses.translated(-local.trajectory_m)
     t_mesh = time.perf_counter()
+    unmeasured = unmeasured_file(mesh_path, mesh_info)
+    scanned = measured_part(mesh, unmeasured)  # fitted to, and its fit measured on, what was scanned
     try:
-        reg = register(source, traj, mesh, sample_reference_points(mesh), mode=opt.register_mode,
+        reg = register(source, traj, scanned, sample_reference_points(scanned), mode=opt.register_mode,
                        similarity=similarity, pass_points=pass_points, band_m=opt.icp_band_m,
                        tolerance_s=opt.tolerance_s, every=opt.icp_every, local=local if local.any else None)
     except NoPosedFrame as exc:  # the trajectory's stamps sit between the frames' (another rate, an offset)
@@ -261,7 +264,7 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                          every=opt.every, max_frames=opt.frames, tolerance_s=opt.tolerance_s,
                          nthreads=0 if in_process else 1,
                          per_frame_dir=out / PER_FRAME_DIR if opt.per_frame_grids else None,
-                         renderer=opt.renderer, unmeasured=unmeasured_file(mesh_path, mesh_info))
+                         renderer=opt.renderer, unmeasured=unmeasured)
     renderer = renderer_for(mesh_path, source.info.depth_intrinsics, config)
     fit = fit_check(renderer, source, posed, tolerance_s=opt.tolerance_s)
     say_registration(reg, fit, Path(sequence))
