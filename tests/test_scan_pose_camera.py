@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 from console import run_console as _cli
+from scipy.spatial.transform import Rotation
 
 from depthstation.core.camera_model import Extrinsics
 from depthstation.core.capture.mcap_writer import write_mcap
@@ -42,18 +43,24 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Path:
     write_tum(root / "depth_poses.txt", t, seq.poses)
     write_tum(root / "colour_poses.txt", t, seq.poses @ np.linalg.inv(colour_from_depth))
     write_tum(root / "late_poses.txt", t + 2 / seq.info.fps, seq.poses)  # another clock, 2 frames late
+    # world-to-camera with the quaternion's w first (COLMAP's images.txt order), by the test's own hand
+    w2c = np.linalg.inv(seq.poses)
+    q = Rotation.from_matrix(w2c[:, :3, :3]).as_quat()  # x y z w
+    rows = np.column_stack([t, w2c[:, :3, 3], q[:, 3], q[:, :3]])
+    np.savetxt(root / "colmap_poses.txt", rows, fmt="%.9f", header="timestamp tx ty tz qw qx qy qz")
     np.savetxt(root / "identity.txt", np.eye(4))
     open3d().io.write_triangle_mesh(str(root / "room.ply"), Room().mesh(segments=128))
     return root
 
 
-def _study(root: Path, poses: str, poses_of: str = "depth",
-           offset_s: float = 0.0) -> tuple[ScanJob, Grid, list[RunWarning]]:
+def _study(root: Path, poses: str, poses_of: str = "depth", offset_s: float = 0.0,
+           convention: str = "tum") -> tuple[ScanJob, Grid, list[RunWarning]]:
     opt = ScanOptions(similarity=root / "identity.txt", distance_bin_m=0.25, inclination_bin_deg=5.0,
-                      min_count_sequence=20, poses_of=poses_of, pose_offset_s=offset_s)
+                      min_count_sequence=20, poses_of=poses_of, pose_offset_s=offset_s,
+                      pose_convention=convention)
     with collecting() as said, ChunkRunner(1) as runner:
         job = prepare_scan(root / "seq.mcap", root / poses, root / "room.ply",
-                           root / f"{poses}_{poses_of}_{offset_s:g}", opt)
+                           root / f"{poses}_{poses_of}_{offset_s:g}_{convention}", opt)
         grid = run_prepared(job, runner).grid
     return job, grid, list(said)
 
@@ -115,6 +122,19 @@ def test_poses_on_a_clock_two_frames_late_are_found_and_offset(rig: Path) -> Non
     assert job.camera["time"]["better_offset_s"] == pytest.approx(-2 / 30, abs=1e-6)
     job, grid, said = _study(rig, "late_poses.txt", offset_s=-2 / 30)
     assert not [w for w in said if w.code == "pose-time"], said
+    assert np.abs(grid.count - truth.count).sum() <= 4
+    both = (grid.count >= 20) & (truth.count >= 20)
+    np.testing.assert_allclose(grid.mean[both], truth.mean[both], atol=1e-6)
+
+
+def test_world_to_camera_poses_with_w_first_are_named_and_read(rig: Path) -> None:
+    truth = _study(rig, "depth_poses.txt")[1]
+    job, _, said = _study(rig, "colmap_poses.txt")
+    named = [w for w in said if w.code == "pose-convention"]
+    assert len(named) == 1 and "--pose-convention inverse-wxyz" in named[0].message, said
+    assert job.camera["convention"]["fits_as"] == "inverse-wxyz"
+    job, grid, said = _study(rig, "colmap_poses.txt", convention="inverse-wxyz")
+    assert job.fit is not None and job.fit.fits and not [w for w in said if w.code == "pose-convention"]
     assert np.abs(grid.count - truth.count).sum() <= 4
     both = (grid.count >= 20) & (truth.count >= 20)
     np.testing.assert_allclose(grid.mean[both], truth.mean[both], atol=1e-6)

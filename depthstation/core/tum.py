@@ -13,11 +13,12 @@ from depthstation.core.geometry import quaternion_to_matrix
 from depthstation.core.text_files import read_text
 
 
-def read_tum_poses(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+def read_tum_poses(path: Path, wxyz: bool = False) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Time stamps (s, increasing) and camera-to-world 4x4 poses of a TUM trajectory. Comment (#)
     and blank lines are skipped; lines are taken in time order; the same line twice is kept once,
     two different poses at one time are refused; non-finite values and zero quaternions are
-    refused naming their line."""
+    refused naming their line. `wxyz`: the file's quaternion columns are qw qx qy qz (Eigen's
+    coefficient order and several trackers'), not TUM's qx qy qz qw."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "trajectory file not found")
@@ -63,7 +64,7 @@ def read_tum_poses(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64]
         a = a[keep]
     poses = np.tile(np.eye(4), (a.shape[0], 1, 1))
     for i, row in enumerate(a):
-        q = row[4:8]
+        q = row[[5, 6, 7, 4]] if wxyz else row[4:8]
         poses[i, :3, :3] = quaternion_to_matrix(q / np.linalg.norm(q))
         poses[i, :3, 3] = row[1:4]
     return a[:, 0], poses

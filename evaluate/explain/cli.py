@@ -41,6 +41,11 @@ def explain(
     register: str = typer.Option("none", "--register",
                                  help="--scan: none (trajectory as given), rigid or similarity (its scale "
                                       "is reported as the depth-scale error it absorbs)."),
+    pose_convention: str = typer.Option("tum", "--pose-convention",
+                                        help="--scan: how the pose file's lines are meant (tum, wxyz, "
+                                             "inverse, inverse-wxyz), as evaluate scan."),
+    pose_offset_s: float = typer.Option(0.0, "--pose-offset-s",
+                                        help="--scan: seconds added to the trajectory's time stamps."),
     poses_of: str = typer.Option("depth", "--poses-of",
                                  help="--scan: the camera the trajectory describes, 'depth' or 'color' "
                                       "(RGB-D SLAM on depth aligned to colour), as evaluate scan."),
@@ -79,7 +84,8 @@ def explain(
         raise InputError(None, f"--frames must be at least 3, not {frames} (the noise tests need a temporal "
                                "variance over 3 frames or more)")
     if scan:
-        scan_opt = ScanOptions(register=register, icp=icp, poses_of=poses_of)
+        scan_opt = ScanOptions(register=register, icp=icp, poses_of=poses_of, pose_convention=pose_convention,
+                               pose_offset_s=pose_offset_s)
         scan_opt.check()
         mode = scan_opt.register_mode
         if mode == "pass-points":   # evaluate scan's --pass-points has no counterpart here
@@ -87,7 +93,7 @@ def explain(
                                    "registration is evaluate scan's (--pass-points FILE): give the "
                                    "trajectory in the reference frame, or --similarity M")
         _explain_scan(real, poses, reference, model, out, frames or EXPLAIN_FRAMES, seed, similarity, mode,
-                      block_frames, not no_resimulate, force, topics, discover, poses_of)
+                      block_frames, not no_resimulate, force, topics, discover, scan_opt)
         return
     if board is None:
         raise InputError(None, "--board is needed for checkerboard sessions")
@@ -127,8 +133,10 @@ def _discovered_text(data: dict[str, object]) -> str:
 def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, model: str, out: Path,
                   frames: int, seed: int, similarity: Path | None, register: str, block_frames: int | None,
                   resimulate: bool, force: bool, topics: TopicChoice | None = None,
-                  discover: bool = True, poses_of: str = "depth") -> None:
-    """`explain --scan`: a reference-scan sequence against its simulation along the same trajectory."""
+                  discover: bool = True, pose_opt: ScanOptions | None = None) -> None:
+    """`explain --scan`: a reference-scan sequence against its simulation along the same trajectory.
+    `pose_opt`: how the trajectory is read (--poses-of, --pose-convention, --pose-offset-s)."""
+    pose_opt = pose_opt or ScanOptions()
 
     if len(real) != 1:
         raise InputError(None, "--scan takes exactly one sequence")
@@ -149,10 +157,11 @@ def _explain_scan(real: list[Path], poses: Path | None, reference: Path | None, 
     with result_folder(out, force=force, inputs=inputs, kind="explain-scan") as tmp:
         ex = explain_scan(real[0], poses, reference, mdl, tmp, frames=frames, block_frames=block_frames,
                           seed=seed, register=register, similarity=similarity, resimulate=resimulate,
-                          discovery=discover, tick=tick, topics=topics, poses_of=poses_of)
+                          discovery=discover, tick=tick, topics=topics, pose_opt=pose_opt)
         data = write_scan_outputs(ex, tmp, [str(p) for p in inputs],
                                   {"model": model, "frames": frames, "seed": seed, "register": register,
-                                   "poses_of": poses_of,
+                                   "poses_of": pose_opt.poses_of, "pose_convention": pose_opt.pose_convention,
+                                   "pose_offset_s": pose_opt.pose_offset_s,
                                    "block_frames": block_frames, "discover": discover,
                                    "similarity": str(similarity) if similarity else None})
     verdict = "significant mismatch" if data["mismatch"]["significant"] else "no significant mismatch"

@@ -443,14 +443,18 @@ def explain_scan(sequence: Path, poses: Path, reference: Path, model: SensorMode
                  register: str = "none",
                  similarity: Path | None = None, resimulate: bool = True, tolerance_s: float = 0.01,
                  discovery: bool = True, tick: Progress | None = None,
-                 topics: TopicChoice | None = None, poses_of: str = "depth") -> ScanExplanation:
-    """Evaluate the real sequence and its simulation in frame blocks, locate, attribute, re-simulate."""
+                 topics: TopicChoice | None = None,
+                 pose_opt: ScanOptions | None = None) -> ScanExplanation:
+    """Evaluate the real sequence and its simulation in frame blocks, locate, attribute, re-simulate.
+    `pose_opt`: how the trajectory is read (its poses_of, pose_convention, pose_offset_s)."""
+    read = pose_opt or ScanOptions()
 
     if tick:
         tick("prepare: reference mesh and registration")
     job = prepare_scan(sequence, poses, reference, out,
                        ScanOptions(similarity=similarity, register=register, tolerance_s=tolerance_s,
-                                   poses_of=poses_of,
+                                   poses_of=read.poses_of, pose_convention=read.pose_convention,
+                                   pose_offset_s=read.pose_offset_s,
                                    depth_topic=topics.depth if topics else None,
                                    color_topic=topics.color if topics else None,
                                    infrared_topic=topics.infrared if topics else None))

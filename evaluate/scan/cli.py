@@ -75,6 +75,11 @@ def scan(
                                         help="Threads for meshing a cloud: 1 gives the same mesh from "
                                              "the same cloud on every run; 0 uses all cores (faster, "
                                              "but the mesh differs by micrometres from run to run)."),
+    pose_convention: str = typer.Option("tum", "--pose-convention",
+                                        help="How the pose file's lines are meant: tum (camera-to-world, "
+                                             "qx qy qz qw), wxyz (qw first), inverse (world-to-camera), "
+                                             "inverse-wxyz (COLMAP's). The study names another that fits "
+                                             "where the given one does not."),
     poses_of: str = typer.Option("depth", "--poses-of",
                                  help="The camera the trajectory describes: 'depth' (the depth stream's) or "
                                       "'color' (RGB-D SLAM on depth aligned to colour, e.g. ORB-SLAM3 on a "
@@ -105,7 +110,8 @@ def scan(
                        min_count_sequence=min_count_sequence, figure_frame=figure_frame,
                        intrinsics=intrinsics, poisson_depth=poisson_depth,
                        density_quantile=density_quantile, poisson_threads=poisson_threads,
-                       surface_gap_m=surface_gap_m, poses_of=poses_of, force=force, depth_topic=depth_topic,
+                       surface_gap_m=surface_gap_m, poses_of=poses_of,
+                       pose_convention=pose_convention, force=force, depth_topic=depth_topic,
                        color_topic=color_topic, infrared_topic=infrared_topic, renderer=renderer,
                        target=RerunTarget(rrd, spawn, serve, force))
     s = run_scan(sequence, poses, reference, out, opts)

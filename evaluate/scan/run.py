@@ -65,7 +65,13 @@ from depthstation.evaluate.scan.study import (
     StudyConfig,
     fit_check,
 )
-from depthstation.evaluate.scan.trajectory import LocalFrames, Trajectory, local_shift, read_tum
+from depthstation.evaluate.scan.trajectory import (
+    POSE_CONVENTIONS,
+    LocalFrames,
+    Trajectory,
+    local_shift,
+    read_tum,
+)
 
 
 @dataclass
@@ -99,6 +105,7 @@ class ScanOptions:
     poisson_threads: int = 1
     surface_gap_m: float = SURFACE_GAP_M
     poses_of: str = "depth"  # the camera the trajectory describes: 'depth' or 'color' (RGB-D SLAM)
+    pose_convention: str = "tum"  # how the pose file's lines are meant (trajectory.POSE_CONVENTIONS)
     depth_topic: str | None = None      # ROS recordings: topics (None: the realsense-ros layout)
     color_topic: str | None = None
     infrared_topic: str | None = None
@@ -136,6 +143,9 @@ class ScanOptions:
                                    f"not {self.surface_gap_m}")
         if not math.isfinite(self.pose_offset_s):
             raise InputError(None, f"--pose-offset-s must be a number of seconds, not {self.pose_offset_s}")
+        if self.pose_convention not in POSE_CONVENTIONS:
+            raise InputError(None, f"--pose-convention must be one of {', '.join(POSE_CONVENTIONS)}, "
+                                   f"not '{self.pose_convention}'")
         if self.poses_of not in POSES_OF:
             raise InputError(None, f"--poses-of must be one of {', '.join(sorted(set(POSES_OF)))}, "
                                    f"not '{self.poses_of}'")
@@ -224,12 +234,10 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     if opt.figure_frame is not None and n_frames and opt.figure_frame >= n_frames:
         raise InputError(Path(sequence), f"--figure-frame {opt.figure_frame}: the sequence has {n_frames} "
                                          f"frames (0 to {n_frames - 1})")
-    given = read_tum(Path(poses))
-    if opt.pose_offset_s:
-        given = Trajectory(given.timestamps_s + opt.pose_offset_s, given.poses)
-    check_clocks(source, given, Path(poses), opt.tolerance_s)
+    given = read_tum(Path(poses), opt.pose_convention)
+    check_clocks(source, given.shifted(opt.pose_offset_s), Path(poses), opt.tolerance_s)
     rig = depth_to_colour(source)
-    depth_poses = given.camera_moved(rig) if POSES_OF[opt.poses_of] == "color" and rig is not None else given
+    depth_poses = depth_camera_poses(given, opt, rig)
     if POSES_OF[opt.poses_of] == "color" and rig is None:
         warn("--poses-of color: the recording's depth-to-colour extrinsics are the identity (depth aligned "
              "to colour, or none recorded): the poses are used as the depth camera's", str(sequence),
@@ -272,6 +280,9 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                                Path(sequence))
     camera["time"] = check_pose_time(renderer, source, posed, fit, opt.tolerance_s, opt.pose_offset_s,
                                      Path(sequence))
+    if reg.mode not in ("rigid", "similarity") and not local.any:  # poses used as read, then moved
+        camera["convention"] = check_pose_convention(renderer, source, fit, Path(poses), opt, rig,
+                                                     reg.matrix, Path(sequence))
     t_reg = time.perf_counter()
     chunks = split_last(scan_chunks(Path(sequence), mesh_path, posed, config, chunk_frames=opt.chunk_frames,
                                     intrinsics=opt.intrinsics, source=source, topics=opt.topics))
@@ -322,6 +333,53 @@ def depth_to_colour(source: Recording) -> NDArray[np.float64] | None:
     None where it is the identity (aligned depth, or no extrinsics recorded)."""
     m = np.asarray(source.info.depth_to_color.matrix, dtype=np.float64)
     return None if np.allclose(m, np.eye(4), atol=1e-9) else m
+
+
+def depth_camera_poses(given: Trajectory, opt: ScanOptions, rig: NDArray[np.float64] | None) -> Trajectory:
+    """The trajectory as read, on the frames' clock (`--pose-offset-s`) and of the depth camera
+    (`--poses-of`)."""
+    out = given.shifted(opt.pose_offset_s)
+    return out.camera_moved(rig) if POSES_OF[opt.poses_of] == "color" and rig is not None else out
+
+
+CONVENTION_GAIN = 0.5  # another reading's median |error| at most this share of the given one's
+
+
+def check_pose_convention(renderer: Any, source: Recording, fit: FitCheck | None, poses: Path,
+                          opt: ScanOptions, rig: NDArray[np.float64] | None, matrix: NDArray[np.float64],
+                          sequence: Path) -> dict[str, Any]:
+    """Where the trajectory does not fit the reference: would it, read another way? A file of
+    world-to-camera poses (COLMAP's images.txt order) or with the quaternion's w first fits nowhere
+    as TUM; the fit check says only that it does not fit. Each other reading is fit-checked (with
+    the same fixed transform to the reference); one that fits is a warning naming it."""
+    out: dict[str, Any] = {"given": opt.pose_convention}
+    if fit is None or fit.fits:
+        return {**out, "checked": False, "reason": "the trajectory fits as given"}
+    tried: dict[str, dict[str, Any]] = {}
+    best: tuple[str, FitCheck] | None = None
+    for name in POSE_CONVENTIONS:
+        if name == opt.pose_convention:
+            continue
+        alt_poses = depth_camera_poses(read_tum(poses, name), opt, rig).transformed(matrix)
+        alt = fit_check(renderer, source, alt_poses, tolerance_s=opt.tolerance_s)
+        if alt is None:
+            continue
+        tried[name] = alt.to_dict()
+        if alt.fits and (best is None or alt.median_abs_error_m < best[1].median_abs_error_m):
+            best = (name, alt)
+    out.update({"checked": True, "tried": tried})
+    clear = best is not None and (not np.isfinite(fit.median_abs_error_m)
+                                  or best[1].median_abs_error_m < CONVENTION_GAIN * fit.median_abs_error_m)
+    if best is None or not clear:
+        out["fits_as"] = None
+        return out
+    name, alt = best
+    out["fits_as"] = name
+    warn(f"the trajectory fits the reference when its lines are read as {POSE_CONVENTIONS[name]}: "
+         f"median |error| {1000 * alt.median_abs_error_m:.1f} mm, {100 * alt.off_share:.0f} % of the pixels "
+         f"off, against {100 * fit.off_share:.0f} % as {POSE_CONVENTIONS[opt.pose_convention]}: give "
+         f"--pose-convention {name}", str(poses), "pose-convention")
+    return out
 
 
 MAX_SHIFT_FRAMES = 5  # frame periods the search for a better clock offset goes out to

@@ -58,6 +58,12 @@ class Trajectory:
         out[:, :3, 3] = (s * (r @ self.poses[:, :3, 3].T)).T + t
         return Trajectory(self.timestamps_s.copy(), out)
 
+    def shifted(self, offset_s: float) -> Trajectory:
+        """The same poses with `offset_s` added to every time stamp (the poses' clock onto another)."""
+        if not offset_s:
+            return self
+        return Trajectory(self.timestamps_s + offset_s, self.poses.copy())
+
     def camera_moved(self, camera_to_given: NDArray[np.float64]) -> Trajectory:
         """Poses of another camera on the same rig: T_world_other = T_world_given @ camera_to_given
         (4x4 rigid, points of the other camera into the given one's frame)."""
@@ -136,9 +142,22 @@ def compose_similarity(s: float, r: NDArray[np.float64], t: NDArray[np.float64])
     return m
 
 
-def read_tum(path: Path) -> Trajectory:
-    """Read a TUM trajectory (`core.tum.read_tum_poses`: the one reader of the format)."""
-    stamps, poses = read_tum_poses(Path(path))
+# how a pose file's lines are meant: TUM's (camera-to-world, qx qy qz qw) and the mistakes users'
+# files make most (world-to-camera poses, e.g. COLMAP's; the quaternion's w first)
+POSE_CONVENTIONS = {
+    "tum": "camera-to-world, qx qy qz qw (TUM)",
+    "wxyz": "camera-to-world, qw qx qy qz",
+    "inverse": "world-to-camera, qx qy qz qw",
+    "inverse-wxyz": "world-to-camera, qw qx qy qz (COLMAP's order)",
+}
+
+
+def read_tum(path: Path, convention: str = "tum") -> Trajectory:
+    """Read a TUM trajectory (`core.tum.read_tum_poses`: the one reader of the format), its lines
+    meant as `convention` says (POSE_CONVENTIONS), as camera-to-world poses."""
+    stamps, poses = read_tum_poses(Path(path), wxyz=convention.endswith("wxyz"))
+    if convention.startswith("inverse"):
+        poses = np.asarray(np.linalg.inv(poses), dtype=np.float64)
     return Trajectory(stamps, poses)
 
 
