@@ -2,8 +2,8 @@
 aligned to colour (ORB-SLAM3 on a RealSense, as in the paper) gives the colour camera's poses; put
 on the depth camera's rays they are off by the lever arm (59 mm on a D455), an error that grows
 with the inclination. The study checks the other camera's poses on the data and says so;
-`--poses-of color` moves them. Poses stamped a frame or two off the frames' clock are found the
-same way (`--pose-offset-s`)."""
+`--poses-of color` moves them; `--pose-offset-s` moves the poses' clock, `--pose-convention`
+reads world-to-camera and w-first files, and a file that fits only read so is named."""
 
 from __future__ import annotations
 
@@ -42,7 +42,7 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Path:
     t = np.asarray(seq.timestamps_ns) * 1e-9
     write_tum(root / "depth_poses.txt", t, seq.poses)
     write_tum(root / "colour_poses.txt", t, seq.poses @ np.linalg.inv(colour_from_depth))
-    write_tum(root / "late_poses.txt", t + 2 / seq.info.fps, seq.poses)  # another clock, 2 frames late
+    write_tum(root / "late_poses.txt", t + 2 / seq.info.fps, seq.poses)  # a clock 2 frames late
     # world-to-camera with the quaternion's w first (COLMAP's images.txt order), by the test's own hand
     w2c = np.linalg.inv(seq.poses)
     q = Rotation.from_matrix(w2c[:, :3, :3]).as_quat()  # x y z w
@@ -71,7 +71,7 @@ def _mean(g: Grid) -> float:
 
 def test_depth_poses_are_used_as_they_are_and_checked(rig: Path) -> None:
     job, _, said = _study(rig, "depth_poses.txt")
-    assert not [w for w in said if w.code in ("poses-camera", "pose-time")], said
+    assert not [w for w in said if w.code == "poses-camera"], said
     cam: dict[str, Any] = job.camera
     assert cam["checked"] and cam["poses_of"] == "depth" and cam["other"] == "color"
     assert cam["lever_arm_m"] == pytest.approx(0.0591, abs=1e-3)
@@ -114,17 +114,65 @@ def test_an_unknown_camera_is_a_usage_error(rig: Path, tmp_path: Path,
     assert len(err.strip().splitlines()) == 1
 
 
-def test_poses_on_a_clock_two_frames_late_are_found_and_offset(rig: Path) -> None:
+def test_pose_offset_moves_the_poses_clock_onto_the_frames(rig: Path) -> None:
     truth = _study(rig, "depth_poses.txt")[1]
-    job, _, said = _study(rig, "late_poses.txt")
-    warned = [w for w in said if w.code == "pose-time"]
-    assert len(warned) == 1 and "--pose-offset-s -0.0667" in warned[0].message, said
-    assert job.camera["time"]["better_offset_s"] == pytest.approx(-2 / 30, abs=1e-6)
-    job, grid, said = _study(rig, "late_poses.txt", offset_s=-2 / 30)
-    assert not [w for w in said if w.code == "pose-time"], said
+    job, grid, _ = _study(rig, "late_poses.txt", offset_s=-2 / 30)
+    assert job.camera["offset_s"] == pytest.approx(-2 / 30)
     assert np.abs(grid.count - truth.count).sum() <= 4
     both = (grid.count >= 20) & (truth.count >= 20)
     np.testing.assert_allclose(grid.mean[both], truth.mean[both], atol=1e-6)
+
+
+def test_after_icp_the_other_camera_is_not_checked_and_says_why(rig: Path) -> None:
+    opt = ScanOptions(register="rigid", distance_bin_m=0.25, inclination_bin_deg=5.0, min_count_sequence=20)
+    with collecting():
+        job = prepare_scan(rig / "seq.mcap", rig / "colour_poses.txt", rig / "room.ply", rig / "icp", opt)
+    assert job.camera["checked"] is False and "ICP" in job.camera["reason"]
+
+
+@pytest.mark.parametrize("aligned", [True, False])
+def test_poses_of_color_on_one_camera_or_without_extrinsics(rig: Path, tmp_path: Path, aligned: bool) -> None:
+    """Depth aligned to colour is the colour camera's: nothing to move, nothing to say. A recording
+    without extrinsics (identity) cannot move colour poses: said."""
+    seq = make_sequence(frames=4, width=48, height=36, seed=2)
+    info = dataclasses.replace(seq.info, depth_aligned_to_color=aligned)
+    write_mcap(tmp_path / "seq.mcap", info, seq.frames())
+    opt = ScanOptions(similarity=rig / "identity.txt", poses_of="color", min_count_sequence=20)
+    with collecting() as said:
+        job = prepare_scan(tmp_path / "seq.mcap", rig / "depth_poses.txt", rig / "room.ply", tmp_path / "r",
+                           opt)
+    assert job.camera["checked"] is False
+    assert ("aligned" in job.camera["reason"]) == aligned
+    assert any(w.code == "poses-camera" for w in said) == (not aligned), said
+
+
+REAL_BAG = Path(__file__).resolve().parents[2] / "shared" / "data" / "librealsense-d435-bag" / \
+    "single_depth_color_640x480.bag"
+
+
+def test_the_real_bags_rig_is_librealsenses_depth_to_colour() -> None:
+    """Our reader's depth_to_color of a real RealSense Viewer bag against pyrealsense2 playing the
+    same file (librealsense's own code): the transform --poses-of color and the check use."""
+    if not REAL_BAG.is_file():
+        pytest.skip(f"{REAL_BAG} is absent (../shared/data)")
+    rs = pytest.importorskip("pyrealsense2")
+    from depthstation.core.capture.registry import open_recording
+    from depthstation.evaluate.scan.run import depth_to_colour
+
+    dev = rs.context().load_device(str(REAL_BAG))
+    dev.as_playback().set_real_time(False)
+    profiles = {sp.stream_type(): sp for s in dev.query_sensors() for sp in s.get_stream_profiles()}
+    e = profiles[rs.stream.depth].get_extrinsics_to(profiles[rs.stream.color])
+    expected = np.eye(4)
+    expected[:3, :3] = np.asarray(e.rotation).reshape(3, 3).T  # librealsense stores it column-major
+    expected[:3, 3] = e.translation
+    rec = open_recording(REAL_BAG)
+    ours = depth_to_colour(rec)
+    assert ours is not None
+    np.testing.assert_allclose(ours, expected, atol=1e-6)
+    p = np.array([0.1, -0.2, 1.5])
+    np.testing.assert_allclose(ours[:3, :3] @ p + ours[:3, 3], rs.rs2_transform_point_to_point(e, list(p)),
+                               atol=1e-6)
 
 
 def test_world_to_camera_poses_with_w_first_are_named_and_read(rig: Path) -> None:

@@ -62,8 +62,10 @@ from depthstation.evaluate.scan.study import (
     PER_FRAME_DIR,
     ChunkResult,
     FitCheck,
+    FitSample,
     StudyConfig,
     fit_check,
+    fit_sample,
 )
 from depthstation.evaluate.scan.trajectory import (
     POSE_CONVENTIONS,
@@ -238,10 +240,10 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     check_clocks(source, given.shifted(opt.pose_offset_s), Path(poses), opt.tolerance_s)
     rig = depth_to_colour(source)
     depth_poses = depth_camera_poses(given, opt, rig)
-    if POSES_OF[opt.poses_of] == "color" and rig is None:
-        warn("--poses-of color: the recording's depth-to-colour extrinsics are the identity (depth aligned "
-             "to colour, or none recorded): the poses are used as the depth camera's", str(sequence),
-             "poses-camera")
+    if POSES_OF[opt.poses_of] == "color" and rig is None and not source.info.depth_aligned_to_color:
+        warn("--poses-of color: the recording carries no depth-to-colour extrinsics (or the identity): the "
+             "poses are used as the depth camera's, off by the rig's lever arm if they are the colour "
+             "camera's", str(sequence), "poses-camera")
     similarity = read_similarity(opt.similarity) if opt.similarity is not None else None
     pass_points = read_pass_points(opt.pass_points) if opt.pass_points is not None else None
     mesh, mesh_path, mesh_info = reference_mesh(
@@ -274,15 +276,16 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                          per_frame_dir=out / PER_FRAME_DIR if opt.per_frame_grids else None,
                          renderer=opt.renderer, unmeasured=unmeasured)
     renderer = renderer_for(mesh_path, source.info.depth_intrinsics, config)
-    fit = fit_check(renderer, source, posed, tolerance_s=opt.tolerance_s)
+    sample = fit_sample(source)  # read once: every reading of the poses below is checked on it
+    fit = fit_check(renderer, source, posed, tolerance_s=opt.tolerance_s, sample=sample)
     say_registration(reg, fit, Path(sequence))
+    fixed = reg.mode not in ("rigid", "similarity")  # poses used as read, then moved by a fixed transform
     camera = check_pose_camera(renderer, source, posed, fit, rig, POSES_OF[opt.poses_of], opt.tolerance_s,
-                               Path(sequence))
-    camera["time"] = check_pose_time(renderer, source, posed, fit, opt.tolerance_s, opt.pose_offset_s,
-                                     Path(sequence))
-    if reg.mode not in ("rigid", "similarity") and not local.any:  # poses used as read, then moved
+                               Path(sequence), sample, fixed)
+    camera["offset_s"] = opt.pose_offset_s
+    if fixed and not local.any:
         camera["convention"] = check_pose_convention(renderer, source, fit, Path(poses), opt, rig,
-                                                     reg.matrix, Path(sequence))
+                                                     reg.matrix, Path(sequence), sample)
     t_reg = time.perf_counter()
     chunks = split_last(scan_chunks(Path(sequence), mesh_path, posed, config, chunk_frames=opt.chunk_frames,
                                     intrinsics=opt.intrinsics, source=source, topics=opt.topics))
@@ -331,6 +334,8 @@ OTHER_CAMERA_GAIN = 0.75  # the other camera's median |error| at most this share
 def depth_to_colour(source: Recording) -> NDArray[np.float64] | None:
     """T_colour_depth (4x4: depth-camera points into the colour camera's frame) of the recording,
     None where it is the identity (aligned depth, or no extrinsics recorded)."""
+    if source.info.depth_aligned_to_color:  # one camera: the depth is the colour's
+        return None
     m = np.asarray(source.info.depth_to_color.matrix, dtype=np.float64)
     return None if np.allclose(m, np.eye(4), atol=1e-9) else m
 
@@ -347,7 +352,7 @@ CONVENTION_GAIN = 0.5  # another reading's median |error| at most this share of 
 
 def check_pose_convention(renderer: Any, source: Recording, fit: FitCheck | None, poses: Path,
                           opt: ScanOptions, rig: NDArray[np.float64] | None, matrix: NDArray[np.float64],
-                          sequence: Path) -> dict[str, Any]:
+                          sequence: Path, sample: FitSample | None = None) -> dict[str, Any]:
     """Where the trajectory does not fit the reference: would it, read another way? A file of
     world-to-camera poses (COLMAP's images.txt order) or with the quaternion's w first fits nowhere
     as TUM; the fit check says only that it does not fit. Each other reading is fit-checked (with
@@ -361,7 +366,7 @@ def check_pose_convention(renderer: Any, source: Recording, fit: FitCheck | None
         if name == opt.pose_convention:
             continue
         alt_poses = depth_camera_poses(read_tum(poses, name), opt, rig).transformed(matrix)
-        alt = fit_check(renderer, source, alt_poses, tolerance_s=opt.tolerance_s)
+        alt = fit_check(renderer, source, alt_poses, tolerance_s=opt.tolerance_s, sample=sample)
         if alt is None:
             continue
         tried[name] = alt.to_dict()
@@ -382,86 +387,33 @@ def check_pose_convention(renderer: Any, source: Recording, fit: FitCheck | None
     return out
 
 
-MAX_SHIFT_FRAMES = 5  # frame periods the search for a better clock offset goes out to
-
-
-def check_pose_time(renderer: Any, source: Recording, posed: Trajectory, fit: FitCheck | None,
-                    tolerance_s: float, offset_s: float, sequence: Path) -> dict[str, Any]:
-    """The trajectory's clock against the frames', checked on the data: poses stamped a frame or two
-    late or early (a tracker on another clock, an off-by-one association) put each frame at a
-    neighbour's pose. While the camera turns that is tens of millimetres at a few metres, yet
-    inside the fit check's limits. The stamps are tried one frame period either way, and further
-    (up to MAX_SHIFT_FRAMES) the way the fit improves; a shift that fits clearly better is a
-    warning naming the `--pose-offset-s` that gives it. Two extra fit checks when the clock is right."""
-    period = 1.0 / source.info.fps if source.info.fps else None
-    out: dict[str, Any] = {"offset_s": offset_s}
-    if fit is None or period is None or not np.isfinite(fit.median_abs_error_m):
-        return {**out, "checked": False, "reason": "no fit check or no frame rate"}
-    tried: dict[str, dict[str, float]] = {}
-
-    def at(k: int) -> FitCheck | None:
-        alt = fit_check(renderer, source, Trajectory(posed.timestamps_s + k * period, posed.poses),
-                        tolerance_s=tolerance_s)
-        if alt is None or not np.isfinite(alt.median_abs_error_m):
-            return None
-        tried[f"{k * period:+.6f}"] = {"median_abs_error_m": alt.median_abs_error_m,
-                                       "off_share": alt.off_share}
-        return alt
-
-    def clearly_better(alt: FitCheck | None) -> bool:
-        return (alt is not None and fit is not None
-                and alt.median_abs_error_m < OTHER_CAMERA_GAIN * fit.median_abs_error_m
-                and alt.off_share <= fit.off_share)
-
-    # the better side of the clock as given, then further that way while the fit improves
-    best: tuple[int, FitCheck] | None = None
-    for step in (-1, 1):
-        alt = at(step)
-        if alt is not None and alt.median_abs_error_m < fit.median_abs_error_m and (
-                best is None or alt.median_abs_error_m < best[1].median_abs_error_m):
-            best = (step, alt)
-    while best is not None and abs(best[0]) < MAX_SHIFT_FRAMES:
-        k = best[0] + (1 if best[0] > 0 else -1)
-        nxt = at(k)
-        if nxt is None or nxt.median_abs_error_m >= best[1].median_abs_error_m:
-            break
-        best = (k, nxt)
-    if best is not None and not clearly_better(best[1]):
-        best = None
-    out.update({"checked": True, "period_s": period, "tried_shifts_s": tried})
-    if best is None:
-        out["better_offset_s"] = None
-        return out
-    frames_off, alt = best
-    shift = frames_off * period
-    out["better_offset_s"] = offset_s + shift
-    warn(f"the trajectory fits the reference better with its time stamps shifted by about "
-         f"{1000 * shift:+.0f} ms ({frames_off:+d} frames): median |error| "
-         f"{1000 * alt.median_abs_error_m:.1f} mm against {1000 * fit.median_abs_error_m:.1f} mm "
-         "as given. The poses' clock is off the frames' (another clock, an association off by "
-         f"frames): give --pose-offset-s {offset_s + shift:+.4f} if so (near the best shift the "
-         "camera's own noise flattens the fit: try a frame either side)", str(sequence), "pose-time")
-    return out
-
-
 def check_pose_camera(renderer: Any, source: Recording, posed: Trajectory, fit: FitCheck | None,
                       rig: NDArray[np.float64] | None, poses_of: str, tolerance_s: float,
-                      sequence: Path) -> dict[str, Any]:
+                      sequence: Path, sample: FitSample | None = None, fixed: bool = True) -> dict[str, Any]:
     """Which camera of the rig the poses describe, checked on the data: RGB-D SLAM on depth aligned
     to colour (ORB-SLAM3 on a RealSense, as in the paper) tracks the colour camera, and its poses
     put on the depth camera's rays are off by the lever arm between the two (59 mm on a D455):
     an error that grows with the inclination, the very thing the grid measures. The other
-    camera's poses are fit-checked too; clearly better is a warning (`--poses-of`)."""
-    out: dict[str, Any] = {"poses_of": poses_of}
-    if rig is None or fit is None:
-        return {**out, "checked": False, "reason": "no depth-to-colour extrinsics in the recording"}
+    camera's poses are fit-checked too; clearly better is a warning (`--poses-of`). Not after a
+    registration fitted to the poses as read (`fixed` False): ICP has then taken part of the lever
+    arm into its transform, and the other camera's poses would need a registration of their own."""
+    out: dict[str, Any] = {"poses_of": poses_of, "other_fits_better": None}
+    if rig is None:
+        aligned = source.info.depth_aligned_to_color
+        return {**out, "checked": False, "reason": "depth aligned to colour: one camera" if aligned
+                else "no depth-to-colour extrinsics in the recording"}
     lever = float(np.linalg.norm(rig[:3, 3]))
     out["lever_arm_m"] = lever
+    if fit is None:
+        return {**out, "checked": False, "reason": "no fit check (no frame with a pose)"}
     if lever < RIG_MIN_M:
         return {**out, "checked": False, "reason": f"lever arm under {1000 * RIG_MIN_M:g} mm"}
+    if not fixed:
+        return {**out, "checked": False, "reason": "registered by ICP on the poses as read: the other "
+                                                   "camera's would need their own registration"}
     other = "color" if poses_of == "depth" else "depth"
     move = rig if poses_of == "depth" else np.asarray(np.linalg.inv(rig), dtype=np.float64)
-    alt = fit_check(renderer, source, posed.camera_moved(move), tolerance_s=tolerance_s)
+    alt = fit_check(renderer, source, posed.camera_moved(move), tolerance_s=tolerance_s, sample=sample)
     out.update({"checked": alt is not None, "other": other,
                 "fit_other": None if alt is None else alt.to_dict()})
     if alt is None or not np.isfinite(alt.median_abs_error_m) or not np.isfinite(fit.median_abs_error_m):
@@ -470,13 +422,15 @@ def check_pose_camera(renderer: Any, source: Recording, posed: Trajectory, fit: 
               and alt.off_share <= fit.off_share)
     out["other_fits_better"] = bool(better)
     if better:
+        why = ("RGB-D SLAM on depth aligned to colour tracks the colour camera" if other == "color" else
+               "a trajectory of the depth stream itself (depth-only SLAM, or poses already moved) is the "
+               "depth camera's")
         warn(f"the trajectory fits the reference better as the {other} camera's poses than as the "
              f"{poses_of} camera's (median |error| {1000 * alt.median_abs_error_m:.1f} mm against "
              f"{1000 * fit.median_abs_error_m:.1f} mm, {100 * alt.off_share:.0f} % of the pixels off "
              f"against {100 * fit.off_share:.0f} %; the rig's lever arm is {1000 * lever:.0f} mm, and its "
-             "error grows with the inclination): RGB-D SLAM on depth aligned to colour tracks the colour "
-             f"camera. Give --poses-of {other} if the trajectory is that camera's", str(sequence),
-             "poses-camera")
+             f"error grows with the inclination): {why}. Give --poses-of {other} if the trajectory is that "
+             "camera's", str(sequence), "poses-camera")
     return out
 
 

@@ -196,20 +196,44 @@ class FitCheck:
                         f"{FIT_MISS_SHARE:.0%} of the pixels with depth miss the reference"}
 
 
-def fit_check(caster: FrameRenderer, source: FrameSource, trajectory: Trajectory, *, frames: int = 10,
-              tolerance_s: float = 0.01) -> FitCheck | None:
-    """Cast `frames` frames spread over the sequence and count the pixels that miss the reference
-    by more than the depth noise explains; None when no frame has a pose."""
+@dataclass(frozen=True)
+class FitSample:
+    """The frames a fit check looks at (time stamp and depth), read in one pass over the sequence,
+    so that checking another reading of the poses costs renders, not passes over the file."""
+
+    timestamps_s: tuple[float, ...]
+    depths: tuple[NDArray[Any], ...]
+
+
+def fit_sample(source: FrameSource, frames: int = 10) -> FitSample:
+    """`frames` frames spread over the sequence (positions by linspace), with depth."""
     n = source.frame_count or 0
     picks = sorted({round(i) for i in np.linspace(0, max(n - 1, 0), frames)}) if n else list(range(frames))
+    want = set(picks)
+    stamps: list[float] = []
+    depths: list[NDArray[Any]] = []
+    for pos, fs in enumerate(source.frames(limit=max(picks) + 1 if picks else 0)):
+        if pos in want and fs.depth is not None:
+            stamps.append(fs.timestamp_ns * 1e-9)
+            depths.append(np.array(fs.depth, copy=True))
+    return FitSample(tuple(stamps), tuple(depths))
+
+
+def fit_check(caster: FrameRenderer, source: FrameSource, trajectory: Trajectory, *, frames: int = 10,
+              tolerance_s: float = 0.01, sample: FitSample | None = None) -> FitCheck | None:
+    """Cast `frames` frames spread over the sequence (or the `sample` given) and count the pixels
+    that miss the reference by more than the depth noise explains; None when no frame has a pose."""
+    sample = sample if sample is not None else fit_sample(source, frames)
     intr = caster.intr
     fb = intr.fx * (source.info.baseline_m or 0.05)
+    units = source.info.depth_units_m
     off = total = used = measured = missed = 0
     errors: list[NDArray[np.float32]] = []
-    for k in picks:
-        images = frame_images(caster, source, trajectory, k, tolerance_s)
-        if images is None:
+    for t_s, depth in zip(sample.timestamps_s, sample.depths, strict=True):
+        pose = trajectory.match(t_s, tolerance_s)
+        if pose is None:
             continue
+        images = caster.images(pose, depth, units)
         has_depth = np.isfinite(images.measured_m) & ~images.unmeasured  # the grid's pixels only
         ok = has_depth & np.isfinite(images.reference_m)
         measured += int(np.count_nonzero(has_depth))
