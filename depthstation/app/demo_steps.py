@@ -180,7 +180,7 @@ def _scan_step(ctx: DemoContext) -> tuple[Path, str]:
     write_tum(plan / "walk.txt", np.arange(len(poses)) / SCAN_SAMPLES_PER_S, poses)
     np.savetxt(plan / "similarity.txt", np.eye(4))
     capture = simulate_scan(scene, plan / "walk.txt", DEMO_MODEL, ctx.out / "scan-capture", seed=4,
-                            progress=True)
+                            fps=SCAN_SAMPLES_PER_S, progress=True)  # stamped as sampled: no rate warning
     out = ctx.out / "scan"
     summary = run_scan(capture / "sequence.mcap", capture / "trajectory.txt", capture / "scene.ply", out,
                        ScanOptions(similarity=plan / "similarity.txt", min_count_sequence=200,
