@@ -339,3 +339,33 @@ def test_a_topic_option_with_a_session_is_honoured_or_refused(simulated: dict[st
     own = ["--depth-topic", "/camera/depth/image_rect_raw"]
     code, _, err = _cli([*args, "--out", str(tmp_path / "b"), *own], capsys)
     assert code == 0, err
+
+
+def test_reading_from_a_later_frame_keeps_few_colour_images_and_pairs_them(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Frames read from the middle of a bag (the figure frame, a fit sample): the colour images of
+    the skipped frames are not all kept (they were: ~600 MB for the middle of a 1334-frame bag),
+    and the start frame still gets its own colour, 7 ms after its depth."""
+    from depthstation.core.capture import ros_bag
+
+    info = sample_info()
+    frames = list(sample_frames(info, 12, seed=6))
+    path = tmp_path / "bag"
+    write_bag(path, info, frames, color_offset_ns=7_000_000)
+    monkeypatch.setattr(ros_bag, "PRE_START_KEEP", 2)
+    kept: list[int] = []
+    real_deque = ros_bag.deque
+
+    class Watched(real_deque):  # type: ignore[misc, valid-type]
+        def append(self, item: Any) -> None:
+            super().append(item)
+            kept.append(len(self))
+
+    monkeypatch.setattr(ros_bag, "deque", Watched)
+    rec = open_recording(path)
+    got = list(rec.frames(start=9, limit=2))
+    assert [f.timestamp_ns for f in got] == [frames[9].timestamp_ns, frames[10].timestamp_ns]
+    for f, want in zip(got, frames[9:11], strict=True):
+        assert f.metadata["stream_timestamps_ns"]["color"] == want.timestamp_ns + 7_000_000
+        np.testing.assert_array_equal(f.color, want.color)
+    assert max(kept) <= 6, kept  # before: the colour of all 9 skipped frames at once (10)
