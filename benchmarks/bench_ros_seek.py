@@ -34,6 +34,11 @@ print(f"{before:.0f} {after:.0f} {time.perf_counter() - t:.2f}")
 
 
 def main() -> None:
+    with tempfile.TemporaryDirectory(prefix="bench_ros_seek_") as tmp:
+        run(Path(tmp))
+
+
+def run(root: Path) -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=300)
     args = ap.parse_args()
@@ -42,7 +47,6 @@ def main() -> None:
 
     from depthstation.core.capture.sample_recordings import sample_frames, sample_info
 
-    root = Path(tempfile.mkdtemp(prefix="bench_ros_seek_"))
     info = sample_info(640, 480)
     rng = np.random.default_rng(0)  # colour as incompressible as a camera's
     frames = [dataclasses.replace(f, color=rng.integers(0, 255, f.color.shape, dtype=np.uint8))

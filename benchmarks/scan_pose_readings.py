@@ -30,7 +30,11 @@ from depthstation.evaluate.scan.trajectory import write_tum
 
 
 def main() -> None:
-    root = Path(tempfile.mkdtemp(prefix="scan_pose_readings_"))
+    with tempfile.TemporaryDirectory(prefix="scan_pose_readings_") as tmp:
+        run(Path(tmp))
+
+
+def run(root: Path) -> None:
     seq = make_sequence(frames=12, width=80, height=60, seed=2)
     rig = np.eye(4)
     rig[:3, :3] = rodrigues([0.002, -0.003, 0.001])

@@ -27,8 +27,12 @@ OFF_M = 0.01
 
 
 def main() -> None:
+    with tempfile.TemporaryDirectory(prefix="unmeasured_rules_") as tmp:
+        run(Path(tmp))
+
+
+def run(root: Path) -> None:
     o3d = open3d()
-    root = Path(tempfile.mkdtemp(prefix="unmeasured_rules_"))
     room = Room()
     truth_mesh = room.mesh(segments=128)
     o3d.utility.random.seed(0)
