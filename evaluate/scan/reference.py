@@ -358,8 +358,8 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
             except json.JSONDecodeError:
                 stored = {}
             info_kept = stored.get("info", {})
-            if stored.get("key") == key and (unmeasured_file(cached, info_kept) is None
-                                             or (Path(cache_dir) / UNMEASURED_CACHE).is_file()):
+            mask_kept = unmeasured_file(cached, info_kept)
+            if stored.get("key") == key and (mask_kept is None or mask_kept.is_file()):
                 mesh = o3d.io.read_triangle_mesh(str(cached))
                 return mesh, cached, {**info_kept, "cached": True}
     scans: Scans | None = None

@@ -17,7 +17,7 @@ from depthstation.evaluate.scan.figures import frame_figure, grid_figure
 from depthstation.evaluate.scan.reference import appearance_image
 from depthstation.evaluate.scan.study import ChunkResult, StudyConfig, evaluate_chunk, frame_images
 
-UNMEASURED_PIXELS = 0.01  # of the evaluated pixels on unmeasured reference surface: worth a warning
+UNMEASURED_PIXELS = 0.01  # of the pixels within the grid's range on unmeasured surface: worth a warning
 
 if TYPE_CHECKING:
     from depthstation.evaluate.scan.run import ScanJob
