@@ -9,7 +9,7 @@ each setting's median CPU per frame against the first and whether its output is 
 the first's (depth, triangle, normal): the constants move the cost, never the answer.
 
 Run by hand:
-    .venv/bin/python benchmarks/bench_raster_constants.py [--settings 64:6,512:6,512:12] [--rounds 3]
+    .venv/bin/python benchmarks/bench_raster_constants.py [--settings 512:16,64:16] [--rounds 3]
 """
 
 from __future__ import annotations
@@ -55,12 +55,15 @@ def variant(folder: Path, cluster: int, small: int) -> ModuleType:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--settings", default="64:6,512:6,512:12,16:6,256:12,1024:12",
-                    help="comma list of CLUSTER_SIZE:SMALL_BOX; the first is the reference")
+    ap.add_argument("--settings", default="512:16,64:16,64:6,16:16,256:16,1024:16,512:8",
+                    help="comma list of CLUSTER_SIZE:SMALL_BOX (SMALL_BOX <= MASK_SLOTS, 16); the first is "
+                         "the reference")
     ap.add_argument("--rounds", type=int, default=3, help="passes over the distinct frames")
     ap.add_argument("--distinct", type=int, default=32)
     args = ap.parse_args()
     settings = [tuple(int(x) for x in s.split(":")) for s in args.settings.split(",")]
+    if any(not 1 <= s[1] <= 16 for s in settings):
+        raise SystemExit("SMALL_BOX must be 1-16: the bounds loop checks 16 pixel centres of a small box")
 
     folder = Path(tempfile.mkdtemp(prefix="bench_raster_constants_"))
     atexit.register(shutil.rmtree, folder, ignore_errors=True)

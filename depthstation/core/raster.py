@@ -36,6 +36,7 @@ import numba
 import numpy as np
 from llvmlite import ir  # type: ignore[import-untyped]
 from numba import types
+from numba.cpython.unsafe.numbers import trailing_zeros as _trailing_zeros
 from numba.extending import intrinsic
 from numpy.typing import NDArray
 
@@ -44,7 +45,8 @@ from depthstation.core.lazy_open3d import open3d
 
 CLUSTER_SIZE = 512  # measured: 64 took 1.3x the CPU per frame (see docs/scan-study.md, run 18)
 TIE_ROOM = 4096  # equal-depth hits a frame may note before it is rendered again with more room
-SMALL_BOX = 12  # triangles whose box holds at most this many pixel centres skip the edge walk
+SMALL_BOX = 16  # triangles whose box holds at most this many pixel centres skip the edge walk
+MASK_SLOTS = 16  # pixel centres of a small box that `_bounds` checks against the triangle (>= SMALL_BOX)
 _X86 = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
 
 # arithmetic variants (which Embree kernel Open3D runs on this CPU)
@@ -95,6 +97,7 @@ else:  # pragma: no cover - no approximate reciprocal: the division variants are
 # Python's zero checks
 _KERNEL_OPTIONS: dict[str, Any] = {"cache": True, "nogil": True, "_nrt": False, "error_model": "numpy"}
 _ONE = np.float32(1.0)
+_cttz: Any = _trailing_zeros  # the lowest set bit's index (llvm.cttz)
 _ULP = np.float32(np.finfo(np.float32).eps)
 
 
@@ -471,9 +474,36 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
 # cluster slots: rows of the per-cluster blocks (`_prepare`) and of the per-cluster scratch (`_bounds`)
 _F_U, _F_V, _F_M, _F_DIST = 9, 12, 15, 16  # fa: x, y, z of vertex k at rows 3k..3k+2; u, v of the
 _F_ROWS = 17                                # three vertices; the rounding bound; the vertex distance
-_I_BOX = 1  # ia: the status at row 0, then u0, u1, v0, v1
-_I_ROWS = 5
+_I_BOX = 1  # ia: the status at row 0, then u0, u1, v0, v1, then a small box's mask
+_I_MASK = 5
+_I_ROWS = 6
 SKIP, SMALL, TRIANGLE, GENERAL = 0, 1, 2, 3  # what a triangle needs (`_bounds`)
+
+
+# slot s of a small box w pixels wide (row-major) is column u0 + _SLOT_DU[w, s], row v0 + _SLOT_DV[w, s]
+_SLOT_DU = np.array([[s % max(w, 1) for s in range(MASK_SLOTS)] for w in range(MASK_SLOTS + 1)], np.int64)
+_SLOT_DV = np.array([[s // max(w, 1) for s in range(MASK_SLOTS)] for w in range(MASK_SLOTS + 1)], np.int64)
+
+
+@numba.njit(inline="always")
+def _edge(uk: float, vk: float, ul: float, vl: float, sigma: float, m: float) -> tuple[float, float, float]:
+    """The projected edge k -> l as a half-plane a u + b v + c >= 0 towards the inside, pushed out by
+    m (|dx| + |dy| >= the edge length): `_raster_polygon`'s half-planes."""
+    dx = ul - uk
+    dy = vl - vk
+    return -sigma * dy, sigma * dx, sigma * (dy * uk - dx * vk) + m * (abs(dx) + abs(dy))
+
+
+@numba.njit(inline="always")
+def _slot(s: int, e: Any) -> Any:
+    """Bit s of a small box's mask: whether its slot s holds a pixel centre within the three
+    half-planes e = (1 / w, w, u0, v0, rows - 1, a0, b0, c0, a1, b1, c1, a2, b2, c2)."""
+    inv_w, w, u0, v0, last, a0, b0, c0, a1, b1, c1, a2, b2, c2 = e
+    r = np.floor((s + 0.5) * inv_w)  # (2s + 1) / 2w is never an integer: exact after rounding
+    u = u0 + (s - r * w)
+    v = v0 + r
+    d = min(a0 * u + b0 * v + c0, min(a1 * u + b1 * v + c1, a2 * u + b2 * v + c2))
+    return np.int64((d >= 0.0) & (r <= last)) << s
 
 
 @numba.njit(inline="always")
@@ -554,6 +584,26 @@ def _bounds(tv: Any, tp: Any, cl: int, n: int, ox: float, oy: float, oz: float, 
         st = TRIANGLE if simple else st
         st = SMALL if simple & small else st
         st = SKIP if behind | (simple & empty) else st
+        # the pixel centres of a small box within the projected triangle pushed out by m (the edge
+        # walk's half-planes; a projection seen edge-on keeps its whole box), as bits: about half
+        # of a box's centres lie outside, and their reference tests cost ~45 cycles each
+        area2 = ((ua * vb - ub * va) + (ub * vc - uc * vb)) + (uc * va - ua * vc)
+        scale2 = (((abs(ua * vb) + abs(ub * va)) + (abs(ub * vc) + abs(uc * vb)))
+                  + (abs(uc * va) + abs(ua * vc)))
+        flat = not (abs(area2) > 1e-9 * scale2)
+        sigma = 1.0 if area2 > 0 else -1.0
+        a0, b0, c0 = _edge(ua, va, ub, vb, sigma, mb)
+        a1, b1, c1 = _edge(ub, vb, uc, vc, sigma, mb)
+        a2, b2, c2 = _edge(uc, vc, ua, va, sigma, mb)
+        w = max(u1 - u0 + 1.0, 1.0)
+        e = (1.0 / w, w, u0, v0, v1 - v0, 0.0 if flat else a0, 0.0 if flat else b0, 1.0 if flat else c0,
+             0.0 if flat else a1, 0.0 if flat else b1, 1.0 if flat else c1, 0.0 if flat else a2,
+             0.0 if flat else b2, 1.0 if flat else c2)
+        # written out, not a loop: LLVM vectorises innermost loops only, and this one is over q
+        ia[_I_MASK * c + q] = (_slot(0, e) | _slot(1, e) | _slot(2, e) | _slot(3, e) | _slot(4, e)
+                               | _slot(5, e) | _slot(6, e) | _slot(7, e) | _slot(8, e) | _slot(9, e)
+                               | _slot(10, e) | _slot(11, e) | _slot(12, e) | _slot(13, e) | _slot(14, e)
+                               | _slot(15, e))
         ia[q] = st
         ia[_I_BOX * c + q] = int(u0)
         ia[(_I_BOX + 1) * c + q] = int(u1)
@@ -726,7 +776,30 @@ def _render_kernel(mode: int) -> Any:
                                 pv[npoly] = fy * (py + f * (qy_ - py)) / zclip + ppy
                                 npoly += 1
                 ident = perm[s0 + q]
-                if small:  # test the few pixels of the box directly
+                if st == SMALL:  # the centres of the box that `_bounds` found near the triangle
+                    mask = ia[_I_MASK * c + q]
+                    if mask == 0:
+                        continue
+                    ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup_at(tv, bv, q, ox32, oy32,
+                                                                                   oz32, fma)
+                    setups += 1
+                    won = False
+                    w = u1 - u0 + 1
+                    while mask != 0:
+                        s = _cttz(mask)
+                        mask &= mask - 1
+                        u = u0 + _SLOT_DU[w, s]
+                        v = v0 + _SLOT_DV[w, s]
+                        b0, b1, b2 = _row(dtab, v)
+                        a0, a1, a2 = _col(dtab, u)
+                        dx, dy, dz = _dir_sum(a0, a1, a2, b0, b1, b2, r02, r12, r22)
+                        won |= _keep(v * width + u, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx,
+                                     dy, dz, ident, zbuf, tid, ties, tie_t, mode, fma)
+                        tests += 1
+                    if won:
+                        _unit_normal(nx, ny, nz, nrm, ident)
+                    continue
+                if small:  # a general triangle with a small box: test its few pixels directly
                     ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup_at(tv, bv, q, ox32, oy32,
                                                                                    oz32, fma)
                     setups += 1
