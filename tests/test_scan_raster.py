@@ -217,10 +217,10 @@ def test_pixel_sized_triangles_equal_ray_casting_bit_for_bit() -> None:
     assert hits > 5000
     # vertices on pixel rays 2-3 pixels apart: pixel centres on the projected edges, where ray
     # casting's one-ulp tolerance accepts centres a hair outside the exact triangle (without the
-    # margin, 753 of these 3072 pixels were lost). Not bit for bit: a ray exactly along the
-    # boundary of Embree's tree boxes may miss a triangle its own test would hit (here 1 pixel of
-    # 3072 at the mesh's border, and up to 29 rays along shared edges that report the neighbour;
-    # the same before the masks)
+    # margin, 753 of the first grid's 3072 pixels were lost). Not bit for bit: a ray exactly
+    # along the boundary of Embree's tree boxes may miss a triangle its own test would hit (here
+    # 1 pixel of 3072 at the mesh's border, and up to 29 rays along shared edges that report the
+    # neighbour; the same before the masks)
     intr = Intrinsics(64, 48, 50.0, 50.0, 31.0, 23.0)
     for step, tilt in ((2, 0.0), (2, 0.3), (3, -0.2)):
         u, v = np.meshgrid(np.arange(1, 63, step), np.arange(1, 47, step))

@@ -47,6 +47,8 @@ CLUSTER_SIZE = 512  # measured: 64 took 1.3x the CPU per frame (see docs/scan-st
 TIE_ROOM = 4096  # equal-depth hits a frame may note before it is rendered again with more room
 SMALL_BOX = 16  # triangles whose box holds at most this many pixel centres skip the edge walk
 MASK_SLOTS = 16  # pixel centres of a small box that `_bounds` checks against the triangle (>= SMALL_BOX)
+if SMALL_BOX > MASK_SLOTS:  # pragma: no cover - the constants set wrong: pixels would go untested
+    raise ImportError(f"SMALL_BOX {SMALL_BOX} exceeds the {MASK_SLOTS} pixel centres the mask checks")
 _X86 = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
 
 # arithmetic variants (which Embree kernel Open3D runs on this CPU)
@@ -544,8 +546,9 @@ def _bounds(tv: Any, tp: Any, cl: int, n: int, ox: float, oy: float, oz: float, 
     """For the n triangles of cluster cl, without branches (LLVM vectorises it): their vertices in
     the camera frame and projected, the rounding bound m and the largest vertex distance, and what
     each needs: SKIP (behind the camera, or a box without pixel centres), SMALL (a box of at most
-    SMALL_BOX pixel centres, u0 u1 v0 v1), TRIANGLE (in front, a larger box: the edge walk) or
-    GENERAL (near its own plane or reaching behind the camera: the rasteriser's general path).
+    SMALL_BOX pixel centres, u0 u1 v0 v1, and which of them lie near the triangle as a mask),
+    TRIANGLE (in front, a larger box: the edge walk) or GENERAL (near its own plane or reaching
+    behind the camera: the rasteriser's general path).
 
     Why: per triangle this was ~70 cycles of scalar code, a quarter of a frame. The blocks of the
     cluster's vertices (tv) and planes (tp) and the scratch (fa, ia) are rows of CLUSTER_SIZE at
@@ -590,7 +593,10 @@ def _bounds(tv: Any, tp: Any, cl: int, n: int, ox: float, oy: float, oz: float, 
         area2 = ((ua * vb - ub * va) + (ub * vc - uc * vb)) + (uc * va - ua * vc)
         scale2 = (((abs(ua * vb) + abs(ub * va)) + (abs(ub * vc) + abs(uc * vb)))
                   + (abs(uc * va) + abs(ua * vc)))
-        flat = not (abs(area2) > 1e-9 * scale2)
+        # a vertex projected far out (just in front of the camera) would make the half-planes'
+        # rounding approach the margin: such a triangle keeps its whole box, as one seen edge-on
+        far = max(max(abs(ua), abs(ub)), max(max(abs(uc), abs(va)), max(abs(vb), abs(vc)))) > 1e7
+        flat = far | (not (abs(area2) > 1e-9 * scale2))
         sigma = 1.0 if area2 > 0 else -1.0
         a0, b0, c0 = _edge(ua, va, ub, vb, sigma, mb)
         a1, b1, c1 = _edge(ub, vb, uc, vc, sigma, mb)
