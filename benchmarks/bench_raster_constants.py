@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import atexit
-import importlib.util
 import re
 import shutil
 import sys
@@ -32,6 +31,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from bench_scan import build_mesh, make_workload  # noqa: E402
+from bench_scan_parts import load_as  # noqa: E402
 
 
 def variant(folder: Path, cluster: int, small: int) -> ModuleType:
@@ -44,13 +44,7 @@ def variant(folder: Path, cluster: int, small: int) -> ModuleType:
     name = f"raster_c{cluster}_s{small}"
     path = folder / f"{name}.py"
     path.write_text(src)
-    spec = importlib.util.spec_from_file_location(name, path)
-    if spec is None or spec.loader is None:
-        raise SystemExit(f"cannot load {path}")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return load_as(name, path)
 
 
 def main() -> None:

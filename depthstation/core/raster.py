@@ -782,15 +782,16 @@ def _render_kernel(mode: int) -> Any:
                                 pv[npoly] = fy * (py + f * (qy_ - py)) / zclip + ppy
                                 npoly += 1
                 ident = perm[s0 + q]
-                if st == SMALL:  # the centres of the box that `_bounds` found near the triangle
-                    mask = ia[_I_MASK * c + q]
+                if small:  # test the few pixel centres directly: those `_bounds` found near the triangle
+                    # (a general triangle's small box: all of them), in row-major order
+                    w = u1 - u0 + 1
+                    mask = ia[_I_MASK * c + q] if st == SMALL else (1 << (w * (v1 - v0 + 1))) - 1
                     if mask == 0:
                         continue
                     ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup_at(tv, bv, q, ox32, oy32,
                                                                                    oz32, fma)
                     setups += 1
                     won = False
-                    w = u1 - u0 + 1
                     while mask != 0:
                         s = _cttz(mask)
                         mask &= mask - 1
@@ -802,23 +803,6 @@ def _render_kernel(mode: int) -> Any:
                         won |= _keep(v * width + u, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx,
                                      dy, dz, ident, zbuf, tid, ties, tie_t, mode, fma)
                         tests += 1
-                    if won:
-                        _unit_normal(nx, ny, nz, nrm, ident)
-                    continue
-                if small:  # a general triangle with a small box: test its few pixels directly
-                    ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup_at(tv, bv, q, ox32, oy32,
-                                                                                   oz32, fma)
-                    setups += 1
-                    won = False
-                    for v in range(v0, v1 + 1):
-                        b0, b1, b2 = _row(dtab, v)
-                        for u in range(u0, u1 + 1):
-                            i = v * width + u
-                            a0, a1, a2 = _col(dtab, u)
-                            dx, dy, dz = _dir_sum(a0, a1, a2, b0, b1, b2, r02, r12, r22)
-                            won |= _keep(i, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy, dz,
-                                         ident, zbuf, tid, ties, tie_t, mode, fma)
-                    tests += (u1 - u0 + 1) * (v1 - v0 + 1)
                     if won:
                         _unit_normal(nx, ny, nz, nrm, ident)
                     continue
