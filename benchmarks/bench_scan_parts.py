@@ -6,6 +6,11 @@ process, compare to a few percent (medians of per-frame CPU times). Each also ch
 versions agree: the rasteriser bit for bit (depth, triangle, normal), the pass by its cells
 (counts equal, largest difference of a cell mean and of M2, frame moments).
 
+A third part, `frame`, times the study's whole per-frame step (`bin_frame` of the rasteriser:
+render, ties, the pass) of both trees, with the grid and frame moments they accumulate compared:
+the base is imported as a package of its own (a copy of DIR with its imports renamed), so changes
+that span modules (the rasteriser's ids and the pass's table) are measured together.
+
 Run by hand (the base: any checkout of the package, e.g. `git archive <commit> | tar -x -C DIR`):
     .venv/bin/python benchmarks/bench_scan_parts.py --base DIR [--frames 64] [--distinct 16]
 """
@@ -14,7 +19,9 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import importlib
 import importlib.util
+import re
 import shutil
 import sys
 import tempfile
@@ -35,6 +42,21 @@ def load_as(name: str, path: Path) -> ModuleType:
     sys.modules[name] = mod
     spec.loader.exec_module(mod)
     return mod
+
+
+def import_tree(root: Path, tmp: Path) -> str:
+    """The package of checkout `root` importable as `base_depthstation` (its files copied, links
+    followed, `depthstation` imports renamed); returns the name."""
+    name = "base_depthstation"
+    dst = tmp / name
+    shutil.copytree(root / "depthstation", dst, symlinks=False,
+                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    word = re.compile(r"\bdepthstation\b(?=[. ])")
+    for f in dst.rglob("*.py"):
+        f.write_text(word.sub(name, f.read_text()))
+    sys.path.insert(0, str(tmp))
+    importlib.invalidate_caches()
+    return name
 
 
 def median_ms(times: list[float], skip: int = 4) -> float:
@@ -124,12 +146,45 @@ def bench_pass(old: ModuleType, mesh: Any, intr: Any, poses: Any, depth: Any, fr
           f"{np.array_equal(mo.frames, mn.frames)}")
 
 
+def bench_frame(base: str, mesh: Any, intr: Any, poses: Any, depth: Any, frames: int) -> None:
+    """Both trees' study step per frame (`MeshRasteriser.bin_frame`), alternating which goes first."""
+    from depthstation.core.grid import FrameMoments
+    from depthstation.evaluate.scan import raycast as new_pass
+    from depthstation.evaluate.scan.rasterise import MeshRasteriser
+    from depthstation.evaluate.scan.study import StudyConfig
+
+    old = importlib.import_module(f"{base}.evaluate.scan.rasterise")
+    old_pass = importlib.import_module(f"{base}.evaluate.scan.raycast")
+    old_grid = importlib.import_module(f"{base}.core.grid")
+    grid = StudyConfig().empty_grid()
+    run: dict[str, Any] = {
+        "o": (old.MeshRasteriser(mesh, intr), old_pass.CellAccumulator(grid, np.zeros((*grid.shape, 3))),
+              old_grid.FrameMoments.zeros(grid.shape), np.zeros(6, np.int64)),
+        "n": (MeshRasteriser(mesh, intr), new_pass.CellAccumulator.for_grid(grid),
+              FrameMoments.zeros(grid.shape), np.zeros(6, np.int64))}
+    times: dict[str, list[float]] = {"o": [], "n": []}
+    for f in range(frames):
+        k = f % len(poses)
+        for key in ("on" if f % 2 else "no"):
+            r, cells, moments, stats = run[key]
+            c = time.process_time()
+            r.bin_frame(poses[k], depth[k], 0.001, cells, stats, None, moments)
+            times[key].append(time.process_time() - c)
+    (_, co, mo, so), (_, cn, mn, sn) = run["o"], run["n"]
+    same = (np.array_equal(co.cells, cn.cells) and np.array_equal(so, sn)
+            and all(np.array_equal(getattr(mo, a), getattr(mn, a))
+                    for a in ("frames", "n2", "n2_mean", "n2_mean2")))
+    to, tn = median_ms(times["o"]), median_ms(times["n"])
+    print(f"study step per frame (render, ties, pass): base {to:.2f} ms, this tree {tn:.2f} ms CPU/frame "
+          f"(ratio {tn / to:.3f}); cells, pixel counts and frame moments bit-identical {same}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--base", type=Path, required=True, help="a checkout holding depthstation/ of the base")
     ap.add_argument("--frames", type=int, default=64)
     ap.add_argument("--distinct", type=int, default=16)
-    ap.add_argument("--skip", default="", help="raster,pass")
+    ap.add_argument("--skip", default="", help="raster,pass,frame")
     args = ap.parse_args()
     skip = set(filter(None, args.skip.split(",")))
     sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -152,6 +207,8 @@ def main() -> None:
     if "pass" not in skip:
         bench_pass(load_as("base_raycast", pkg / "evaluate" / "scan" / "raycast.py"), mesh_path, intr,
                    seq.poses, seq.depth, args.frames)
+    if "frame" not in skip:
+        bench_frame(import_tree(args.base, tmp), mesh_path, intr, seq.poses, seq.depth, args.frames)
 
 
 if __name__ == "__main__":

@@ -106,8 +106,9 @@ class SceneRaster:
             off += len(s.vertices)
         self.scene = scene
         self.raster = MeshRaster(np.concatenate(verts), np.concatenate(tris))
+        # per triangle rank (`cast_indexed`'s ids), the surface it belongs to
         self.surface_of = np.repeat(np.arange(len(scene.surfaces), dtype=np.int64),
-                                    [len(t) for t in tris]).astype(np.uint32)
+                                    [len(t) for t in tris]).astype(np.uint32)[self.raster.perm]
         self._rc: Any = None
 
     def raycasting_scene(self) -> Any:
@@ -119,12 +120,13 @@ class SceneRaster:
 
     def cast_indexed(self, intr: Intrinsics,
                      cam_to_world: NDArray[Any]) -> tuple[F32, NDArray[np.int32], F32]:
-        """Pinhole view only: t_hit (inf = miss) and hit triangle (-1 = miss) per pixel, and the unit
-        normal per triangle (valid for the ids returned): no rays, no per-pixel normals to copy."""
+        """Pinhole view only: t_hit (inf = miss) and hit triangle's rank (-1 = miss; `surface_of`
+        and the table take it) per pixel, and the unit normal per triangle rank (valid for the ranks
+        returned): no rays, no per-pixel normals to copy."""
         n = intr.width * intr.height
         t = np.empty(n, np.float32)
         ids = np.empty(n, np.int32)
-        self.raster.render(intr, cam_to_world, t, ids)
+        self.raster.render(intr, cam_to_world, t, ids, ranks=True)
         return t, ids, self.raster.normal_table()
 
 

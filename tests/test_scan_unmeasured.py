@@ -94,13 +94,18 @@ def test_unmeasured_surface_still_hides_the_wall_and_its_pixels_leave_the_grid(n
     np.testing.assert_array_equal(g_um.count[near:], g_all.count[near:])
 
 
-def test_both_renderers_leave_out_the_same_pixels_of_a_walk() -> None:
-    """A room whose floor is marked unmeasured: the raster and ray-cast studies agree pixel for
-    pixel on what is left out, and the grids are equal."""
+@pytest.mark.parametrize(("below_m", "width", "height"), [(1e-6, 64, 48), (1.0, 24, 18)],
+                         ids=["floor", "below-1m"])
+def test_both_renderers_leave_out_the_same_pixels_of_a_walk(below_m: float, width: int, height: int) -> None:
+    """A room whose floor (or all below 1 m) is marked unmeasured: the raster and ray-cast studies
+    agree pixel for pixel on what is left out, and the grids are equal. The second marks more
+    triangles than a quarter of the pixels: the rasteriser then blanks the normals of those hit
+    (by rank), not of every marked triangle."""
     mesh = Room().mesh(segments=64)
-    floor = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)].mean(axis=1)[:, 2] < 1e-6
+    floor = np.asarray(mesh.vertices)[np.asarray(mesh.triangles)].mean(axis=1)[:, 2] < below_m
     assert 0 < floor.sum() < len(floor)
-    seq = make_sequence(frames=3, width=64, height=48, seed=5)
+    assert (floor.sum() > width * height // 4) == (below_m > 0.5)
+    seq = make_sequence(frames=3, width=width, height=height, seed=5)
     grid = Grid.empty(0.1, 5.0, 6.0, 90.0)
     out: dict[str, tuple[np.ndarray, Grid]] = {}
     for name in ("raster", "raycast"):

@@ -640,18 +640,19 @@ def _render_kernel(mode: int) -> Any:
     fma = mode in (FMA_RCP, FMA_DIV)
 
     @numba.njit(**_KERNEL_OPTIONS)
-    def _render(tv: Any, tp: Any, perm: Any, cl_start: Any, cl_lo: Any, cl_hi: Any, xs: Any, ys: Any,
+    def _render(tv: Any, tp: Any, cl_start: Any, cl_lo: Any, cl_hi: Any, xs: Any, ys: Any,
                 origin: Any, rot: Any, fx: float, fy: float, ppx: float, ppy: float, margin_k: float,
                 margin_px: float, zbuf: Any, tid: Any, ties: Any, tie_t: Any, nrm: Any, work: Any, fa: Any,
                 ia: Any, dtab: Any, stats: Any) -> None:
-        """Rasterise the clustered mesh into zbuf (float32 t, inf = miss) and tid (triangle id, -1).
+        """Rasterise the clustered mesh into zbuf (float32 t, inf = miss) and tid (the triangle's
+        rank, its place in the clusters' order; -1 = miss).
 
         tv, tp: per cluster, its triangles' float32 vertices and float64 unit normals and plane
-        offsets (for the rounding bound), in blocks of CLUSTER_SIZE slots (`_prepare`); perm: the
-        triangles' ids in the caller's mesh; fa, ia: a cluster's scratch (`_bounds`). The rays of
+        offsets (for the rounding bound), in blocks of CLUSTER_SIZE slots (`_prepare`); fa, ia: a
+        cluster's scratch (`_bounds`). The rays of
         pixel (u, v) start at origin (rounded to float32) with direction rot @ (xs[u], ys[v], 1)
         (`fill_rays`), xs and ys the pinhole's pixel-centre coordinates (fx, fy, ppx, ppy); rot:
-        camera to world. nrm[id]: the unit normal of every triangle that won a pixel;
+        camera to world. nrm[rank]: the unit normal of every triangle that won a pixel;
         ties[1:ties[0] + 1], tie_t: the pixels where a hit equalled the nearest depth so far, and
         that depth (a tie if it is still the nearest at the end).
         stats += (clusters kept, triangles set up, pixel tests).
@@ -781,7 +782,7 @@ def _render_kernel(mode: int) -> Any:
                                 pu[npoly] = fx * (px + f * (qx_ - px)) / zclip + ppx
                                 pv[npoly] = fy * (py + f * (qy_ - py)) / zclip + ppy
                                 npoly += 1
-                ident = perm[s0 + q]
+                ident = s0 + q  # the rank: neighbours in space are neighbours in nrm and tid
                 if small:  # test the few pixel centres directly: those `_bounds` found near the triangle
                     # (a general triangle's small box: all of them), in row-major order
                     w = u1 - u0 + 1
@@ -819,6 +820,15 @@ def _render_kernel(mode: int) -> Any:
         stats[2] += tests
 
     return _render
+
+
+@numba.njit(cache=True, nogil=True)
+def _ranks_to_ids(tid: Any, perm: Any) -> None:
+    """The rasteriser's ranks (-1 = miss) to the caller's triangle ids, in place."""
+    for i in range(tid.shape[0]):
+        k = tid[i]
+        if k >= 0:
+            tid[i] = perm[k]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -912,7 +922,9 @@ class MeshRaster:
         if m and (tri.min() < 0 or tri.max() >= len(vx)):
             raise ValueError("triangle vertex index out of range")
         order = np.argsort(_morton_codes(vx, tri), kind="stable") if m else np.zeros(0, np.int64)
-        self.perm = np.ascontiguousarray(order.astype(np.int32))
+        self.perm = np.ascontiguousarray(order.astype(np.int32))  # rank -> the caller's id
+        self.rank = np.empty(m, np.int32)  # the caller's id -> rank
+        self.rank[self.perm] = np.arange(m, dtype=np.int32)
         self.cl_start, self.cl_lo, self.cl_hi, self.tv, self.tp = _prepare(
             vx, np.ascontiguousarray(tri[order]))
         self.margin_scale = float(margin_scale)
@@ -944,11 +956,16 @@ class MeshRaster:
         return cls(np.asarray(mesh.vertices), np.asarray(mesh.triangles), **kw)
 
     def render(self, intr: Intrinsics, cam_to_world: NDArray[Any], t_hit: NDArray[np.float32],
-               ids: NDArray[np.int32], normals: NDArray[np.float32] | None = None) -> None:
+               ids: NDArray[np.int32], normals: NDArray[np.float32] | None = None, *,
+               ranks: bool = False) -> None:
         """Fill t_hit (inf = miss), ids (triangle id in the mesh given, -1 = miss) and, if given,
         normals (unit, float32, 0 on a miss) of the view `cam_to_world` (4x4) for the rays that
         `fill_rays(rays, pose[:3, 3], pose[:3, :3], pixel_rays(intr))` builds: what Open3D's
-        `cast_rays` returns for them. Needs a pinhole (no lens distortion)."""
+        `cast_rays` returns for them. Needs a pinhole (no lens distortion).
+
+        `ranks`: ids as the triangles' ranks (`perm[rank]` is the mesh's id), the index of
+        `normal_table()`. Why: triangles near in space are near in rank, so a frame's lookups in a
+        per-triangle table stay in cache (the mesh's own order may scatter them over 13 MB)."""
         xs, ys = pinhole_axes(intr)
         f = max(intr.fx, intr.fy)
         x_edge = max(abs(intr.ppx), abs(intr.width - 1 - intr.ppx)) / intr.fx
@@ -961,7 +978,7 @@ class MeshRaster:
         while True:
             counts = np.zeros(4, np.int64)
             _render_kernel(arithmetic())(
-                self.tv, self.tp, self.perm, self.cl_start, self.cl_lo, self.cl_hi, xs, ys,
+                self.tv, self.tp, self.cl_start, self.cl_lo, self.cl_hi, xs, ys,
                 np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(pose[:3, :3]),
                 float(intr.fx), float(intr.fy), float(intr.ppx), float(intr.ppy), margin_k, margin_px,
                 t_flat, ids_flat, self._ties_at, self._ties_t, self._nrm, self._work, self._fa, self._ia,
@@ -980,6 +997,8 @@ class MeshRaster:
         if ties.size:
             self._resolve_ties(ties, intr, pose, t_flat, ids_flat,
                                None if normals is None else normals.reshape(-1, 3))
+        if not ranks:
+            _ranks_to_ids(ids_flat, self.perm)
 
     def _resolve_ties(self, ties: NDArray[np.int64], intr: Intrinsics, pose: NDArray[np.float64],
                       t_hit: NDArray[np.float32], ids: NDArray[np.int32],
@@ -995,18 +1014,19 @@ class MeshRaster:
         ans = self._ties.cast(rays)
         t = ans["t_hit"].numpy()
         hit = np.isfinite(t)
-        won = ans["primitive_ids"].numpy().astype(np.int64)
+        won = self.rank[np.where(hit, ans["primitive_ids"].numpy().astype(np.int64), 0)]
         t_hit[ties] = t
         ids[ties] = np.where(hit, won, -1)
         n = ans["primitive_normals"].numpy()
-        self._nrm[won[hit]] = n[hit]  # so that `normal_table()[ids]` holds for these pixels too
+        self._nrm[won[hit]] = n[hit]  # so that `normal_table()[ranks]` holds for these pixels too
         if normals is not None:
             normals[ties] = n
         self.stats[3] += ties.size
 
     def normal_table(self) -> NDArray[np.float32]:
-        """Unit normal per triangle id, valid for every id `render` put in `ids` in its last frame
-        (what `normals` gathers from): for the per-pixel pass, without a per-pixel copy."""
+        """Unit normal per triangle rank, valid for every rank `render(..., ranks=True)` put in
+        `ids` in its last frame (what `normals` gathers from): for the per-pixel pass, without a
+        per-pixel copy."""
         return self._nrm
 
     def _dtab(self, intr: Intrinsics) -> NDArray[np.float64]:

@@ -48,6 +48,7 @@ class MeshRasteriser(FrameRenderer):
             raster = MeshRaster(vertices, triangles)
         self.raster = raster
         self.n_triangles = raster.n_triangles
+        self._unmeasured_ranks: NDArray[np.int32] | None = None  # `_unmeasured_ids`' ranks
         n = self.dirs.shape[0]
         self._t = np.empty(n, np.float32)
         self._ids = np.empty(n, np.int32)
@@ -61,18 +62,24 @@ class MeshRasteriser(FrameRenderer):
         return self._t, self._normals
 
     def cast_indexed(self, pose: F64) -> tuple[F32, NDArray[np.int32], F32]:
-        """(t_hit, hit triangle ids, per-triangle normals): the pass reads each pixel's normal from
+        """(t_hit, hit triangles' ranks, per-rank normals): the pass reads each pixel's normal from
         the table, so no per-pixel normal array is gathered (7 MB written and read per frame)."""
-        self.raster.render(self.intr, np.asarray(pose, dtype=np.float64), self._t, self._ids, None)
-        table = self.raster.normal_table()
-        um = self._unmeasured_ids
+        raster = self.raster
+        raster.render(self.intr, np.asarray(pose, dtype=np.float64), self._t, self._ids, None, ranks=True)
+        table = raster.normal_table()
+        um = self._unmeasured_ranks
         if um is not None and self.unmeasured is not None:  # the winners' normals were just written
             if um.size <= self._ids.size // 4:
                 table[um] = np.nan
             else:  # many unmeasured triangles: only those hit this frame (a pass over the pixels)
                 hit = self._ids[self._ids >= 0]
-                table[hit[self.unmeasured[hit]]] = np.nan
+                table[hit[self.unmeasured[raster.perm[hit]]]] = np.nan
         return self._t, self._ids, table
+
+    def mark_unmeasured(self, mask: NDArray[np.bool_] | None) -> None:
+        super().mark_unmeasured(mask)
+        um = self._unmeasured_ids
+        self._unmeasured_ranks = None if um is None else self.raster.rank[um]
 
     def describe(self) -> dict[str, Any]:
         return {"renderer": self.name, **arithmetic_report()}
