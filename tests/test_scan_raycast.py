@@ -11,10 +11,11 @@ from depthstation.core.camera_model import Intrinsics, pixel_rays
 from depthstation.core.grid import Grid
 from depthstation.evaluate.scan.raycast import (
     GUESS_CELLS,
+    _axis_products,
     _inclination_bin,
-    _pixel_bins,
     cos_edges,
     inclination_guess,
+    pixel_bins_kernel,
 )
 
 
@@ -28,9 +29,10 @@ def _pass_bins(c: np.ndarray, g: Grid) -> Any:
     dirs[:, 0] = 1.0
     kk, sj, se = np.empty(n, np.int32), np.empty(n, np.int32), np.empty(n)
     start, stats = np.empty(nd + 1, np.int64), np.zeros(6, np.int64)
-    _pixel_bins(np.ones(n, np.float32), np.zeros(n, np.int32), np.array([[1.0, 0.0, 0.0]], np.float32),
-                dirs, np.eye(3), c.astype(np.float64), np.full(n, 1000, np.uint16), 0.001, d_lo, d_step,
-                nd, ce, inclination_guess(ce), ni, kk, sj, se, start, stats)
+    pixel_bins_kernel(False)(
+        np.ones(n, np.float32), np.zeros(n, np.int32), np.array([[1.0, 0.0, 0.0]], np.float32), dirs,
+        np.empty((0, 3)), np.empty((0, 3)), np.eye(3), c.astype(np.float64), np.full(n, 1000, np.uint16),
+        0.001, d_lo, d_step, nd, ce, inclination_guess(ce), ni, kk, sj, se, start, stats)
     assert stats[3] == n  # all evaluated, in one distance bin: sj keeps the pixels' order
     return sj
 
@@ -81,3 +83,47 @@ def test_the_pass_gives_the_inclination_bin_of_the_edge_walk(grid: dict[str, flo
     if step >= 0.1:  # bins of 0.1 deg and more: every cell in the grid from 1 deg on is one comparison
         inside = (cells >= ce[-1]) & (cells <= min(ce[0], np.cos(np.radians(1.0))))
         assert np.all(inclination_guess(ce)[inside] >= 0)
+
+
+def test_pinhole_rays_from_column_and_row_products_bin_every_pixel_as_per_pixel_rays() -> None:
+    """The pass's pinhole kernel builds each ray from per-column and per-row products; it must give
+    the floats `fill_rays` gives, so every pixel lands in the same cell as with per-pixel rays (the
+    lens kernel), here with normals chosen so that ~1 % of the pixels lie within 1e-6 of a bin edge."""
+    intr = Intrinsics(97, 61, 71.3, 70.9, 47.2, 31.7)
+    rng = np.random.default_rng(3)
+    n = intr.width * intr.height
+    a = rng.normal(size=3)
+    a /= np.linalg.norm(a)
+    angle = 0.7
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    rot = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+    dirs = pixel_rays(intr).reshape(-1, 3)
+    world = dirs.astype(np.float64) @ rot.T
+    world /= np.linalg.norm(world, axis=1)[:, None]
+    g = Grid.empty(0.05, 1.0, 6.0, 90.0)
+    # a normal per pixel at a random inclination, 1 % of them 1e-7 deg off an edge of the grid
+    inc = np.radians(np.where(rng.random(n) < 0.01, rng.integers(1, 89, n) + rng.normal(0, 1e-7, n),
+                              rng.uniform(0, 90, n)))
+    side = np.cross(world, rng.normal(size=(n, 3)))
+    side /= np.linalg.norm(side, axis=1)[:, None]
+    normals = (np.cos(inc)[:, None] * world + np.sin(inc)[:, None] * side).astype(np.float32)
+    t_hit = rng.uniform(0.3, 5.9, n).astype(np.float32)
+    depth = rng.integers(0, 6000, n).astype(np.uint16)
+    inv_norm = (1.0 / np.linalg.norm(dirs.astype(np.float64), axis=1)).astype(np.float32)
+    d_lo, d_step, nd, _, _, ni = g.bins
+    ce = cos_edges(g)
+    xs, ys = dirs[: intr.width, 0].copy(), dirs[:: intr.width, 1].copy()
+    cols, rows = np.empty((intr.width, 3)), np.empty((intr.height, 3))
+    _axis_products(rot, xs, ys, cols, rows)
+    out = []
+    for pinhole in (False, True):
+        kk, sj, se = np.empty(n, np.int32), np.full(n, -7, np.int32), np.zeros(n)
+        start, stats = np.empty(nd + 1, np.int64), np.zeros(6, np.int64)
+        c_, r_ = (cols, rows) if pinhole else (np.empty((0, 3)), np.empty((0, 3)))
+        pixel_bins_kernel(pinhole)(t_hit, np.arange(n, dtype=np.int32), normals, dirs, c_, r_, rot, inv_norm,
+                                   depth, 0.001, d_lo, d_step, nd, ce, inclination_guess(ce), ni, kk, sj, se,
+                                   start, stats)
+        out.append((kk, sj, se, start, stats))
+    assert out[0][4][4] > n // 2  # most pixels binned
+    for a, b in zip(*out, strict=True):
+        np.testing.assert_array_equal(a, b)

@@ -13,6 +13,7 @@ units of the reference; inclination is the angle between ray and triangle normal
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,7 @@ from numpy.typing import NDArray
 from depthstation.core.camera_model import Intrinsics, pixel_rays
 from depthstation.core.grid import _FAST, FrameMoments, Grid, bin_index
 from depthstation.core.lazy_open3d import open3d
-from depthstation.core.raster import fill_rays
+from depthstation.core.raster import fill_rays, pinhole_axes
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -75,92 +76,136 @@ def _world_dir(r00: float, r01: float, r02: float, r10: float, r11: float, r12: 
             float(np.float32(r20 * x + r21 * y + r22 * z)))
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def _pixel_bins(t_hit: Any, index: Any, normals: Any, dirs: Any, rot: Any, inv_norm: Any, depth: Any,
-                depth_scale: float, d_lo: float, d_step: float, nd: int, cos_edges: Any, guess: Any, ni: int,
-                kk: Any, sj: Any, se: Any, start: Any, stats: Any) -> None:
-    """Per pixel: reference z, inclination, error and their cell, put in order of distance bin.
+@numba.njit(cache=True, nogil=True)
+def _axis_products(rot: Any, xs: Any, ys: Any, cols: Any, rows: Any) -> None:
+    """A pinhole's ray products per column (rot[:, 0] * x) and per row (rot[:, 1] * y): `_world_dir`
+    of pixel (u, v) is then two sums per component, the same operations in the same order (z = 1,
+    so rot[:, 2] * z is rot[:, 2]). Without fast maths, as `_world_dir`."""
+    for u in range(xs.shape[0]):
+        cols[u, 0] = rot[0, 0] * xs[u]
+        cols[u, 1] = rot[1, 0] * xs[u]
+        cols[u, 2] = rot[2, 0] * xs[u]
+    for v in range(ys.shape[0]):
+        rows[v, 0] = rot[0, 1] * ys[v]
+        rows[v, 1] = rot[1, 1] * ys[v]
+        rows[v, 2] = rot[2, 1] * ys[v]
 
-    The normal of pixel i is normals[index[i]] (a per-pixel array and 0, 1, 2, ... or a renderer's
-    per-triangle table and the hit triangles). Two passes: the distance bin of every pixel with
-    depth and a hit (kk, -1 = none) and their count per bin, then, in pixel order, inclination bin
-    (sj, -1 = out of the grid) and error (se) each at its place in its distance bin's run (a
-    counting sort without a scatter pass of its own). After it, start[k] is the end of bin k's
-    run and its start start[k - 1] (0 for k = 0)."""
-    n = depth.shape[0]
-    no_depth = 0
-    no_hit = 0
-    evaluated = 0
-    binned = 0
-    unmeasured = 0
-    for k in range(nd + 1):
-        start[k] = 0
-    for i in range(n):
-        raw = depth[i]
-        hit = np.isfinite(t_hit[i])
-        if raw == 0:
-            no_depth += 1
-        if not hit:
-            no_hit += 1
-        kk[i] = -1
-        if raw == 0 or not hit:
-            continue
-        evaluated += 1
-        k = bin_index(t_hit[i], d_lo, d_step, nd)
-        kk[i] = k
-        if k >= 0:
-            start[k + 1] += 1
-    for k in range(nd):
-        start[k + 1] += start[k]
-    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
-    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
-    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
-    for i in range(n):
-        k = kk[i]
-        if k < 0:
-            continue
-        z_ref = t_hit[i]
-        q = start[k]
-        start[k] = q + 1
-        se[q] = depth[i] * depth_scale - z_ref
-        sj[q] = -1
-        m = index[i]
-        nx, ny, nz = normals[m, 0], normals[m, 1], normals[m, 2]
-        nn = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if not nn > 0.0:  # NaN: surface nobody measured (the renderer's mask); 0: a degenerate triangle
-            unmeasured += nn != nn
-            continue
-        dx, dy, dz = _world_dir(r00, r01, r02, r10, r11, r12, r20, r21, r22, dirs[i, 0], dirs[i, 1],
-                                dirs[i, 2])
-        c = abs(nx * dx + ny * dy + nz * dz) * inv_norm[i] / nn
-        # the inclination bin as `_inclination_bin`, its first guess from `inclination_guess`'s
-        # table over c instead of a polynomial arccos. A cell holding at most one edge (all cells
-        # above ~0.6 deg at 0.1 deg bins) settles the bin with one comparison, without a branch
-        # (0.94x the pass's time against walking the edges from the guess); a cell with more is
-        # stored as -1 - bin and walks the edges. NaN has no bin. Written out here: as a call
-        # (even inlined by numba) it took 2.3x as long, the arrays' reference counts per pixel.
-        if not (c <= cos_edges[0] and c >= cos_edges[ni]):
-            if c > 1.0 and cos_edges[0] >= 1.0:  # rounding above 1 means 0 degrees
-                c = 1.0
-            else:
+
+@numba.njit(cache=True, nogil=True)
+def _dir_sum(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float, r02: float, r12: float,
+             r22: float) -> tuple[float, float, float]:
+    """`_world_dir` of a pinhole ray from its column's (a) and row's (b) products."""
+    return (float(np.float32(a0 + b0 + r02)), float(np.float32(a1 + b1 + r12)),
+            float(np.float32(a2 + b2 + r22)))
+
+
+@cache
+def pixel_bins_kernel(pinhole: bool) -> Any:
+    """`_pixel_bins` compiled for pinhole rays (built from per-column and per-row products, without
+    reading a 12-byte ray per pixel: 0.91x the pass's time) or for per-pixel rays (a lens); the
+    choice a constant, so the other path folds away."""
+
+    @numba.njit(cache=True, nogil=True, fastmath=_FAST)
+    def _pixel_bins(t_hit: Any, index: Any, normals: Any, dirs: Any, cols: Any, rows: Any, rot: Any,
+                    inv_norm: Any, depth: Any, depth_scale: float, d_lo: float, d_step: float, nd: int,
+                    cos_edges: Any, guess: Any, ni: int, kk: Any, sj: Any, se: Any, start: Any,
+                    stats: Any) -> None:
+        """Per pixel: reference z, inclination, error and their cell, put in order of distance bin.
+
+        The normal of pixel i is normals[index[i]] (a per-pixel array and 0, 1, 2, ... or a
+        renderer's per-triangle table and the hit triangles). Its ray is dirs[i] or, in the pinhole
+        kernel, built from its column's and row's products (cols, rows: `_axis_products`). Two
+        passes: the distance bin of every pixel with depth and a hit (kk, -1 = none) and their count
+        per bin, then, in pixel order, inclination bin (sj, -1 = out of the grid) and error (se)
+        each at its place in its distance bin's run (a counting sort without a scatter pass of its
+        own). After it, start[k] is the end of bin k's run and its start start[k - 1] (0 for
+        k = 0)."""
+        n = depth.shape[0]
+        no_depth = 0
+        no_hit = 0
+        evaluated = 0
+        binned = 0
+        unmeasured = 0
+        for k in range(nd + 1):
+            start[k] = 0
+        for i in range(n):
+            raw = depth[i]
+            hit = np.isfinite(t_hit[i])
+            if raw == 0:
+                no_depth += 1
+            if not hit:
+                no_hit += 1
+            kk[i] = -1
+            if raw == 0 or not hit:
                 continue
-        g = np.int64(guess[int(min(c, 1.0) * (guess.shape[0] - 1))])
-        if g >= 0:
-            j = g - np.int64(c > cos_edges[g])
-        else:
-            j = -1 - g
-            while j > 0 and c > cos_edges[j]:
-                j -= 1
-            while j < ni - 1 and c <= cos_edges[j + 1]:
-                j += 1
-        sj[q] = j
-        binned += 1
-    stats[0] += n
-    stats[1] += no_depth
-    stats[2] += no_hit
-    stats[3] += evaluated
-    stats[4] += binned
-    stats[5] += unmeasured
+            evaluated += 1
+            k = bin_index(t_hit[i], d_lo, d_step, nd)
+            kk[i] = k
+            if k >= 0:
+                start[k + 1] += 1
+        for k in range(nd):
+            start[k + 1] += start[k]
+        r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+        r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+        r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+        w = cols.shape[0] if pinhole else max(n, 1)
+        b0 = b1 = b2 = 0.0
+        for v in range(n // w):
+            if pinhole:  # this row's products (per-pixel rays: one pass over all pixels)
+                b0, b1, b2 = rows[v, 0], rows[v, 1], rows[v, 2]
+            for u in range(w):
+                i = v * w + u
+                k = kk[i]
+                if k < 0:
+                    continue
+                z_ref = t_hit[i]
+                q = start[k]
+                start[k] = q + 1
+                se[q] = depth[i] * depth_scale - z_ref
+                sj[q] = -1
+                m = index[i]
+                nx, ny, nz = normals[m, 0], normals[m, 1], normals[m, 2]
+                nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+                if not nn > 0.0:  # NaN: surface nobody measured (the renderer's mask); 0: degenerate
+                    unmeasured += nn != nn
+                    continue
+                if pinhole:
+                    dx, dy, dz = _dir_sum(cols[u, 0], cols[u, 1], cols[u, 2], b0, b1, b2, r02, r12, r22)
+                else:
+                    dx, dy, dz = _world_dir(r00, r01, r02, r10, r11, r12, r20, r21, r22, dirs[i, 0],
+                                            dirs[i, 1], dirs[i, 2])
+                c = abs(nx * dx + ny * dy + nz * dz) * inv_norm[i] / nn
+                # the inclination bin as `_inclination_bin`, its first guess from `inclination_guess`'s
+                # table over c instead of a polynomial arccos. A cell holding at most one edge (all
+                # cells above ~0.6 deg at 0.1 deg bins) settles the bin with one comparison, without a
+                # branch (0.94x the pass's time against walking the edges from the guess); a cell with
+                # more is stored as -1 - bin and walks the edges. NaN has no bin. Written out here: as
+                # a call (even inlined by numba) it took 2.3x as long, the arrays' reference counts
+                # per pixel.
+                if not (c <= cos_edges[0] and c >= cos_edges[ni]):
+                    if c > 1.0 and cos_edges[0] >= 1.0:  # rounding above 1 means 0 degrees
+                        c = 1.0
+                    else:
+                        continue
+                g = np.int64(guess[int(min(c, 1.0) * (guess.shape[0] - 1))])
+                if g >= 0:
+                    j = g - np.int64(c > cos_edges[g])
+                else:
+                    j = -1 - g
+                    while j > 0 and c > cos_edges[j]:
+                        j -= 1
+                    while j < ni - 1 and c <= cos_edges[j + 1]:
+                        j += 1
+                sj[q] = j
+                binned += 1
+        stats[0] += n
+        stats[1] += no_depth
+        stats[2] += no_hit
+        stats[3] += evaluated
+        stats[4] += binned
+        stats[5] += unmeasured
+
+    return _pixel_bins
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
@@ -367,6 +412,10 @@ class FrameRenderer:
         self.intr = intr
         self.dirs = pixel_rays(intr).reshape(-1, 3)
         self.inv_norm = (1.0 / np.linalg.norm(self.dirs.astype(np.float64), axis=1)).astype(np.float32)
+        # a pinhole's rays from per-column and per-row products (`_axis_products`); a lens's per pixel
+        self._axes = pinhole_axes(intr) if not intr.has_distortion else None
+        w, h = (intr.width, intr.height) if self._axes is not None else (0, 0)
+        self._cols, self._rows = np.empty((w, 3)), np.empty((h, 3))
         self.rays = np.empty((self.dirs.shape[0], 6), dtype=np.float32)
         self._scratch: tuple[NDArray[Any], ...] | None = None
         self._identity = np.zeros(0, np.int32)
@@ -428,8 +477,11 @@ class FrameRenderer:
         rot = np.ascontiguousarray(np.asarray(pose, dtype=np.float64)[:3, :3])
         flat = np.ascontiguousarray(depth).ravel()
         ce = cos_edges(cells.grid)
-        _pixel_bins(t_hit, index, normals, self.dirs, rot, self.inv_norm, flat, float(depth_scale), d_lo,
-                    d_step, nd, ce, inclination_guess(ce), ni, kk, sj, se, start, stats)
+        if self._axes is not None:
+            _axis_products(rot, *self._axes, self._cols, self._rows)
+        pixel_bins_kernel(self._axes is not None)(
+            t_hit, index, normals, self.dirs, self._cols, self._rows, rot, self.inv_norm, flat,
+            float(depth_scale), d_lo, d_step, nd, ce, inclination_guess(ce), ni, kk, sj, se, start, stats)
         fm = moments if moments is not None else _NO_MOMENTS
         _fold_frame(nd, ni, start, sj, se, row, cells.cells, fc.cells, frame_cells is not None,
                     moments is not None, fm.frames, fm.n2, fm.n2_mean, fm.n2_mean2)
