@@ -498,13 +498,14 @@ def _edge(uk: float, vk: float, ul: float, vl: float, sigma: float, m: float) ->
 
 @numba.njit(inline="always")
 def _slot(s: int, e: Any) -> Any:
-    """Bit s of a small box's mask: whether its slot s holds a pixel centre within the three
-    half-planes e = (1 / w, w, u0, v0, rows - 1, a0, b0, c0, a1, b1, c1, a2, b2, c2)."""
-    inv_w, w, u0, v0, last, a0, b0, c0, a1, b1, c1, a2, b2, c2 = e
+    """Bit s of a small box's mask: whether its slot s (column s - r w, row r of a box w pixels
+    wide) holds a pixel centre within the three half-planes a u + b v + c >= 0, given as
+    e = (1 / w, rows - 1, a0, B0, E0, a1, B1, E1, a2, B2, E2) with E = a u0 + b v0 + c (the box's
+    first centre) and B = b - a w: at the slot's centre a u + b v + c = E + a s + B r, two
+    products per half-plane and no coordinates (float64 rounding ~1e-12 px, far below the margin)."""
+    inv_w, last, a0, bb0, e0, a1, bb1, e1, a2, bb2, e2 = e
     r = np.floor((s + 0.5) * inv_w)  # (2s + 1) / 2w is never an integer: exact after rounding
-    u = u0 + (s - r * w)
-    v = v0 + r
-    d = min(a0 * u + b0 * v + c0, min(a1 * u + b1 * v + c1, a2 * u + b2 * v + c2))
+    d = min(e0 + a0 * s + bb0 * r, min(e1 + a1 * s + bb1 * r, e2 + a2 * s + bb2 * r))
     return np.int64((d >= 0.0) & (r <= last)) << s
 
 
@@ -602,9 +603,10 @@ def _bounds(tv: Any, tp: Any, cl: int, n: int, ox: float, oy: float, oz: float, 
         a1, b1, c1 = _edge(ub, vb, uc, vc, sigma, mb)
         a2, b2, c2 = _edge(uc, vc, ua, va, sigma, mb)
         w = max(u1 - u0 + 1.0, 1.0)
-        e = (1.0 / w, w, u0, v0, v1 - v0, 0.0 if flat else a0, 0.0 if flat else b0, 1.0 if flat else c0,
-             0.0 if flat else a1, 0.0 if flat else b1, 1.0 if flat else c1, 0.0 if flat else a2,
-             0.0 if flat else b2, 1.0 if flat else c2)
+        e = (1.0 / w, v1 - v0, 0.0 if flat else a0, 0.0 if flat else b0 - a0 * w,
+             1.0 if flat else a0 * u0 + b0 * v0 + c0, 0.0 if flat else a1, 0.0 if flat else b1 - a1 * w,
+             1.0 if flat else a1 * u0 + b1 * v0 + c1, 0.0 if flat else a2, 0.0 if flat else b2 - a2 * w,
+             1.0 if flat else a2 * u0 + b2 * v0 + c2)
         # written out, not a loop: LLVM vectorises innermost loops only, and this one is over q
         ia[_I_MASK * c + q] = (_slot(0, e) | _slot(1, e) | _slot(2, e) | _slot(3, e) | _slot(4, e)
                                | _slot(5, e) | _slot(6, e) | _slot(7, e) | _slot(8, e) | _slot(9, e)
