@@ -9,7 +9,7 @@ each setting's median CPU per frame against the first and whether its output is 
 the first's (depth, triangle, normal): the constants move the cost, never the answer.
 
 Run by hand:
-    .venv/bin/python benchmarks/bench_raster_constants.py [--settings 512:16,64:16] [--rounds 3]
+    .venv/bin/python benchmarks/bench_raster_constants.py [--settings 1024:16,512:16] [--rounds 3]
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ def variant(folder: Path, cluster: int, small: int) -> ModuleType:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--settings", default="512:16,64:16,64:6,16:16,256:16,1024:16,512:8",
+    ap.add_argument("--settings", default="1024:16,512:16,2048:16,64:16,16:16,256:16,1024:8",
                     help="comma list of CLUSTER_SIZE:SMALL_BOX (SMALL_BOX <= MASK_SLOTS, 16); the first is "
                          "the reference")
     ap.add_argument("--rounds", type=int, default=3, help="passes over the distinct frames")

@@ -4,7 +4,7 @@ triangle and its normal, bit for bit what Open3D's ray casting returns for the s
 Why: a depth frame is a pinhole view, so its rays share one origin and pass through a regular grid
 of pixel centres. Projecting each triangle onto that grid finds the few pixels it can cover
 (a z-buffer keeps the nearest), instead of a general ray caster walking a BVH for every one of
-307 k independent rays. Clusters of 512 spatially sorted triangles are culled against the view
+307 k independent rays. Clusters of 1024 spatially sorted triangles are culled against the view
 frustum first, so a frame touches only the part of the mesh in view.
 
 Exactness: every candidate (pixel, triangle) pair is decided with the arithmetic of Embree's
@@ -43,7 +43,7 @@ from numpy.typing import NDArray
 from depthstation.core.camera_model import Intrinsics, pixel_rays
 from depthstation.core.lazy_open3d import open3d
 
-CLUSTER_SIZE = 512  # measured: 64 took 1.3x the CPU per frame (see docs/scan-study.md, run 18)
+CLUSTER_SIZE = 1024  # measured: 64 took 1.3x the CPU per frame, 512 1.03x (docs/scan-study.md, runs 18, 19)
 TIE_ROOM = 4096  # equal-depth hits a frame may note before it is rendered again with more room
 SMALL_BOX = 16  # triangles whose box holds at most this many pixel centres skip the edge walk
 MASK_SLOTS = 16  # pixel centres of a small box that `_bounds` checks against the triangle (>= SMALL_BOX)
