@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from fractions import Fraction
 from typing import Any
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 
 from depthstation.core.camera_model import Intrinsics, pixel_rays
 from depthstation.core.grid import Grid
+from depthstation.core.raster import fill_rays
 from depthstation.evaluate.scan.raycast import (
     GUESS_CELLS,
     _axis_products,
@@ -127,3 +129,63 @@ def test_pinhole_rays_from_column_and_row_products_bin_every_pixel_as_per_pixel_
     assert out[0][4][4] > n // 2  # most pixels binned
     for a, b in zip(*out, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def _rotation_at_a_rounding_midpoint(x: float, y: float, target: float, differs: Any) -> np.ndarray:
+    """A rotation row (r00, r01, r02) whose ray direction x component r00 x + r01 y + r02 lies next
+    to the midpoint between two float32 values around `target`, chosen so that `differs(a, b, c)`
+    (another order or fusion of the sum a + b + c) rounds to the other float32."""
+    f = np.float32(target)
+    lo = float(f) if float(f) < target else float(np.nextafter(f, np.float32(-1)))
+    mid = (lo + float(np.nextafter(np.float32(lo), np.float32(2)))) / 2
+    rng = np.random.default_rng(2)
+    for _ in range(100_000):
+        r00, r01 = rng.uniform(-1, 1, 2)
+        a, b = r00 * x, r01 * y
+        c0 = mid - (a + b)
+        for k in range(-8, 9):
+            c = c0 + k * np.spacing(c0)
+            if differs(a, b, c, r01):
+                return np.array([[r00, r01, c], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    raise AssertionError("no such rotation found")
+
+
+@pytest.mark.parametrize("order", ["fused", "reassociated"])
+def test_the_pass_bins_the_direction_fill_rays_builds_even_at_a_float32_rounding_midpoint(order: str) -> None:
+    """The pass rebuilds each pixel's ray direction; it must be `fill_rays`' float32 direction, not a
+    fused or reordered sum that rounds the other way (numba compiles a helper with its caller's
+    fast-maths flags unless the helper sets its own: inside the pass the lens kernel's sum was
+    fused into an FMA, the pinhole kernel's summed as (row + r02) + column). One pixel looking along
+    x at a normal along x: its cos(inclination) is exactly the direction's x component, placed
+    where the two orders round to different float32 values on either side of a bin's cosine."""
+    intr = Intrinsics(1, 1, 500.0, 500.0, 0.3, -0.2)
+    dirs = pixel_rays(intr).reshape(-1, 3)
+    x, y = float(dirs[0, 0]), float(dirs[0, 1])
+    g = Grid.empty(0.05, 1.0, 6.0, 90.0)
+    d_lo, d_step, nd, _, _, ni = g.bins
+    ce = cos_edges(g)
+
+    def fma(p: float, q: float, r: float) -> float:  # p q + r rounded once
+        return float(Fraction(p) * Fraction(q) + Fraction(r))
+
+    differs = {
+        "fused": lambda a, b, c, r01: np.float32(a + b + c) != np.float32(fma(r01, y, a) + c),
+        "reassociated": lambda a, b, c, r01: np.float32(a + b + c) != np.float32((b + c) + a),
+    }[order]
+    rot = _rotation_at_a_rounding_midpoint(x, y, float(ce[ni // 2]), differs)
+    rays = np.empty((1, 6), np.float32)
+    fill_rays(rays, np.zeros(3), rot, dirs)
+    c = abs(float(rays[0, 3]))
+    want = next(j for j in range(ni) if ce[j] >= c > ce[j + 1])
+    cols, rows = np.empty((1, 3)), np.empty((1, 3))
+    _axis_products(rot, dirs[:1, 0].copy(), dirs[:1, 1].copy(), cols, rows)
+    for pinhole in (False, True):
+        kk, sj, se = np.empty(1, np.int32), np.empty(1, np.int32), np.empty(1)
+        start, stats = np.empty(nd + 1, np.int64), np.zeros(6, np.int64)
+        c_, r_ = (cols, rows) if pinhole else (np.empty((0, 3)), np.empty((0, 3)))
+        pixel_bins_kernel(pinhole)(np.array([2.0], np.float32), np.zeros(1, np.int32),
+                                   np.array([[1.0, 0.0, 0.0]], np.float32), dirs, c_, r_, rot,
+                                   np.ones(1, np.float32), np.array([2000], np.uint16), 0.001, d_lo, d_step,
+                                   nd, ce, inclination_guess(ce), ni, kk, sj, se, start, stats)
+        assert stats[4] == 1
+        assert int(sj[0]) == want, (order, pinhole, int(sj[0]), want)

@@ -65,22 +65,24 @@ def _inclination_bin(c: float, cos_edges: Any, i_lo: float, i_step: float, ni: i
     return j
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _world_dir(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float, r20: float, r21: float,
                r22: float, x: float, y: float, z: float) -> tuple[float, float, float]:
     """`core.raster.fill_rays`' direction of a camera-frame ray (float64 products, one rounding to
-    float32 per component). Its own function without fast maths: a contracted product would move
-    the direction by an ulp and pixels near a bin edge to the next bin. Scalars only: an array
-    argument costs reference counting per call."""
+    float32 per component). Its own function with fast maths off, explicitly: numba compiles a
+    callee with its caller's fast-maths flags unless the callee sets its own, and contracted into
+    `_pixel_bins` the product became an FMA, moving the direction by an ulp and a pixel near a bin
+    edge to the next bin now and then. Scalars only: an array argument costs reference counting
+    per call."""
     return (float(np.float32(r00 * x + r01 * y + r02 * z)), float(np.float32(r10 * x + r11 * y + r12 * z)),
             float(np.float32(r20 * x + r21 * y + r22 * z)))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _axis_products(rot: Any, xs: Any, ys: Any, cols: Any, rows: Any) -> None:
     """A pinhole's ray products per column (rot[:, 0] * x) and per row (rot[:, 1] * y): `_world_dir`
     of pixel (u, v) is then two sums per component, the same operations in the same order (z = 1,
-    so rot[:, 2] * z is rot[:, 2]). Without fast maths, as `_world_dir`."""
+    so rot[:, 2] * z is rot[:, 2]). Fast maths off, as `_world_dir`."""
     for u in range(xs.shape[0]):
         cols[u, 0] = rot[0, 0] * xs[u]
         cols[u, 1] = rot[1, 0] * xs[u]
@@ -91,10 +93,11 @@ def _axis_products(rot: Any, xs: Any, ys: Any, cols: Any, rows: Any) -> None:
         rows[v, 2] = rot[2, 1] * ys[v]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=False)
 def _dir_sum(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float, r02: float, r12: float,
              r22: float) -> tuple[float, float, float]:
-    """`_world_dir` of a pinhole ray from its column's (a) and row's (b) products."""
+    """`_world_dir` of a pinhole ray from its column's (a) and row's (b) products; fast maths off,
+    as `_world_dir` (inside the pass, LLVM had summed them as (b + r02) + a)."""
     return (float(np.float32(a0 + b0 + r02)), float(np.float32(a1 + b1 + r12)),
             float(np.float32(a2 + b2 + r22)))
 
