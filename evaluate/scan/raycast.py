@@ -97,7 +97,8 @@ def _axis_products(rot: Any, xs: Any, ys: Any, cols: Any, rows: Any) -> None:
 def _dir_sum(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float, r02: float, r12: float,
              r22: float) -> tuple[float, float, float]:
     """`_world_dir` of a pinhole ray from its column's (a) and row's (b) products; fast maths off,
-    as `_world_dir` (inside the pass, LLVM had summed them as (b + r02) + a)."""
+    as `_world_dir` (inside the pass, LLVM had summed them as (b + r02) + a). Not `core.raster`'s
+    `_dir_sum`: that one is inlined into its caller and would take the pass's fast maths."""
     return (float(np.float32(a0 + b0 + r02)), float(np.float32(a1 + b1 + r12)),
             float(np.float32(a2 + b2 + r22)))
 
