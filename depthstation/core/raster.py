@@ -651,8 +651,8 @@ def _render_kernel(mode: int) -> Any:
 
         tv, tp: per cluster, its triangles' float32 vertices and float64 unit normals and plane
         offsets (for the rounding bound), in blocks of CLUSTER_SIZE slots (`_prepare`); fa, ia: a
-        cluster's scratch (`_bounds`). The rays of
-        pixel (u, v) start at origin (rounded to float32) with direction rot @ (xs[u], ys[v], 1)
+        cluster's scratch (`_bounds`). The rays of pixel (u, v) start at origin (rounded to
+        float32) with direction rot @ (xs[u], ys[v], 1)
         (`fill_rays`), xs and ys the pinhole's pixel-centre coordinates (fx, fy, ppx, ppy); rot:
         camera to world. nrm[rank]: the unit normal of every triangle that won a pixel;
         ties[1:ties[0] + 1], tie_t: the pixels where a hit equalled the nearest depth so far, and

@@ -106,8 +106,8 @@ def _dir_sum(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float, r
 @cache
 def pixel_bins_kernel(pinhole: bool) -> Any:
     """`_pixel_bins` compiled for pinhole rays (built from per-column and per-row products, without
-    reading a 12-byte ray per pixel: 0.91x the pass's time) or for per-pixel rays (a lens); the
-    choice a constant, so the other path folds away."""
+    reading a 12-byte ray per pixel: the study step 0.97-0.99x, docs/scan-study.md run 19) or for
+    per-pixel rays (a lens); the choice a constant, so the other path folds away."""
 
     @numba.njit(cache=True, nogil=True, fastmath=_FAST)
     def _pixel_bins(t_hit: Any, index: Any, normals: Any, dirs: Any, cols: Any, rows: Any, rot: Any,
@@ -480,6 +480,9 @@ class FrameRenderer:
         kk, sj, se, start, row = sc
         rot = np.ascontiguousarray(np.asarray(pose, dtype=np.float64)[:3, :3])
         flat = np.ascontiguousarray(depth).ravel()
+        if flat.shape[0] != n:  # the kernels walk the intrinsics' pixels: others would go unread
+            raise ValueError(f"depth of {flat.shape[0]} pixels for a "
+                             f"{self.intr.width}x{self.intr.height} view")
         ce = cos_edges(cells.grid)
         if self._axes is not None:
             _axis_products(rot, *self._axes, self._cols, self._rows)
