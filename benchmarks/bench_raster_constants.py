@@ -1,4 +1,4 @@
-"""The rasteriser's two size constants (CLUSTER_SIZE, SMALL_BOX) measured on this CPU.
+"""The rasteriser's size constants (CLUSTER_SIZE, SMALL_BOX, BLOCK_SIZE) measured on this CPU.
 
 Why: the constants were set on one CPU and cost 1.3x the CPU per frame on another (clusters of 64
 on a 2-vCPU AMD EPYC: the per-cluster bounds loop alone took 7.0 ms per frame at 64 triangles per
@@ -8,8 +8,8 @@ renders the benchmark room's frames with each, alternating the order frame by fr
 each setting's median CPU per frame against the first and whether its output is bit-identical to
 the first's (depth, triangle, normal): the constants move the cost, never the answer.
 
-Run by hand:
-    .venv/bin/python benchmarks/bench_raster_constants.py [--settings 1024:16,512:16] [--rounds 3]
+Run by hand (a setting is CLUSTER_SIZE:SMALL_BOX[:BLOCK_SIZE], the block size 128 if left out):
+    .venv/bin/python benchmarks/bench_raster_constants.py [--settings 1024:16,512:16:64] [--rounds 3]
 """
 
 from __future__ import annotations
@@ -34,14 +34,16 @@ from bench_scan import build_mesh, make_workload  # noqa: E402
 from bench_scan_parts import load_as  # noqa: E402
 
 
-def variant(folder: Path, cluster: int, small: int) -> ModuleType:
-    """core/raster.py with the two constants replaced, imported under its own name."""
+def variant(folder: Path, cluster: int, small: int, block: int = 128) -> ModuleType:
+    """core/raster.py with the constants replaced, imported under its own name."""
     src = (HERE.parent / "depthstation" / "core" / "raster.py").read_text()
     src, n1 = re.subn(r"^CLUSTER_SIZE = \d+", f"CLUSTER_SIZE = {cluster}", src, flags=re.M)
     src, n2 = re.subn(r"^SMALL_BOX = \d+", f"SMALL_BOX = {small}", src, flags=re.M)
-    if n1 != 1 or n2 != 1:
-        raise SystemExit("core/raster.py no longer defines CLUSTER_SIZE and SMALL_BOX at module level")
-    name = f"raster_c{cluster}_s{small}"
+    src, n3 = re.subn(r"^BLOCK_SIZE = \d+", f"BLOCK_SIZE = {block}", src, flags=re.M)
+    if n1 != 1 or n2 != 1 or n3 != 1:
+        raise SystemExit("core/raster.py no longer defines CLUSTER_SIZE, SMALL_BOX and BLOCK_SIZE at "
+                         "module level")
+    name = f"raster_c{cluster}_s{small}_b{block}"
     path = folder / f"{name}.py"
     path.write_text(src)
     return load_as(name, path)
@@ -49,15 +51,20 @@ def variant(folder: Path, cluster: int, small: int) -> ModuleType:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--settings", default="1024:16,512:16,2048:16,64:16,16:16,256:16,1024:8",
-                    help="comma list of CLUSTER_SIZE:SMALL_BOX (SMALL_BOX <= MASK_SLOTS, 16); the first is "
-                         "the reference")
+    ap.add_argument("--settings", default="1024:16,512:16,2048:16,256:16,1024:16:64,1024:16:256,2048:16:64",
+                    help="comma list of CLUSTER_SIZE:SMALL_BOX[:BLOCK_SIZE] (SMALL_BOX <= 16; BLOCK_SIZE "
+                         "divides CLUSTER_SIZE into at most 32 blocks; 128 if left out); the first is the "
+                         "reference")
     ap.add_argument("--rounds", type=int, default=3, help="passes over the distinct frames")
     ap.add_argument("--distinct", type=int, default=32)
     args = ap.parse_args()
     settings = [tuple(int(x) for x in s.split(":")) for s in args.settings.split(",")]
     if any(not 1 <= s[1] <= 16 for s in settings):
         raise SystemExit("SMALL_BOX must be 1-16: the bounds loop checks 16 pixel centres of a small box")
+    for s in settings:
+        block = s[2] if len(s) > 2 else 128
+        if s[0] % block or s[0] // block > 32:
+            raise SystemExit(f"BLOCK_SIZE {block} must divide CLUSTER_SIZE {s[0]} into at most 32 blocks")
 
     folder = Path(tempfile.mkdtemp(prefix="bench_raster_constants_"))
     atexit.register(shutil.rmtree, folder, ignore_errors=True)
@@ -86,8 +93,9 @@ def main() -> None:
     base = np.median(times[settings[0]])
     for s in settings:
         med = float(np.median(times[s]))
-        print(f"CLUSTER_SIZE {s[0]:5d}, SMALL_BOX {s[1]:3d}: {med * 1e3:6.2f} ms CPU/frame "
-              f"(median of {len(times[s])}), {med / base:.3f}x the first; bit-identical {same[s]}")
+        block = s[2] if len(s) > 2 else 128
+        print(f"CLUSTER_SIZE {s[0]:5d}, SMALL_BOX {s[1]:3d}, BLOCK_SIZE {block:4d}: {med * 1e3:6.2f} ms "
+              f"CPU/frame (median of {len(times[s])}), {med / base:.3f}x the first; bit-identical {same[s]}")
 
 
 if __name__ == "__main__":

@@ -46,6 +46,11 @@ from depthstation.core.lazy_open3d import open3d
 CLUSTER_SIZE = 1024  # measured: 64 took 1.3x the CPU per frame, 512 1.03x (docs/scan-study.md, runs 18, 19)
 TIE_ROOM = 4096  # equal-depth hits a frame may note before it is rendered again with more room
 SMALL_BOX = 16  # triangles whose box holds at most this many pixel centres skip the edge walk
+# a kept cluster's triangles are culled again in blocks of this many (measured: 64 took 1.09x the
+# CPU per frame, 256 1.14x, none 1.16x; docs/scan-study.md, run 20)
+BLOCK_SIZE = 128
+if CLUSTER_SIZE % BLOCK_SIZE or CLUSTER_SIZE // BLOCK_SIZE > 32:  # the blocks kept are bits of an int64
+    raise ValueError("BLOCK_SIZE must divide CLUSTER_SIZE into at most 32 blocks")
 MASK_SLOTS = 16  # pixel centres of a small box that `_bounds` checks against the triangle (>= SMALL_BOX)
 if SMALL_BOX > MASK_SLOTS:  # pragma: no cover - the constants set wrong: pixels would go untested
     raise ImportError(f"SMALL_BOX {SMALL_BOX} exceeds the {MASK_SLOTS} pixel centres the mask checks")
@@ -539,25 +544,45 @@ def _project(tv: Any, bv: int, q: int, k: int, ox: float, oy: float, oz: float, 
     return x, y, z, abs(dx) + abs(dy) + abs(dz), fx * x * w + ppx, fy * y * w + ppy
 
 
+@numba.njit(inline="always")
+def _outside(planes_w: Any, lo: Any, hi: Any, ox: float, oy: float, oz: float) -> bool:
+    """Whether the box lo..hi lies wholly outside one of the frustum's planes (inward normals
+    through the camera centre at ox, oy, oz; 2 px of slack are in the planes)."""
+    for p in range(5):
+        nwx, nwy, nwz = planes_w[p, 0], planes_w[p, 1], planes_w[p, 2]
+        mx = hi[0] if nwx > 0 else lo[0]
+        my = hi[1] if nwy > 0 else lo[1]
+        mz = hi[2] if nwz > 0 else lo[2]
+        if nwx * (mx - ox) + nwy * (my - oy) + nwz * (mz - oz) < -1e-9:
+            return True
+    return False
+
+
 @numba.njit(**_KERNEL_OPTIONS)
-def _bounds(tv: Any, tp: Any, cl: int, n: int, ox: float, oy: float, oz: float, r00: float, r01: float,
-            r02: float, r10: float, r11: float, r12: float, r20: float, r21: float, r22: float, fx: float,
-            fy: float, ppx: float, ppy: float, margin_k: float, margin_px: float, wm1: float, hm1: float,
-            fa: Any, ia: Any) -> None:
-    """For the n triangles of cluster cl, without branches (LLVM vectorises it): their vertices in
-    the camera frame and projected, the rounding bound m and the largest vertex distance, and what
-    each needs: SKIP (behind the camera, or a box without pixel centres), SMALL (a box of at most
-    SMALL_BOX pixel centres, u0 u1 v0 v1, and which of them lie near the triangle as a mask),
-    TRIANGLE (in front, a larger box: the edge walk) or GENERAL (near its own plane or reaching
-    behind the camera: the rasteriser's general path).
+def _bounds(tv: Any, tp: Any, cl: int, q0: int, q1: int, ox: float, oy: float, oz: float, r00: float,
+            r01: float, r02: float, r10: float, r11: float, r12: float, r20: float, r21: float, r22: float,
+            fx: float, fy: float, ppx: float, ppy: float, margin_k: float, margin_px: float, wm1: float,
+            hm1: float, fa: Any, ia: Any) -> None:
+    """For the triangles in slots q0..q1-1 of cluster cl, without branches (LLVM vectorises it):
+    their vertices in the camera frame and projected, the rounding bound m and the largest vertex
+    distance, and what each needs: SKIP (behind the camera, or a box without pixel centres), SMALL
+    (a box of at most SMALL_BOX pixel centres, u0 u1 v0 v1, and which of them lie near the triangle
+    as a mask), TRIANGLE (in front, a larger box: the edge walk) or GENERAL (near its own plane or
+    reaching behind the camera: the rasteriser's general path).
 
     Why: per triangle this was ~70 cycles of scalar code, a quarter of a frame. The blocks of the
     cluster's vertices (tv) and planes (tp) and the scratch (fa, ia) are rows of CLUSTER_SIZE at
     constant offsets, so LLVM can check them for overlap as four ranges and vectorise."""
     c = CLUSTER_SIZE
-    bv = cl * (9 * c)
-    bp = cl * (4 * c)
-    for q in range(n):
+    # views from slot q0 on: their indices start at 0 (LLVM then knows them non-negative, with no
+    # wraparound test per access, and vectorises); slot q0 + q is the views' q
+    tv = tv[cl * (9 * c) + q0:]
+    tp = tp[cl * (4 * c) + q0:]
+    fa = fa[q0:]
+    ia = ia[q0:]
+    bv = 0
+    bp = 0
+    for q in range(q1 - q0):
         xa, ya, za, la, ua, va = _project(tv, bv, q, 0, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
                                           r22, fx, fy, ppx, ppy)
         xb, yb, zb, lb, ub, vb = _project(tv, bv, q, 1, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
@@ -642,8 +667,8 @@ def _render_kernel(mode: int) -> Any:
     fma = mode in (FMA_RCP, FMA_DIV)
 
     @numba.njit(**_KERNEL_OPTIONS)
-    def _render(tv: Any, tp: Any, cl_start: Any, cl_lo: Any, cl_hi: Any, xs: Any, ys: Any,
-                origin: Any, rot: Any, fx: float, fy: float, ppx: float, ppy: float, margin_k: float,
+    def _render(tv: Any, tp: Any, cl_start: Any, cl_lo: Any, cl_hi: Any, bl_lo: Any, bl_hi: Any, xs: Any,
+                ys: Any, origin: Any, rot: Any, fx: float, fy: float, ppx: float, ppy: float, margin_k: float,
                 margin_px: float, zbuf: Any, tid: Any, ties: Any, tie_t: Any, nrm: Any, work: Any, fa: Any,
                 ia: Any, dtab: Any, stats: Any) -> None:
         """Rasterise the clustered mesh into zbuf (float32 t, inf = miss) and tid (the triangle's
@@ -657,7 +682,8 @@ def _render_kernel(mode: int) -> Any:
         camera to world. nrm[rank]: the unit normal of every triangle that won a pixel;
         ties[1:ties[0] + 1], tie_t: the pixels where a hit equalled the nearest depth so far, and
         that depth (a tie if it is still the nearest at the end).
-        stats += (clusters kept, triangles set up, pixel tests).
+        stats += (clusters kept, triangles set up, pixel tests, -, triangles bounded: those of the
+        kept clusters' blocks in the frustum, `_bounds`).
         """
         c = CLUSTER_SIZE
         width = xs.shape[0]
@@ -706,120 +732,128 @@ def _render_kernel(mode: int) -> Any:
         kept = 0
         setups = 0
         tests = 0
+        bounded = 0
+        nb = c // BLOCK_SIZE
         for cl in range(cl_start.shape[0] - 1):
-            outside = False
-            for p in range(5):
-                nwx, nwy, nwz = planes_w[p, 0], planes_w[p, 1], planes_w[p, 2]
-                mx = cl_hi[cl, 0] if nwx > 0 else cl_lo[cl, 0]
-                my = cl_hi[cl, 1] if nwy > 0 else cl_lo[cl, 1]
-                mz = cl_hi[cl, 2] if nwz > 0 else cl_lo[cl, 2]
-                if nwx * (mx - ox) + nwy * (my - oy) + nwz * (mz - oz) < -1e-9:
-                    outside = True
-                    break
-            if outside:
+            if _outside(planes_w, cl_lo[cl], cl_hi[cl], ox, oy, oz):
                 continue
             kept += 1
             s0 = cl_start[cl]
             bv = cl * (9 * c)
-            _bounds(tv, tp, cl, cl_start[cl + 1] - s0, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
-                    r22, fx, fy, ppx, ppy, margin_k, margin_px, wm1, hm1, fa, ia)
-            for q in range(cl_start[cl + 1] - s0):
-                st = ia[q]
-                if st == SKIP:
-                    continue
-                b = _I_BOX * c + q
-                u0, u1, v0, v1 = ia[b], ia[b + c], ia[b + 2 * c], ia[b + 3 * c]
-                m = fa[_F_M * c + q]
-                full = False
-                small = st == SMALL
-                npoly = 3
-                clipped = False
-                if st == GENERAL:
-                    dist = fa[_F_DIST * c + q]
-                    if m > 0.02:  # near the triangle's plane: bound by the distances to its edge lines
-                        dmin = np.inf
-                        for k in range(3):
-                            k2 = k + 1 if k < 2 else 0
-                            ax_, ay_, az_ = _vertex(fa, k, q)
-                            bx_, by_, bz_ = _vertex(fa, k2, q)
-                            cx_ = ay_ * bz_ - az_ * by_
-                            cy_ = az_ * bx_ - ax_ * bz_
-                            cz_ = ax_ * by_ - ay_ * bx_
-                            ex, ey, ez = bx_ - ax_, by_ - ay_, bz_ - az_
-                            el = np.sqrt(ex * ex + ey * ey + ez * ez)
-                            if el > 0.0:
-                                dmin = min(dmin, np.sqrt(cx_ * cx_ + cy_ * cy_ + cz_ * cz_) / el)
-                        full = dmin * 1e5 <= dist
-                        m = margin_px + margin_k * (dist / dmin + 1.0) if not full else 0.0
-                    zclip = 1e-9 * dist
-                    za, zb, zc = fa[2 * c + q], fa[5 * c + q], fa[8 * c + q]
-                    if za >= zclip and zb >= zclip and zc >= zclip:
-                        if not full:
-                            ua, ub, uc = _row3(fa, _F_U, q)
-                            va, vb, vc = _row3(fa, _F_V, q)
-                            umin = min(ua, min(ub, uc))
-                            umax = max(ua, max(ub, uc))
-                            vmin = min(va, min(vb, vc))
-                            vmax = max(va, max(vb, vc))
-                            u0 = max(0, int(np.ceil(max(umin, -1e15) - m)))
-                            u1 = min(width - 1, int(np.floor(min(umax, 1e15) + m)))
-                            v0 = max(0, int(np.ceil(max(vmin, -1e15) - m)))
-                            v1 = min(height - 1, int(np.floor(min(vmax, 1e15) + m)))
-                            if u0 > u1 or v0 > v1:
-                                continue
-                            small = (u1 - u0 + 1) * (v1 - v0 + 1) <= SMALL_BOX
-                    else:  # clip against z = zclip, project what is in front
-                        clipped = True
-                        npoly = 0
-                        for k in range(3):
-                            k2 = k + 1 if k < 2 else 0
-                            px, py, pz = _vertex(fa, k, q)
-                            qx_, qy_, qz_ = _vertex(fa, k2, q)
-                            if pz >= zclip:
-                                pu[npoly] = fx * px / pz + ppx
-                                pv[npoly] = fy * py / pz + ppy
-                                npoly += 1
-                            if (pz - zclip) * (qz_ - zclip) < 0.0:
-                                f = (zclip - pz) / (qz_ - pz)
-                                pu[npoly] = fx * (px + f * (qx_ - px)) / zclip + ppx
-                                pv[npoly] = fy * (py + f * (qy_ - py)) / zclip + ppy
-                                npoly += 1
-                ident = s0 + q  # the rank: neighbours in space are neighbours in nrm and tid
-                if small:  # test the few pixel centres directly: those `_bounds` found near the triangle
-                    # (a general triangle's small box: all of them), in row-major order
-                    w = u1 - u0 + 1
-                    mask = ia[_I_MASK * c + q] if st == SMALL else (1 << (w * (v1 - v0 + 1))) - 1
-                    if mask == 0:
+            nt = cl_start[cl + 1] - s0
+            # the cluster's blocks in the frustum, as runs of consecutive blocks: a quarter of a
+            # kept cluster's triangles lie outside the view, and each would cost the bounds loop
+            keep = 0
+            for j in range(nb):
+                if j * BLOCK_SIZE < nt and not _outside(planes_w, bl_lo[cl, j], bl_hi[cl, j], ox, oy, oz):
+                    keep |= 1 << j
+            while keep != 0:
+                j0 = _cttz(keep)
+                j1 = _cttz(~(keep >> j0)) + j0  # the run's end
+                keep &= ~((1 << j1) - 1)
+                q0 = j0 * BLOCK_SIZE
+                q1 = min(nt, j1 * BLOCK_SIZE)
+                bounded += q1 - q0
+                _bounds(tv, tp, cl, q0, q1, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21, r22, fx,
+                        fy, ppx, ppy, margin_k, margin_px, wm1, hm1, fa, ia)
+                for q in range(q0, q1):
+                    st = ia[q]
+                    if st == SKIP:
                         continue
-                    ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup_at(tv, bv, q, ox32, oy32,
-                                                                                   oz32, fma)
-                    setups += 1
-                    won = False
-                    while mask != 0:
-                        s = _cttz(mask)
-                        mask &= mask - 1
-                        u = u0 + _SLOT_DU[w, s]
-                        v = v0 + _SLOT_DV[w, s]
-                        b0, b1, b2 = _row(dtab, v)
-                        a0, a1, a2 = _col(dtab, u)
-                        dx, dy, dz = _dir_sum(a0, a1, a2, b0, b1, b2, r02, r12, r22)
-                        won |= _keep(v * width + u, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx,
-                                     dy, dz, ident, zbuf, tid, ties, tie_t, mode, fma)
-                        tests += 1
-                    if won:
-                        _unit_normal(nx, ny, nz, nrm, ident)
-                    continue
-                if not clipped:
-                    pu[0], pu[1], pu[2] = _row3(fa, _F_U, q)
-                    pv[0], pv[1], pv[2] = _row3(fa, _F_V, q)
-                up, n = _raster_polygon(pu, pv, npoly, m, full, width, height, tv, bv, q, ox32, oy32,
-                                        oz32, ident, dtab, r02, r12, r22, mode, fma, zbuf, tid, ties, tie_t,
-                                        nrm, sc)
-                setups += up
-                tests += n
+                    b = _I_BOX * c + q
+                    u0, u1, v0, v1 = ia[b], ia[b + c], ia[b + 2 * c], ia[b + 3 * c]
+                    m = fa[_F_M * c + q]
+                    full = False
+                    small = st == SMALL
+                    npoly = 3
+                    clipped = False
+                    if st == GENERAL:
+                        dist = fa[_F_DIST * c + q]
+                        if m > 0.02:  # near the triangle's plane: bound by the distances to its edge lines
+                            dmin = np.inf
+                            for k in range(3):
+                                k2 = k + 1 if k < 2 else 0
+                                ax_, ay_, az_ = _vertex(fa, k, q)
+                                bx_, by_, bz_ = _vertex(fa, k2, q)
+                                cx_ = ay_ * bz_ - az_ * by_
+                                cy_ = az_ * bx_ - ax_ * bz_
+                                cz_ = ax_ * by_ - ay_ * bx_
+                                ex, ey, ez = bx_ - ax_, by_ - ay_, bz_ - az_
+                                el = np.sqrt(ex * ex + ey * ey + ez * ez)
+                                if el > 0.0:
+                                    dmin = min(dmin, np.sqrt(cx_ * cx_ + cy_ * cy_ + cz_ * cz_) / el)
+                            full = dmin * 1e5 <= dist
+                            m = margin_px + margin_k * (dist / dmin + 1.0) if not full else 0.0
+                        zclip = 1e-9 * dist
+                        za, zb, zc = fa[2 * c + q], fa[5 * c + q], fa[8 * c + q]
+                        if za >= zclip and zb >= zclip and zc >= zclip:
+                            if not full:
+                                ua, ub, uc = _row3(fa, _F_U, q)
+                                va, vb, vc = _row3(fa, _F_V, q)
+                                umin = min(ua, min(ub, uc))
+                                umax = max(ua, max(ub, uc))
+                                vmin = min(va, min(vb, vc))
+                                vmax = max(va, max(vb, vc))
+                                u0 = max(0, int(np.ceil(max(umin, -1e15) - m)))
+                                u1 = min(width - 1, int(np.floor(min(umax, 1e15) + m)))
+                                v0 = max(0, int(np.ceil(max(vmin, -1e15) - m)))
+                                v1 = min(height - 1, int(np.floor(min(vmax, 1e15) + m)))
+                                if u0 > u1 or v0 > v1:
+                                    continue
+                                small = (u1 - u0 + 1) * (v1 - v0 + 1) <= SMALL_BOX
+                        else:  # clip against z = zclip, project what is in front
+                            clipped = True
+                            npoly = 0
+                            for k in range(3):
+                                k2 = k + 1 if k < 2 else 0
+                                px, py, pz = _vertex(fa, k, q)
+                                qx_, qy_, qz_ = _vertex(fa, k2, q)
+                                if pz >= zclip:
+                                    pu[npoly] = fx * px / pz + ppx
+                                    pv[npoly] = fy * py / pz + ppy
+                                    npoly += 1
+                                if (pz - zclip) * (qz_ - zclip) < 0.0:
+                                    f = (zclip - pz) / (qz_ - pz)
+                                    pu[npoly] = fx * (px + f * (qx_ - px)) / zclip + ppx
+                                    pv[npoly] = fy * (py + f * (qy_ - py)) / zclip + ppy
+                                    npoly += 1
+                    ident = s0 + q  # the rank: neighbours in space are neighbours in nrm and tid
+                    if small:  # test the few pixel centres directly: those `_bounds` found near the triangle
+                        # (a general triangle's small box: all of them), in row-major order
+                        w = u1 - u0 + 1
+                        mask = ia[_I_MASK * c + q] if st == SMALL else (1 << (w * (v1 - v0 + 1))) - 1
+                        if mask == 0:
+                            continue
+                        ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup_at(tv, bv, q, ox32, oy32,
+                                                                                       oz32, fma)
+                        setups += 1
+                        won = False
+                        while mask != 0:
+                            s = _cttz(mask)
+                            mask &= mask - 1
+                            u = u0 + _SLOT_DU[w, s]
+                            v = v0 + _SLOT_DV[w, s]
+                            b0, b1, b2 = _row(dtab, v)
+                            a0, a1, a2 = _col(dtab, u)
+                            dx, dy, dz = _dir_sum(a0, a1, a2, b0, b1, b2, r02, r12, r22)
+                            won |= _keep(v * width + u, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2,
+                                         dx, dy, dz, ident, zbuf, tid, ties, tie_t, mode, fma)
+                            tests += 1
+                        if won:
+                            _unit_normal(nx, ny, nz, nrm, ident)
+                        continue
+                    if not clipped:
+                        pu[0], pu[1], pu[2] = _row3(fa, _F_U, q)
+                        pv[0], pv[1], pv[2] = _row3(fa, _F_V, q)
+                    up, n = _raster_polygon(pu, pv, npoly, m, full, width, height, tv, bv, q, ox32, oy32,
+                                            oz32, ident, dtab, r02, r12, r22, mode, fma, zbuf, tid, ties,
+                                            tie_t, nrm, sc)
+                    setups += up
+                    tests += n
         stats[0] += kept
         stats[1] += setups
         stats[2] += tests
+        stats[4] += bounded
 
     return _render
 
@@ -883,6 +917,9 @@ def _prepare(vx: Any, tri: Any) -> Any:
     cl_start = np.empty(nc + 1, np.int64)
     cl_lo = np.full((nc, 3), np.inf)
     cl_hi = np.full((nc, 3), -np.inf)
+    nb = c // BLOCK_SIZE
+    bl_lo = np.full((nc, nb, 3), np.inf)
+    bl_hi = np.full((nc, nb, 3), -np.inf)
     tv = np.zeros(nc * 9 * c, np.float32)
     tp = np.zeros(nc * 4 * c)
     for cl in range(nc):
@@ -895,6 +932,9 @@ def _prepare(vx: Any, tri: Any) -> Any:
                     tv[cl * 9 * c + (3 * k + ax) * c + q] = vx[v, ax]
                     cl_lo[cl, ax] = min(cl_lo[cl, ax], float(vx[v, ax]))
                     cl_hi[cl, ax] = max(cl_hi[cl, ax], float(vx[v, ax]))
+                    j = q // BLOCK_SIZE
+                    bl_lo[cl, j, ax] = min(bl_lo[cl, j, ax], float(vx[v, ax]))
+                    bl_hi[cl, j, ax] = max(bl_hi[cl, j, ax], float(vx[v, ax]))
             a, b, d = tri[s, 0], tri[s, 1], tri[s, 2]
             e1x, e1y, e1z = float(vx[b, 0]) - vx[a, 0], float(vx[b, 1]) - vx[a, 1], float(vx[b, 2]) - vx[a, 2]
             e2x, e2y, e2z = float(vx[d, 0]) - vx[a, 0], float(vx[d, 1]) - vx[a, 1], float(vx[d, 2]) - vx[a, 2]
@@ -906,7 +946,7 @@ def _prepare(vx: Any, tri: Any) -> Any:
                 tp[base], tp[base + c], tp[base + 2 * c] = ux, uy, uz
                 tp[base + 3 * c] = ux * vx[a, 0] + uy * vx[a, 1] + uz * vx[a, 2]
     cl_start[nc] = m
-    return cl_start, cl_lo, cl_hi, tv, tp
+    return cl_start, cl_lo, cl_hi, bl_lo, bl_hi, tv, tp
 
 
 class MeshRaster:
@@ -914,7 +954,8 @@ class MeshRaster:
     them, triangles sorted into clusters with bounding boxes).
 
     `stats` adds up, over the frames rendered: clusters kept by the frustum test, triangles set
-    up, pixel tests, tie pixels ray cast.
+    up, pixel tests, tie pixels ray cast, triangles bounded (those of the kept clusters' blocks in
+    the frustum).
     """
 
     def __init__(self, vertices: NDArray[Any], triangles: NDArray[Any], margin_scale: float = 1.0) -> None:
@@ -927,7 +968,7 @@ class MeshRaster:
         self.perm = np.ascontiguousarray(order.astype(np.int32))  # rank -> the caller's id
         self.rank = np.empty(m, np.int32)  # the caller's id -> rank
         self.rank[self.perm] = np.arange(m, dtype=np.int32)
-        self.cl_start, self.cl_lo, self.cl_hi, self.tv, self.tp = _prepare(
+        self.cl_start, self.cl_lo, self.cl_hi, self.bl_lo, self.bl_hi, self.tv, self.tp = _prepare(
             vx, np.ascontiguousarray(tri[order]))
         self.margin_scale = float(margin_scale)
         self._ties = _TieCaster(vx, tri)
@@ -935,7 +976,7 @@ class MeshRaster:
 
     def _buffers(self) -> None:
         """The per-instance scratch (one instance per thread; the mesh arrays are shared)."""
-        self.stats = np.zeros(4, np.int64)
+        self.stats = np.zeros(5, np.int64)
         self._ties_at = np.zeros(1 + TIE_ROOM, np.int64)
         self._ties_t = np.zeros(1 + TIE_ROOM, np.float32)
         self._nrm = np.zeros((max(self.n_triangles, 1), 3), np.float32)
@@ -978,9 +1019,9 @@ class MeshRaster:
         pose = np.asarray(cam_to_world, dtype=np.float64)
         t_flat, ids_flat = t_hit.reshape(-1), ids.reshape(-1)
         while True:
-            counts = np.zeros(4, np.int64)
+            counts = np.zeros(5, np.int64)
             _render_kernel(arithmetic())(
-                self.tv, self.tp, self.cl_start, self.cl_lo, self.cl_hi, xs, ys,
+                self.tv, self.tp, self.cl_start, self.cl_lo, self.cl_hi, self.bl_lo, self.bl_hi, xs, ys,
                 np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(pose[:3, :3]),
                 float(intr.fx), float(intr.fy), float(intr.ppx), float(intr.ppy), margin_k, margin_px,
                 t_flat, ids_flat, self._ties_at, self._ties_t, self._nrm, self._work, self._fa, self._ia,
