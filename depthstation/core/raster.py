@@ -478,7 +478,7 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
     return 1, tests
 
 
-# cluster slots: rows of the per-cluster blocks (`_prepare`) and of the per-cluster scratch (`_bounds`)
+# cluster slots: rows of the per-cluster arrays (`_prepare`) and of the per-cluster scratch (`_bounds`)
 _F_U, _F_V, _F_M, _F_DIST = 9, 12, 15, 16  # fa: x, y, z of vertex k at rows 3k..3k+2; u, v of the
 _F_ROWS = 17                                # three vertices; the rounding bound; the vertex distance
 _I_BOX = 1  # ia: the status at row 0, then u0, u1, v0, v1, then a small box's mask
@@ -570,9 +570,9 @@ def _bounds(tv: Any, tp: Any, cl: int, q0: int, q1: int, ox: float, oy: float, o
     as a mask), TRIANGLE (in front, a larger box: the edge walk) or GENERAL (near its own plane or
     reaching behind the camera: the rasteriser's general path).
 
-    Why: per triangle this was ~70 cycles of scalar code, a quarter of a frame. The blocks of the
-    cluster's vertices (tv) and planes (tp) and the scratch (fa, ia) are rows of CLUSTER_SIZE at
-    constant offsets, so LLVM can check them for overlap as four ranges and vectorise."""
+    Why: per triangle this was ~70 cycles of scalar code, a quarter of a frame. The cluster's
+    vertices (tv) and planes (tp) and the scratch (fa, ia) are rows of CLUSTER_SIZE at constant
+    offsets, so LLVM can check them for overlap as four ranges and vectorise."""
     c = CLUSTER_SIZE
     # views from slot q0 on: their indices start at 0 (LLVM then knows them non-negative, with no
     # wraparound test per access, and vectorises); slot q0 + q is the views' q
@@ -675,7 +675,8 @@ def _render_kernel(mode: int) -> Any:
         rank, its place in the clusters' order; -1 = miss).
 
         tv, tp: per cluster, its triangles' float32 vertices and float64 unit normals and plane
-        offsets (for the rounding bound), in blocks of CLUSTER_SIZE slots (`_prepare`); fa, ia: a
+        offsets (for the rounding bound), in rows of CLUSTER_SIZE slots (`_prepare`); cl_lo, cl_hi:
+        the clusters' boxes, bl_lo, bl_hi: their blocks' (BLOCK_SIZE triangles); fa, ia: a
         cluster's scratch (`_bounds`). The rays of pixel (u, v) start at origin (rounded to
         float32) with direction rot @ (xs[u], ys[v], 1)
         (`fill_rays`), xs and ys the pinhole's pixel-centre coordinates (fx, fy, ppx, ppy); rot:
@@ -908,9 +909,10 @@ def _morton_codes(vx: Any, tri: Any) -> Any:
 
 @numba.njit(cache=True, nogil=True)
 def _prepare(vx: Any, tri: Any) -> Any:
-    """Clusters of CLUSTER_SIZE triangles (in the order given): each cluster's bounding box and, in
-    blocks of CLUSTER_SIZE slots, its triangles' vertices (tv: 9 rows, float32) and their unit
-    normals and plane offsets (tp: 4 rows, float64, for the rounding bound)."""
+    """Clusters of CLUSTER_SIZE triangles (in the order given): each cluster's bounding box, those
+    of its blocks of BLOCK_SIZE triangles (culled within a kept cluster; an empty block's box stays
+    inf..-inf) and, in rows of CLUSTER_SIZE slots, its triangles' vertices (tv: 9 rows, float32)
+    and their unit normals and plane offsets (tp: 4 rows, float64, for the rounding bound)."""
     c = CLUSTER_SIZE
     m = tri.shape[0]
     nc = (m + c - 1) // c
