@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import errno
 import json
+import os
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -17,7 +19,7 @@ from depthstation.core.capture.mcap_writer import CAPTURE_COMPRESSION, COLOR_ENC
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs, open_recording
 from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, TopicChoice, topic_choice
-from depthstation.core.errors import InputError
+from depthstation.core.errors import CaptureError, DepthstationError, InputError
 from depthstation.core.progress import progress
 from depthstation.core.results import ForceOption, _jsonable, result_folder
 
@@ -159,6 +161,65 @@ def info_cmd(
         console.print(t)
 
 
+def _write_compact(rec: McapRecording, out: Path, compression: str) -> int:
+    """Copy `rec` into `out` under a temporary name in the same folder, fsynced and linked into place
+    only when complete; the temporary file is removed on any failure. Why: a full disk left a cut file
+    under the final name (it read as a recording and blocked a retry). Returns the frames written."""
+    if out.exists():
+        raise InputError(out, "exists already; captures are never overwritten")
+    tmp = out.with_name(f".{out.name}.partial-{os.getpid()}")
+    temps = [(t, {k: v}) for k, (ts, vs) in rec.temperatures().items() for t, v in zip(ts, vs, strict=True)]
+    color_encoding = (rec.metadata.get("format") or {}).get("color_encoding", "rgb8")  # kept as it was
+    try:
+        w = McapFileWriter(tmp, rec.info, {k: v for k, v in rec.metadata.items() if k != "format"},
+                           compression=compression,
+                           color_encoding=color_encoding if color_encoding in COLOR_ENCODINGS else "rgb8")
+        try:
+            for t_ns, values in temps:
+                w.write_temperature(t_ns, values)
+            for fs in rec.frames():
+                w.write(fs)
+            cut = cut_source(rec)  # a cut source makes a whole file: it still says it holds only part
+            if cut is not None:
+                w.add_metadata("source", dict(rec.metadata.get("source") or {}, path=str(rec.path),
+                                              truncated=True, cut_path=cut["path"],
+                                              recovered_frames=cut["recovered_frames"]))
+            w.close()  # the summary, flushed and fsynced
+        except BaseException:
+            w.abort()
+            raise
+        _link_new(tmp, out)
+        return w.frames_written
+    except (OSError, CaptureError) as exc:
+        cause = exc if isinstance(exc, OSError) else exc.__cause__
+        if not isinstance(cause, OSError):
+            raise
+        raise DepthstationError(f"{out}: cannot write ({cause.strerror or cause}); the incomplete copy was "
+                                f"removed and nothing was kept under {out.name} ({rec.path} is untouched)"
+                                ) from exc
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _link_new(tmp: Path, out: Path) -> None:
+    """Give the finished `tmp` the name `out` without ever replacing a file that appeared meanwhile."""
+    try:
+        os.link(tmp, out)
+    except FileExistsError as exc:
+        raise InputError(out, "appeared while compact was writing; captures are never overwritten") from exc
+    except OSError as exc:
+        if exc.errno not in (errno.EPERM, errno.EOPNOTSUPP, errno.EXDEV):
+            raise
+        if out.exists():  # a file system without hard links
+            raise InputError(out, "appeared while compact was writing; captures are never overwritten") from exc
+        tmp.rename(out)
+    dir_fd = os.open(out.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)  # the new name survives a power cut
+    finally:
+        os.close(dir_fd)
+
+
 @app.command("compact")
 def compact_cmd(
     src: Annotated[Path, typer.Argument(help="an MCAP recording (ours)")],
@@ -172,21 +233,9 @@ def compact_cmd(
     rec = open_recording(src)
     if not isinstance(rec, McapRecording):
         raise InputError(src, "compact takes our MCAP recordings; use `capture import` for others")
-    temps = [(t, {k: v}) for k, (ts, vs) in rec.temperatures().items() for t, v in zip(ts, vs, strict=True)]
-    color_encoding = (rec.metadata.get("format") or {}).get("color_encoding", "rgb8")  # kept as it was
-    with McapFileWriter(out, rec.info, {k: v for k, v in rec.metadata.items() if k != "format"},
-                        compression=compression,
-                        color_encoding=color_encoding if color_encoding in COLOR_ENCODINGS else "rgb8") as w:
-        for t_ns, values in temps:
-            w.write_temperature(t_ns, values)
-        for fs in rec.frames():
-            w.write(fs)
-        cut = cut_source(rec)  # a cut source makes a whole file: it still says it holds only part
-        if cut is not None:
-            w.add_metadata("source", dict(rec.metadata.get("source") or {}, path=str(rec.path),
-                                          truncated=True, cut_path=cut["path"],
-                                          recovered_frames=cut["recovered_frames"]))
-        n = w.frames_written
-    typer.echo(
-        f"{out}: {n} frames, {out.stat().st_size / 1e6:.1f} MB (from {src.stat().st_size / 1e6:.1f} MB)"
-    )
+    n = _write_compact(rec, out, compression)
+    new_size, old_size = out.stat().st_size, src.stat().st_size
+    typer.echo(f"{out}: {n} frames, {new_size / 1e6:.1f} MB (from {old_size / 1e6:.1f} MB)")
+    if new_size >= old_size:  # an already compressed recording: say so rather than let 'compact' mislead
+        typer.echo(f"{out}: not smaller than {src} ({new_size / old_size:.0%} of its size): the source was "
+                   f"already compressed at least as well as {compression}; keeping the source loses nothing")
