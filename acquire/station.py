@@ -30,7 +30,7 @@ from depthstation.acquire.views import BOARD_HELP, RerunView, TerminalPanel, blu
 from depthstation.acquire.warmup import WarmupDecision, WarmupSample, run_warmup
 from depthstation.core.capture.session import SESSION_FILE, Session, camera_identity, identity_differences
 from depthstation.core.device import CalibratableCamera, device_model
-from depthstation.core.errors import CameraError, InputError
+from depthstation.core.errors import CameraError, CaptureError, DepthstationError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress, stderr_console
 from depthstation.core.protocol import (
@@ -41,7 +41,7 @@ from depthstation.core.protocol import (
     protocol_from_dict,
 )
 from depthstation.core.rerun_bridge import RerunTarget, recording
-from depthstation.core.results import is_recording_rrd
+from depthstation.core.results import DISK_ERRORS, is_recording_rrd
 from depthstation.core.run_warnings import warn
 from depthstation.simulate.model import check_seed
 from depthstation.simulate.operator import SimulatedOperator, Stance
@@ -425,12 +425,48 @@ def keep_replaced_calibration(session: Session, record: dict[str, Any]) -> None:
          "the session mixes two calibrations", str(session.dir), "calibration-changed")
 
 
+def _disk_cause(exc: BaseException) -> OSError | None:
+    """The full, read-only or forbidden disk behind `exc` (itself or what it was raised from)."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, OSError) and seen.errno in DISK_ERRORS:
+            return seen
+        seen = seen.__cause__ or seen.__context__
+    return None
+
+
+@contextlib.contextmanager
+def disk_full_said(session_dir: Path) -> Iterator[None]:
+    """A disk that fills (or turns read-only) during a capture, said as what was kept and where (exit
+    1). Why: the line said 'nothing was kept in .' while a finished standpoint and a partial one were."""
+    try:
+        yield
+    except (OSError, CaptureError) as exc:
+        cause = _disk_cause(exc)
+        if cause is None:
+            raise
+        raise DepthstationError(kept_after_disk_error(session_dir, cause)) from exc
+
+
+def kept_after_disk_error(session_dir: Path, exc: OSError) -> str:
+    """One line: the failed write, then every standpoint file kept in the session folder."""
+    files = sorted(session_dir.iterdir()) if session_dir.is_dir() else []
+    done = [p.name for p in files if p.name.endswith(".mcap")]
+    cut = [f"{p.name} ({p.stat().st_size} bytes, cut where the write failed: its complete chunks read back)"
+           for p in files if p.name.endswith(".mcap.partial")]
+    kept = "; ".join([f"{', '.join(done)} complete"] * bool(done) + cut) or "no standpoint file"
+    where = exc.filename or session_dir
+    return (f"{where}: cannot write ({exc.strerror or exc}); kept in {session_dir}: {kept}; "
+            f"{SESSION_FILE} holds the last state written whole; free space, then --resume re-records "
+            "the standpoints not complete")
+
+
 def do_capture(st: Station, target: RerunTarget | Any,
                max_guidance_s: float | None) -> list[StandpointOutcome]:
     """The guided loop with the panel and rerun; a recording's end stops it cleanly."""
     on_guidance = st.attach_operator()
     outcomes: list[StandpointOutcome] = []
-    with session_view(st, target, BOARD_HELP) as rec:
+    with disk_full_said(st.session.dir), session_view(st, target, BOARD_HELP) as rec:
         views: list[Any] = []
         panel = TerminalPanel() if sys.stderr.isatty() else None
         if panel is not None:

@@ -5,6 +5,7 @@ left behind that reads as complete."""
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -69,3 +70,29 @@ def test_compact_refuses_an_existing_file_before_writing(tmp_path: Path,
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.mcap", "b.mcap"]
 
 
+
+
+# -- acquire on a full disk ------------------------------------------------------------------------
+def test_acquire_on_a_full_disk_says_what_was_kept_and_leaves_no_torn_temporary(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    from test_acquire_cli import make_recording
+    from test_acquire_faults import TWO_HERE
+
+    rec = make_recording(tmp_path / "board.db3", n=240)
+    proto = tmp_path / "two.toml"
+    proto.write_text(TWO_HERE.replace("frames_per_standpoint = {frames}", "frames_per_standpoint = 80"))
+    sess = tmp_path / "s"
+    sess.mkdir()
+    # room for the first standpoint (~0.58 MB of lz4 MCAP at 640x360) and part of the second
+    with disk_full_after(monkeypatch, sess, 900_000) as budget:
+        code, _, err = run_console(["acquire", "capture", "--camera", str(rec), "--protocol", str(proto),
+                                    "--session", str(sess)], capsys)
+    assert budget.refused >= 1
+    line = one_line_error(code, err, "No space left", f"kept in {sess}", "standpoint_01.mcap complete",
+                          "standpoint_02.mcap.partial", "--resume", exit_code=1)
+    assert "nothing was kept" not in line
+    names = sorted(p.name for p in sess.iterdir())
+    assert names == ["session.json", "standpoint_01.mcap", "standpoint_02.mcap.partial"], names
+    state = json.loads((sess / "session.json").read_text())  # whole, never torn
+    assert state["standpoints"][0]["status"] == "complete"
+    assert open_recording(sess / "standpoint_01.mcap").frame_count == 80

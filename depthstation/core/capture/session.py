@@ -74,11 +74,17 @@ def _atomic_json(path: Path, data: dict[str, Any]) -> None:
     """Write, fsync, rename: a reader sees the old or the new file, never a torn one."""
 
     tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w") as f:
-        f.write(json.dumps(_jsonable(data), indent=2) + "\n")
-        f.flush()
-        os.fsync(f.fileno())
-    tmp.replace(path)
+    try:
+        with tmp.open("w") as f:
+            f.write(json.dumps(_jsonable(data), indent=2) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        tmp.replace(path)
+    except OSError as exc:  # a full disk: no torn temporary left beside the kept session.json
+        tmp.unlink(missing_ok=True)
+        if exc.filename is None:
+            raise OSError(exc.errno, exc.strerror, str(path)) from exc
+        raise
 
 
 class Session:
