@@ -16,6 +16,7 @@ from depthstation.core.errors import DepthstationError
 from depthstation.core.results import COMMAND_LINE, disk_error
 from depthstation.core.run_warnings import RunWarning, collecting
 from depthstation.evaluate.cli import app as evaluate_app
+from depthstation.evaluate.errormodel.cli import register as register_error_model
 from depthstation.evaluate.explain.cli import register as register_explain
 from depthstation.simulate.cli import app as simulate_app
 
@@ -37,6 +38,7 @@ def _register() -> None:
     app.add_typer(acquire_app, name="acquire", help="Warm-up, on-device calibration and guided capture.")
 
     register_explain(app)
+    register_error_model(app)
     register_station(app)
 
 
