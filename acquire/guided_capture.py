@@ -24,6 +24,7 @@ from depthstation.acquire.board_detection import BoardPose, board_mask, board_po
 from depthstation.acquire.guidance import Guidance, StillnessTracker, end_of_range, guide, points_agree
 from depthstation.core.board_pose import pose_metrics
 from depthstation.core.camera_model import StreamInfo
+from depthstation.core.capture.session import StandpointWriter, _sigint_deferred
 from depthstation.core.device import CameraStalled, CameraUnsuitable
 from depthstation.core.errors import CameraDisconnected, CameraError, CaptureError
 from depthstation.core.frames import FrameSet
@@ -156,6 +157,7 @@ class GuidedCapture:
         self.finished: list[StandpointOutcome] = []  # this run's outcomes so far (kept when cut short)
         self._t0_ns: int | None = None
         self._last_temp_ns = 0
+        self._writer: StandpointWriter | None = None  # the open standpoint's, from its file's creation
 
     # -- camera ------------------------------------------------------------------------------
     def _start(self) -> StreamInfo:
@@ -285,9 +287,19 @@ class GuidedCapture:
                     ended_trajectories.add(sp.trajectory)
                     self._mark_skipped(sp)
         finally:
+            self._close_open_writer()
             with contextlib.suppress(CameraError):
                 self.camera.stop()
         return outcomes
+
+    def _close_open_writer(self) -> None:
+        """A standpoint file left open by a Ctrl-C that came after the file was created but before
+        its `with` block took charge of it: finished as 'partial' (a no-op once the block closed it).
+        A failing close is recorded in its session entry and must not hide the Ctrl-C."""
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            with contextlib.suppress(CaptureError):
+                writer.close(ok=False)
 
     def _mark_skipped(self, sp: Standpoint) -> None:
         self.skipped[sp.name] = "end of range: the board's depth fill rate collapsed"
@@ -397,7 +409,12 @@ class GuidedCapture:
         centres: list[np.ndarray] = []
         scales: list[float] = []
         frames = FrameAccounting()
-        with self.session.standpoint_writer(sp.name, self.info, meta) as writer:
+        # the file exists from inside standpoint_writer on: a Ctrl-C is held until the writer is
+        # kept in self._writer, so run() finishes the file wherever the Ctrl-C then lands (Python
+        # can raise it between a call's return and the `with` taking charge of what it returned)
+        with _sigint_deferred():
+            self._writer = self.session.standpoint_writer(sp.name, self.info, meta)
+        with self._writer as writer:
             while state.recorded < n:
                 fs = self._frame()
                 if not frames.admit(fs):
@@ -440,6 +457,7 @@ class GuidedCapture:
             if callable(truth):  # a simulated camera knows where it was: the evaluation's reference
                 writer.set_metadata("truth", truth())
             self.dropped += int(getattr(writer, "dropped", 0))
+        self._writer = None
         state.done.append(sp.name)
         state.phase = "done"
         self._emit(state)

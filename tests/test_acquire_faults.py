@@ -8,10 +8,15 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.records import Channel, Message
+from mcap.stream_reader import StreamReader
+
+from depthstation.core.capture.mcap_writer import FRAME_TOPIC
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_acquire_cli import EXE, SMALL_TOML, make_recording
@@ -34,15 +39,35 @@ def start(rec: Path, proto: Path, sess: Path, *extra: str) -> subprocess.Popen[s
                             preexec_fn=_default_sigint)
 
 
-def wait_for(path: Path, proc: subprocess.Popen[str], timeout: float = 60.0) -> None:
+def wait_for(path: Path, proc: subprocess.Popen[str], timeout: float = 120.0,
+             ready: Callable[[Path], bool] = Path.exists) -> None:
+    """Poll until `ready(path)`; a generous timeout, as a loaded machine may be slow to get there."""
     t_end = time.monotonic() + timeout
-    while not path.exists():
+    while not ready(path):
         if proc.poll() is not None:
             raise AssertionError(f"exited early: {proc.stderr.read() if proc.stderr else ''}")
         if time.monotonic() > t_end:
             proc.kill()
-            raise AssertionError(f"{path.name} never appeared")
+            raise AssertionError(f"{path.name} never became ready")
         time.sleep(0.01)
+
+
+def holds_a_frame(path: Path) -> bool:
+    """Whether the growing MCAP holds a whole frame record on disk (in a finished chunk): read with
+    mcap's own stream reader, the record being written (cut short) ends the reading."""
+    if not path.exists():
+        return False
+    with path.open("rb") as f:
+        try:
+            topics: dict[int, str] = {}
+            for r in StreamReader(f, record_size_limit=None).records:
+                if isinstance(r, Channel):
+                    topics[r.id] = r.topic
+                elif isinstance(r, Message) and topics.get(r.channel_id) == FRAME_TOPIC:
+                    return True
+        except Exception:  # mcap raises several kinds on a file cut short
+            pass
+    return False
 
 
 @pytest.fixture(scope="module")
@@ -93,12 +118,12 @@ def test_sigint_finalises_the_open_file(long_recording: Path, tmp_path: Path) ->
     sess = tmp_path / "s"
     # not paced at the frame rate: paced playback that falls behind (kernels compiled in a fresh
     # checkout, a loaded machine) skips ahead by the clock and could end the recording before the
-    # Ctrl-C; unpaced, the recording is read as fast as it is processed, and 400 frames take
-    # seconds, so the Ctrl-C 0.2 s after the standpoint's file appears lands mid-standpoint
+    # Ctrl-C; unpaced, the recording is read as fast as it is processed. The Ctrl-C goes once the
+    # file holds a frame on disk (the first chunk, a few frames in): mid-standpoint, whatever the
+    # load, with frames for the finished file to keep (not after a fixed sleep)
     proc = start(long_recording, proto, sess)
     partial = sess / "standpoint_01.mcap.partial"
-    wait_for(partial, proc)
-    time.sleep(0.2)
+    wait_for(partial, proc, ready=holds_a_frame)
     proc.send_signal(signal.SIGINT)
     proc.wait(timeout=30)
     err = proc.stderr.read() if proc.stderr else ""
@@ -165,3 +190,69 @@ def test_a_ctrl_c_held_while_a_standpoint_closes_survives_a_failing_close() -> N
     assert signal.getsignal(signal.SIGINT) == before  # the handler the block found is back
     with pytest.raises(CaptureError), _sigint_deferred():  # no Ctrl-C: the failure as it was
         raise CaptureError("writing failed")
+
+
+def _finished(path: Path) -> bool:
+    """Whether the MCAP was finished (its summary section is there)."""
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        try:
+            return make_reader(f).get_summary() is not None
+        except Exception:  # mcap raises several kinds on a file cut short
+            return False
+
+
+@pytest.mark.parametrize("where", ["opening", "entering"])
+def test_a_ctrl_c_before_the_recording_loop_holds_the_file_still_finishes_it(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, where: str) -> None:
+    """A Ctrl-C right after the standpoint's file was created, before the loop's `with` took charge
+    of it ('opening': inside standpoint_writer; 'entering': after it returned, as Python may raise
+    it there): the file is finished all the same and the standpoint is 'partial'. Why: such a
+    Ctrl-C left an MCAP without its summary (the Ctrl-C test failed under load)."""
+    import os
+
+    from test_acquire_loop import RenderedBoardCamera, drive
+
+    from depthstation.acquire.guided_capture import GuidedCapture
+    from depthstation.core.board import Board
+    from depthstation.core.capture.session import Session, StandpointWriter
+    from depthstation.core.protocol import Plan, Protocol, Streams, Tolerances
+    from depthstation.simulate.operator import SimulatedOperator, Stance
+
+    proto = Protocol("test", board=Board(), streams=Streams(width=640, height=360),
+                     plan=Plan(frames_per_standpoint=6, start_distance_m=1.0, step_m=0.5, max_distance_m=1.0,
+                               inclinations_deg=(0.0,)),
+                     tolerances=Tolerances(distance_m=0.05, inclination_deg=3.0, still_seconds=0.3))
+    cam = RenderedBoardCamera(proto.board)
+    session = Session.create(tmp_path / "s", protocol=proto)
+
+    def ctrl_c() -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)  # the handler runs by now: raised here, or held where the code holds it
+
+    if where == "opening":
+        real = session.standpoint_writer
+
+        def opening(*args: object, **kwargs: object) -> StandpointWriter:
+            writer = real(*args, **kwargs)  # type: ignore[arg-type]
+            assert writer.partial.exists()
+            ctrl_c()
+            return writer
+
+        monkeypatch.setattr(session, "standpoint_writer", opening)
+    else:
+        real_enter = StandpointWriter.__enter__
+
+        def entering(self: StandpointWriter) -> StandpointWriter:
+            ctrl_c()
+            return real_enter(self)
+
+        monkeypatch.setattr(StandpointWriter, "__enter__", entering)
+    cap = GuidedCapture(cam, proto, session, on_guidance=drive(cam, SimulatedOperator(
+        proto.board, Stance(range_m=1.0), seed=1)), max_guidance_s=30.0)
+    with pytest.raises(KeyboardInterrupt):
+        cap.run()
+    assert _finished(tmp_path / "s" / "standpoint_01.mcap.partial")
+    assert [e["status"] for e in Session.open(tmp_path / "s").standpoints] == ["partial"]
+    assert not cam.started
