@@ -9,7 +9,6 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from depthstation.core.capture.export import TARGETS, export_recordings
@@ -20,7 +19,7 @@ from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import open_inputs, open_recording
 from depthstation.core.capture.topics import ColorTopic, DepthTopic, InfraredTopic, TopicChoice, topic_choice
 from depthstation.core.errors import CaptureError, DepthstationError, InputError
-from depthstation.core.progress import progress
+from depthstation.core.progress import progress, stdout_console
 from depthstation.core.results import ForceOption, _jsonable, result_folder
 
 app = typer.Typer(no_args_is_help=True)
@@ -124,7 +123,7 @@ def info_cmd(
         typer.echo(json.dumps(_jsonable(items), indent=2))
         return
 
-    console = Console()
+    console = stdout_console
     for d in items:
         info = d["info"]
         t = Table(title=f"{d['name']}  ({d['path']})", show_header=False)
