@@ -32,6 +32,9 @@ fi
 if [ ! -x .venv/bin/python ]; then "$PY" -m venv .venv; fi
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
 .venv/bin/python -m pip install -q -e '.[dev,camera,tls]'
+# mypy and editors do not follow the editable install's import hook: they see the stage folders
+# as depthstation.<stage> through links in build/typecheck (made here, never committed)
+.venv/bin/python scripts/typecheck_layout.py
 if ! .venv/bin/python -c 'import pyrealsense2' >/dev/null 2>&1; then
   echo "install.sh: no pyrealsense2 wheel for this platform: offline evaluation, simulation and explain" \
        "work; for a live camera build librealsense with its Python bindings" >&2

@@ -14,7 +14,16 @@ from depthstation.core.errors import ProtocolError
 from depthstation.core.text_files import read_text
 from depthstation.core.tomlcompat import tomllib
 
-PROTOCOL_DIR = Path(__file__).resolve().parent.parent / "protocols"
+
+def _protocol_dir() -> Path:
+    """`protocols/`: inside the installed package (a wheel), or at the top of the checkout (an editable
+    install maps `depthstation.protocols` there, and a data folder has no module to locate it by)."""
+    package = Path(__file__).resolve().parent.parent
+    installed = package / "protocols"
+    return installed if installed.is_dir() else package.parent / "protocols"
+
+
+PROTOCOL_DIR = _protocol_dir()
 # librealsense's D400 visual presets (rs2_rs400_visual_preset), as the device names them
 D400_PRESETS = ("Custom", "Default", "Hand", "High Accuracy", "High Density", "Medium Density",
                 "Remove IR Pattern")
