@@ -10,7 +10,9 @@ so the graph read from the top of each file is the real one.
 from __future__ import annotations
 
 import ast
+import importlib
 import importlib.util
+import os
 import pkgutil
 import subprocess
 import sys
@@ -52,13 +54,32 @@ class ModuleImports:
     type_only: set[str] = field(default_factory=set)    # under `if TYPE_CHECKING:`
 
 
+STAGES = ("acquire", "evaluate", "simulate")
+
+
 def _modules() -> dict[str, Path]:
+    """Every module of the package. The stages are walked from their own `__path__`: an editable
+    install maps them onto the top-level folders, which `depthstation.__path__` does not hold."""
     out = {"depthstation": Path(depthstation.__file__)}
-    for info in pkgutil.walk_packages(depthstation.__path__, "depthstation."):
-        spec = importlib.util.find_spec(info.name)
-        assert spec is not None and spec.origin is not None, info.name
-        out[info.name] = Path(spec.origin)
+    packages = [depthstation, *(importlib.import_module(f"depthstation.{s}") for s in STAGES)]
+    for package in packages:
+        out[package.__name__] = Path(str(package.__file__))
+        for info in pkgutil.walk_packages(package.__path__, f"{package.__name__}."):
+            spec = importlib.util.find_spec(info.name)
+            assert spec is not None and spec.origin is not None, info.name
+            out[info.name] = Path(spec.origin)
     return out
+
+
+def test_the_graph_holds_every_layer() -> None:
+    """The checks below see every layer's modules (a walk of `depthstation.__path__` alone would
+    miss the stages of an editable install and pass on half the package)."""
+    mods = _modules()
+    assert {layer_of(n) for n in mods} == set(LAYERS)
+    on_disk = {p.resolve() for stage in STAGES for p in (ROOT / stage).rglob("*.py")
+               if "__pycache__" not in p.parts}
+    if all(str(p).startswith(str(ROOT)) for p in mods.values()):  # the checkout is what is installed
+        assert on_disk <= {p.resolve() for p in mods.values()}
 
 
 def _resolve(mod: str, names: list[str], known: set[str]) -> list[str]:
@@ -220,3 +241,19 @@ def test_stage_folders_are_not_top_level_packages(tmp_path: Path) -> None:
                 assert str(ROOT) not in check.stdout, (cwd, stage, check.stdout)
             else:
                 assert "ModuleNotFoundError" in proc.stderr, proc.stderr
+
+
+def test_a_stage_hands_its_bare_name_on(tmp_path: Path) -> None:
+    """Why `depthstation/core/stage_folder.py` stays: from the repository root Python looks in the
+    current directory first, so without it `import evaluate` would run our `evaluate/` folder (a
+    second copy of our modules, under a name that is not ours) instead of the package of that name
+    the user installed (HuggingFace's `evaluate` is one)."""
+    other = tmp_path / "site"
+    (other / "evaluate").mkdir(parents=True)
+    (other / "evaluate" / "__init__.py").write_text("WHO = 'the other evaluate'\n")
+    env = {**os.environ, "PYTHONPATH": str(other)}
+    proc = subprocess.run([sys.executable, "-c", "import evaluate, sys; print(evaluate.WHO); "
+                           "print(any(m == 'evaluate.scan' for m in sys.modules))"],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["the", "other", "evaluate", "False"], proc.stdout
