@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 from console import run_console
 
@@ -105,3 +106,47 @@ def test_capture_import_in_a_log_says_its_progress(tmp_path: Path,
                                 str(tmp_path / "session")], capsys)
     assert code == 0, err
     assert "rec: 5/5 (100%)" in err, err
+
+
+def test_compare_with_no_standpoint_in_common_warns_and_strict_exits_3(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Two sessions with no standpoint within --max-offset: a table of '-' and exit 0, not a word."""
+    from test_station_compare import write_checkerboard
+
+    a = write_checkerboard(tmp_path / "a", 0.095)
+    far = write_checkerboard(tmp_path / "far", 0.095, names="pose{:02d}", jitter_m=0.25)  # 2.5 units from any
+    near = write_checkerboard(tmp_path / "near", 0.050, names="pose{:02d}", jitter_m=0.02)
+    code, _, err = run_console(["compare", str(a), str(far), "--out", str(tmp_path / "c1")], capsys)
+    assert code == 0, err
+    said = [x for x in err.splitlines() if "warning" in x and "no standpoint in common" in x]
+    assert len(said) == 1 and "--max-offset 1" in said[0], err
+    code, _, err = run_console(["--strict", "compare", str(a), str(far), "--out", str(tmp_path / "c2")],
+                               capsys)
+    assert code == 3, err
+    code, _, err = run_console(["--strict", "compare", str(a), str(near), "--out", str(tmp_path / "c3")],
+                               capsys)
+    assert code == 0 and "no standpoint in common" not in err, err
+
+
+def test_compare_with_no_cell_in_common_warns_and_strict_exits_3(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from depthstation.core.grid import Grid
+    from depthstation.core.results import write_result_info
+
+    rng = np.random.default_rng(3)
+    folders = []
+    for name, (lo, hi) in (("near", (0.5, 1.0)), ("far", (1.5, 2.0))):  # disjoint distances
+        g = Grid.empty(distance_bin_m=0.25, inclination_bin_deg=15.0, distance_max_m=2.0,
+                       inclination_max_deg=60.0)
+        g.add(rng.uniform(lo, hi, 20000), rng.uniform(0.0, 60.0, 20000), rng.normal(0.0, 0.002, 20000))
+        (tmp_path / name).mkdir()
+        g.save(tmp_path / name / "grid.npz")
+        write_result_info(tmp_path / name, "scan", ["synthetic"], {})
+        folders.append(str(tmp_path / name))
+    code, _, err = run_console(["compare", *folders, "--out", str(tmp_path / "c1"), "--min-count", "10"],
+                               capsys)
+    assert code == 0, err
+    assert any("warning" in x and "no cell holds 10 samples in both" in x for x in err.splitlines()), err
+    code, _, err = run_console(["--strict", "compare", *folders, "--out", str(tmp_path / "c2"),
+                                "--min-count", "10"], capsys)
+    assert code == 3, err

@@ -107,6 +107,12 @@ def compare_standpoints(tables: list[tuple[str, list[dict[str, Any]]]], mode: st
     ref_label, ref_rows = tables[0]
     columns = [c for c in STANDPOINT_COLUMNS if all(rows and c in rows[0] for _, rows in tables)]
     matches = [match_standpoints(ref_rows, rows, mode, max_offset) for _, rows in tables[1:]]
+    for (label, _), match in zip(tables[1:], matches, strict=True):
+        if all(j is None for j in match):  # every difference empty: the table would read as "no change"
+            how = ("by name" if mode == "name" else f"by name or within --max-offset {max_offset:g} "
+                   "(1 = 10 cm of distance or 5 deg of inclination)")
+            warn(f"no standpoint in common between {ref_label} and {label} (matched {how}): every difference "
+                 "is empty", None, "compare-match")
     out_rows: list[dict[str, Any]] = []
     for i, r in enumerate(ref_rows):
         row: dict[str, Any] = {"standpoint": r["standpoint"], "distance_m": r["distance_m"],
