@@ -5,9 +5,11 @@ the path, exit 1, and leaves nothing that looks like a finished result."""
 from __future__ import annotations
 
 import shutil
+import signal
 import subprocess
 import sys
 import time
+from contextlib import suppress
 from pathlib import Path
 
 import pytest
@@ -36,14 +38,26 @@ def session(small_session: Path) -> Path:
 def test_second_run_into_a_busy_folder_refuses(tmp_path: Path, session: Path) -> None:
     out = tmp_path / "res"
     board = str(session.parent / "p.toml")
-    args = ["evaluate", "checkerboard", str(session), "--board", board, "--out", str(out), "--frames", "12"]
+    args = ["evaluate", "checkerboard", str(session), "--board", board, "--out", str(out), "--frames", "3"]
     first = subprocess.Popen([EXE, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lock = tmp_path / ".res.lock"
-    deadline = time.monotonic() + 60
-    while not lock.exists() and first.poll() is None and time.monotonic() < deadline:
+
+    def held() -> bool:  # the holder writes its pid once it has the lock (the file exists before)
+        with suppress(OSError):
+            return lock.read_text().strip() == str(first.pid)
+        return False
+
+    deadline = time.monotonic() + 120
+    while not held() and first.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
-    assert lock.exists(), "the first run never took the folder's lock"
-    second = run(*args)
+    assert held(), "the first run never took the folder's lock"
+    # the first run is paused while the second one tries: it holds the folder however fast it
+    # would have finished (a loaded machine starts the second run slowly)
+    first.send_signal(signal.SIGSTOP)
+    try:
+        second = run(*args)
+    finally:
+        first.send_signal(signal.SIGCONT)
     assert second.returncode == 2, second.stderr
     assert "another depthstation run is writing" in second.stderr and "Traceback" not in second.stderr
     _, err = first.communicate(timeout=300)
