@@ -110,7 +110,7 @@ def start_web_server(paths: Sequence[Path] = ()) -> tuple[str, subprocess.Popen[
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     proxy = f"rerun+http://127.0.0.1:{grpc_port}/proxy"
-    if not _wait_for_port(grpc_port):
+    if not (_wait_for_port(grpc_port) and _wait_for_port(web_port)):  # the browser url answers once returned
         proc.terminate()
 
         msg = f"the rerun web viewer did not start (tried: {' '.join(cmd)})"
