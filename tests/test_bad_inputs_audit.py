@@ -6,9 +6,12 @@ left behind that reads as complete."""
 from __future__ import annotations
 
 import json
+import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
 from depthstation.core.capture.mcap_writer import McapFileWriter
@@ -96,3 +99,113 @@ def test_acquire_on_a_full_disk_says_what_was_kept_and_leaves_no_torn_temporary(
     state = json.loads((sess / "session.json").read_text())  # whole, never torn
     assert state["standpoints"][0]["status"] == "complete"
     assert open_recording(sess / "standpoint_01.mcap").frame_count == 80
+
+
+# -- TLS references: empty, cut, stopped writers -------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_walk(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """A 3-frame synthetic walk and its poses: enough to reach the reference's reading."""
+    from depthstation.evaluate.scan.synthetic import make_sequence
+    from depthstation.evaluate.scan.trajectory import write_tum
+
+    from depthstation.core.capture.mcap_writer import write_mcap
+
+    root = tmp_path_factory.mktemp("walk")
+    seq = make_sequence(frames=3, width=40, height=30, seed=1)
+    write_mcap(root / "seq.mcap", seq.info, seq.frames())
+    write_tum(root / "poses.txt", np.asarray(seq.timestamps_ns) * 1e-9, seq.poses)
+    return root / "seq.mcap", root / "poses.txt"
+
+
+def _scan(walk: tuple[Path, Path], reference: Path, out: Path,
+          capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    code, _, err = run_console(["evaluate", "scan", "--sequence", str(walk[0]), "--poses", str(walk[1]),
+                                "--reference", str(reference), "--out", str(out)], capsys)
+    return code, err
+
+
+def _las(path: Path, n: int) -> Path:
+    laspy = pytest.importorskip("laspy")
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.offsets = np.zeros(3)
+    header.scales = np.full(3, 0.001)
+    las = laspy.LasData(header)
+    pts = np.random.default_rng(0).uniform(0.0, 4.0, (n, 3))
+    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    las.write(str(path))
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_a_las_without_points_is_bad_input(tiny_walk: tuple[Path, Path], tmp_path: Path, suffix: str,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    ref = _las(tmp_path / f"empty{suffix}", 0)
+    code, err = _scan(tiny_walk, ref, tmp_path / "out", capsys)
+    line = one_line_error(code, err, str(ref), "no points")
+    assert "LAZ backend" not in line
+
+
+@pytest.mark.parametrize("suffix", [".las", ".laz"])
+def test_a_cut_las_is_said_cut_short(tiny_walk: tuple[Path, Path], tmp_path: Path, suffix: str,
+                                     capsys: pytest.CaptureFixture[str]) -> None:
+    whole = _las(tmp_path / f"whole{suffix}", 5000)
+    ref = tmp_path / f"cut{suffix}"
+    ref.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    code, err = _scan(tiny_walk, ref, tmp_path / "out", capsys)
+    line = one_line_error(code, err, str(ref), "cut short", "5000 points")
+    assert "LAZ backend" not in line  # it is installed: no advice to install it
+
+
+def test_a_laz_without_a_backend_says_so(tiny_walk: tuple[Path, Path], tmp_path: Path,
+                                         monkeypatch: pytest.MonkeyPatch,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    laspy = pytest.importorskip("laspy")
+    ref = _las(tmp_path / "whole.laz", 500)
+    monkeypatch.setattr(laspy.LazBackend, "is_available", lambda self: False)  # as without lazrs
+    code, err = _scan(tiny_walk, ref, tmp_path / "out", capsys)
+    one_line_error(code, err, str(ref), "no LAZ backend", "pip install")
+
+
+def _e57_killed(path: Path, write_scan: bool) -> Path:
+    """An E57 whose writing process died before `close` (what pye57 leaves then)."""
+    pytest.importorskip("pye57")
+    code = ("import os, sys, numpy as np, pye57\n"
+            "e = pye57.E57(sys.argv[1], mode='w')\n"
+            "p = np.random.default_rng(0).uniform(0, 4, (2000, 3))\n"
+            + ("e.write_scan_raw({'cartesianX': p[:, 0], 'cartesianY': p[:, 1], 'cartesianZ': p[:, 2]})\n"
+               if write_scan else "")
+            + "os._exit(0)\n")
+    subprocess.run([sys.executable, "-c", code, str(path)], check=True, timeout=60)
+    return path
+
+
+def _e57_no_scan(path: Path) -> Path:
+    pye57 = pytest.importorskip("pye57")
+    pye57.E57(str(path), mode="w").close()
+    return path
+
+
+def _e57_cut(path: Path) -> Path:
+    pye57 = pytest.importorskip("pye57")
+    whole = path.with_name("whole.e57")
+    e57 = pye57.E57(str(whole), mode="w")
+    p = np.random.default_rng(0).uniform(0, 4, (2000, 3))
+    e57.write_scan_raw({"cartesianX": p[:, 0], "cartesianY": p[:, 1], "cartesianZ": p[:, 2]})
+    e57.close()
+    path.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    return path
+
+
+@pytest.mark.parametrize(("make", "words"), [
+    (lambda p: _e57_killed(p, True), ("writer was stopped",)),
+    (lambda p: _e57_killed(p, False), ("writer was stopped",)),
+    (_e57_no_scan, ("holds no scan",)),
+    (_e57_cut, ("cut short",)),
+])
+def test_a_broken_e57_is_one_line(tiny_walk: tuple[Path, Path], tmp_path: Path, make: Any,
+                                  words: tuple[str, ...], capsys: pytest.CaptureFixture[str]) -> None:
+    ref = make(tmp_path / "ref.e57")
+    code, err = _scan(tiny_walk, ref, tmp_path / "out", capsys)
+    one_line_error(code, err, str(ref), *words)
+    assert len(err.strip().splitlines()) == 1, err  # no libE57 debug dump after the line
+    assert "Debug info" not in err and "libe57" not in err.lower()

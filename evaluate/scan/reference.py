@@ -28,13 +28,13 @@ from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.lazy_open3d import open3d
 from depthstation.core.mesh_checks import check_mesh, check_mesh_file
 from depthstation.core.run_warnings import warn
+from depthstation.evaluate.scan.tls import Scans, read_e57, read_las
 from depthstation.evaluate.scan.trajectory import LOCAL_SHIFT_ABOVE_M, local_shift
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
 MESH_SUFFIXES = (".ply", ".obj", ".off", ".stl", ".gltf", ".glb")
 MESH_CACHE = "reference_mesh.ply"
 UNMEASURED_CACHE = "reference_mesh_unmeasured.npy"  # per triangle: surface no scanned point supports
-TLS_EXTRA = "pip install -e '.[tls]'"
 
 
 @dataclass(frozen=True)
@@ -74,71 +74,35 @@ def _appearance(rgb: np.ndarray | None, intensity: np.ndarray | None) -> np.ndar
     return None
 
 
-def _read_special(path: Path) -> tuple[Any, str | None, Scans | None]:
-    """E57 / LAS / LAZ through their optional packages (float64 coordinates, the scan poses
-    applied, intensity or RGB as point colours), else a clear error (exit 2)."""
+def _read_special(path: Path) -> tuple[Any, str | None, Scans | None, dict[str, Any]]:
+    """E57 / LAS / LAZ through their optional packages (float64 metres, the scan poses applied,
+    intensity or RGB as point colours) and what the file says of its coordinates, else one line
+    naming the file (exit 2)."""
     o3d = open3d()
 
-    suffix = path.suffix.lower()
-    rgb: np.ndarray | None = None
-    intensity: np.ndarray | None = None
-    scans: Scans | None = None
-    if suffix in (".las", ".laz"):
-        try:
-            import laspy
-        except ImportError as exc:
-            raise InputError(path, f"LAS/LAZ needs the optional package 'laspy' ({TLS_EXTRA}), "
-                                   "or convert the cloud to PLY") from exc
-        try:
-            las = laspy.read(str(path))
-        except Exception as exc:  # laspy raises its own errors (no LAZ backend, bad header)
-            raise InputError(path, f"cannot read ({type(exc).__name__}: {exc}); {TLS_EXTRA} installs a "
-                                   "LAZ backend") from exc
-        xyz = np.asarray(las.xyz, dtype=np.float64)
-        names = set(las.point_format.dimension_names)
-        if {"red", "green", "blue"} <= names:
-            rgb = np.stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)], axis=-1)
-        if "intensity" in names:
-            intensity = np.asarray(las.intensity)
-    else:
-        try:
-            import pye57
-        except ImportError as exc:
-            raise InputError(path, f"E57 needs the optional package 'pye57' ({TLS_EXTRA}), "
-                                   "or convert the cloud to PLY") from exc
-        try:
-            e57 = pye57.E57(str(path))
-            parts, colours, intens = [], [], []
-            stations: list[tuple[int, int, np.ndarray | None]] = []
-            for i in range(e57.scan_count):
-                header = e57.get_header(i)
-                fields = set(header.point_fields)
-                has_rgb = {"colorRed", "colorGreen", "colorBlue"} <= fields
-                has_i = "intensity" in fields
-                d = e57.read_scan(i, intensity=has_i, colors=has_rgb, ignore_missing_fields=True,
-                                  transform=True)
-                parts.append(np.stack([d["cartesianX"], d["cartesianY"], d["cartesianZ"]], axis=-1))
-                start = sum(len(p) for p in parts[:-1])
-                origin = np.asarray(header.translation, dtype=np.float64) if header.has_pose() else None
-                stations.append((start, start + len(parts[-1]), origin))
-                if has_rgb:
-                    colours.append(np.stack([d["colorRed"], d["colorGreen"], d["colorBlue"]], axis=-1))
-                if has_i:
-                    intens.append(np.asarray(d["intensity"]))
-        except Exception as exc:
-            raise InputError(path, f"cannot read E57 ({type(exc).__name__}: {exc})") from exc
-        xyz = np.concatenate(parts).astype(np.float64)
-        rgb = np.concatenate(colours) if len(colours) == len(parts) and colours else None
-        intensity = np.concatenate(intens) if len(intens) == len(parts) and intens else None
-        if all(o is not None for _, _, o in stations):  # else no station to orient towards
-            scans = [(a, b, o) for a, b, o in stations if o is not None]
+    tls = read_las(path) if path.suffix.lower() in (".las", ".laz") else read_e57(path)
     pc = o3d.geometry.PointCloud()
-    pc.points = o3d.utility.Vector3dVector(xyz)
-    look = _appearance(rgb, intensity)
+    pc.points = o3d.utility.Vector3dVector(tls.xyz)
+    look = _appearance(tls.rgb, tls.intensity)
     if look is not None:
         pc.colors = o3d.utility.Vector3dVector(look)
-    kind = None if look is None else ("rgb" if rgb is not None and np.any(rgb > 0) else "intensity")
-    return pc, kind, scans
+    kind = None if look is None else ("rgb" if tls.rgb is not None and np.any(tls.rgb > 0) else "intensity")
+    return pc, kind, tls.scans, tls.coordinates
+
+
+def say_coordinates(coordinates: dict[str, Any] | None, path: Path) -> None:
+    """A LAS in feet converted to metres, or a CRS named without its unit: said on every run (the
+    cached mesh too), since every figure of the study scales with it."""
+    if not coordinates:
+        return
+    if coordinates.get("converted_to_metres"):
+        c = coordinates
+        warn(f"coordinates in {c['horizontal_unit']} ({c['horizontal_unit_from']}), heights in "
+             f"{c['vertical_unit']} ({c['vertical_unit_from']}): converted to metres",
+             str(path), "reference-units")
+    if coordinates.get("unit_note"):
+        warn(f"{coordinates['unit_note']}; if that CRS is in feet every distance is off by 3.28x",
+             str(path), "reference-units")
 
 
 def load_reference(path: Path) -> tuple[str, Any]:
@@ -150,7 +114,9 @@ def load_reference(path: Path) -> tuple[str, Any]:
         raise InputError(path, "reference not found")
     suffix = path.suffix.lower()
     if suffix in (".e57", ".las", ".laz"):
-        return "cloud", _read_special(path)[0]
+        pc, _, _, coordinates = _read_special(path)
+        say_coordinates(coordinates, path)
+        return "cloud", pc
     if suffix not in CLOUD_SUFFIXES + MESH_SUFFIXES:
         raise InputError(path, f"unknown reference format {suffix!r} (PLY, PCD, XYZ, OBJ, STL, E57, LAS)")
     check_mesh_file(path)
@@ -177,9 +143,6 @@ def drop_nonfinite_points(path: Path, cloud: Any) -> Any:
     if len(kept.points) == 0:
         raise InputError(path, "reference holds no point with finite coordinates")
     return kept
-
-
-Scans = list[tuple[int, int, np.ndarray]]  # (first point, end, scanner origin) per TLS station
 
 
 def orient_normals(cloud: Any, scans: Scans | None = None, viewpoints: np.ndarray | None = None) -> str:
@@ -347,6 +310,7 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
     key = {"source": str(path.resolve()), "size": st.st_size if st else None,
            "mtime_ns": st.st_mtime_ns if st else None, "poisson": params.to_dict(),
            "local_shift_above_m": LOCAL_SHIFT_ABOVE_M,
+           "tls_in_metres": True,  # meshes cached before LAS/LAZ units were converted are made again
            "viewpoints": None if viewpoints is None else hashlib.sha1(
                np.round(np.asarray(viewpoints, dtype=np.float64), 2).tobytes()).hexdigest()}
     if cache_dir is not None:
@@ -361,10 +325,14 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
             mask_kept = unmeasured_file(cached, info_kept)
             if stored.get("key") == key and (mask_kept is None or mask_kept.is_file()):
                 mesh = o3d.io.read_triangle_mesh(str(cached))
+                say_coordinates(info_kept.get("coordinates"), path)
                 return mesh, cached, {**info_kept, "cached": True}
     scans: Scans | None = None
+    coordinates: dict[str, Any] | None = None
     if path.suffix.lower() in (".e57", ".las", ".laz"):
-        kind, (geom, look, scans) = "cloud", _read_special(path)
+        geom, look, scans, coordinates = _read_special(path)
+        kind = "cloud"
+        say_coordinates(coordinates, path)
     else:
         kind, geom = load_reference(path)
         look = "rgb" if (geom.has_vertex_colors() if kind == "mesh" else geom.has_colors()) else None
@@ -383,6 +351,8 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
     else:
         mesh, info, unmeasured = poisson_mesh(geom, params, scans, local_views, str(path))
         info = {"kind": "cloud", "points": len(geom.points), **info}
+        if coordinates:
+            info["coordinates"] = coordinates
     info.update({"local_shift_m": shift.tolist(), "appearance": look})
     if cache_dir is None:
         raise EvaluationError("a reference cloud (or a far-away mesh) needs a folder to keep its mesh")
