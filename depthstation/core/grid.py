@@ -25,11 +25,15 @@ DEFAULT_DISTANCE_MAX_M = 6.0
 DEFAULT_DISTANCE_BIN_M = 0.005
 DEFAULT_INCLINATION_MAX_DEG = 90.0
 DEFAULT_INCLINATION_BIN_DEG = 0.1
-# fast maths without the no-NaN/no-inf promises: NaN and inf mark missing samples here
-_FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+# No fast maths in the kernels that bin or accumulate: LLVM contracts a * b + c into an FMA where
+# the CPU has one and reorders sums to the CPU's vector width, so with it a sample near a bin edge
+# lands in the neighbouring bin, and a cell's mean differs in its last bits, from one CPU to
+# another (docs/conventions.md, "Same result on every CPU"; tests/test_cpu_targets.py). It cost
+# nothing measurable: the scan study's per-frame step 0.99x (benchmarks/bench_scan_parts.py).
+EXACT_MATH = False
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def bin_index(x: float, lo: float, step: float, n: int) -> int:
     """Cell of x in n uniform bins from lo; -1 outside. The top edge belongs to the last bin
     (inclination is folded into [0, 90], so 90 must not fall out)."""
@@ -41,7 +45,7 @@ def bin_index(x: float, lo: float, step: float, n: int) -> int:
     return k
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def welford_add(count: Any, mean: Any, m2: Any, k: int, j: int, x: float) -> None:
     """One Welford update of cell (k, j); kept tiny so fused kernels elsewhere can inline it."""
     n = count[k, j] + 1
@@ -52,7 +56,7 @@ def welford_add(count: Any, mean: Any, m2: Any, k: int, j: int, x: float) -> Non
     m2[k, j] += delta * (x - mu)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def _add_batch(count: Any, mean: Any, m2: Any, dist: Any, incl: Any, val: Any,
                d_lo: float, d_step: float, nd: int, i_lo: float, i_step: float, ni: int) -> int:
     added = 0
@@ -73,7 +77,7 @@ def _add_batch(count: Any, mean: Any, m2: Any, dist: Any, incl: Any, val: Any,
     return added
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def _chan_merge(count: Any, mean: Any, m2: Any, ocount: Any, omean: Any, om2: Any) -> None:
     nd, ni = count.shape
     for k in range(nd):

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.core.camera_model import Intrinsics, pixel_rays
-from depthstation.core.grid import _FAST, FrameMoments, Grid, bin_index
+from depthstation.core.grid import EXACT_MATH, FrameMoments, Grid, bin_index
 from depthstation.core.lazy_open3d import open3d
 from depthstation.core.raster import fill_rays, pinhole_axes
 
@@ -30,7 +30,7 @@ F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def _inclination_deg(nx: float, ny: float, nz: float, dx: float, dy: float, dz: float) -> float:
     nn = np.sqrt(nx * nx + ny * ny + nz * nz)
     dd = np.sqrt(dx * dx + dy * dy + dz * dz)
@@ -41,7 +41,7 @@ def _inclination_deg(nx: float, ny: float, nz: float, dx: float, dy: float, dz: 
     return np.degrees(np.arccos(c))
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def _inclination_bin(c: float, cos_edges: Any, i_lo: float, i_step: float, ni: int) -> int:
     """Inclination bin of cos(inclination) = c without an exact arccos per pixel.
 
@@ -65,20 +65,19 @@ def _inclination_bin(c: float, cos_edges: Any, i_lo: float, i_step: float, ni: i
     return j
 
 
-@numba.njit(cache=True, nogil=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def _world_dir(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float, r20: float, r21: float,
                r22: float, x: float, y: float, z: float) -> tuple[float, float, float]:
     """`core.raster.fill_rays`' direction of a camera-frame ray (float64 products, one rounding to
-    float32 per component). Its own function with fast maths off, explicitly: numba compiles a
-    callee with its caller's fast-maths flags unless the callee sets its own, and contracted into
-    `_pixel_bins` the product became an FMA, moving the direction by an ulp and a pixel near a bin
-    edge to the next bin now and then. Scalars only: an array argument costs reference counting
-    per call."""
+    float32 per component). Fast maths off (`EXACT_MATH`), set here too: numba compiles a callee
+    with its caller's fast-maths flags unless the callee sets its own, and contracted into an FMA
+    the product moves the direction by an ulp and a pixel near a bin edge to the next bin now and
+    then, on CPUs with FMA only. Scalars only: an array argument costs reference counting per call."""
     return (float(np.float32(r00 * x + r01 * y + r02 * z)), float(np.float32(r10 * x + r11 * y + r12 * z)),
             float(np.float32(r20 * x + r21 * y + r22 * z)))
 
 
-@numba.njit(cache=True, nogil=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def _axis_products(rot: Any, xs: Any, ys: Any, cols: Any, rows: Any) -> None:
     """A pinhole's ray products per column (rot[:, 0] * x) and per row (rot[:, 1] * y): `_world_dir`
     of pixel (u, v) is then two sums per component, the same operations in the same order (z = 1,
@@ -93,12 +92,13 @@ def _axis_products(rot: Any, xs: Any, ys: Any, cols: Any, rows: Any) -> None:
         rows[v, 2] = rot[2, 1] * ys[v]
 
 
-@numba.njit(cache=True, nogil=True, fastmath=False)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def _dir_sum(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float, r02: float, r12: float,
              r22: float) -> tuple[float, float, float]:
-    """`_world_dir` of a pinhole ray from its column's (a) and row's (b) products; fast maths off,
-    as `_world_dir` (inside the pass, LLVM had summed them as (b + r02) + a). Not `core.raster`'s
-    `_dir_sum`: that one is inlined into its caller and would take the pass's fast maths."""
+    """`_world_dir` of a pinhole ray from its column's (a) and row's (b) products, summed in that
+    order; fast maths off, as `_world_dir` (with reassociation allowed LLVM had summed them as
+    (b + r02) + a). Not `core.raster`'s `_dir_sum`: that one is inlined into its caller and takes
+    the caller's flags."""
     return (float(np.float32(a0 + b0 + r02)), float(np.float32(a1 + b1 + r12)),
             float(np.float32(a2 + b2 + r22)))
 
@@ -109,7 +109,7 @@ def pixel_bins_kernel(pinhole: bool) -> Any:
     reading a 12-byte ray per pixel: the study step 0.97-0.99x, docs/scan-study.md run 19) or for
     per-pixel rays (a lens); the choice a constant, so the other path folds away."""
 
-    @numba.njit(cache=True, nogil=True, fastmath=_FAST)
+    @numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
     def _pixel_bins(t_hit: Any, index: Any, normals: Any, dirs: Any, cols: Any, rows: Any, rot: Any,
                     inv_norm: Any, depth: Any, depth_scale: float, d_lo: float, d_step: float, nd: int,
                     cos_edges: Any, guess: Any, ni: int, kk: Any, sj: Any, se: Any, start: Any,
@@ -212,7 +212,7 @@ def pixel_bins_kernel(pinhole: bool) -> Any:
     return _pixel_bins
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def _merge_cell(cells: Any, k: int, j: int, nb: float, mb: float, m2b: float) -> None:
     """Chan's merge of a frame's (count, mean, M2) in one cell into a cell-major accumulator."""
     na = cells[k, j, 0]
@@ -228,7 +228,7 @@ def _merge_cell(cells: Any, k: int, j: int, nb: float, mb: float, m2b: float) ->
     cells[k, j, 2] += m2b + delta * delta * (na * nb / n)
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def _fold_frame(nd: int, ni: int, start: Any, sj: Any, se: Any, row: Any, cells: Any, fcells: Any,
                 per_frame: bool, moments: bool, frames: Any, n2: Any, n2_mean: Any, n2_mean2: Any) -> None:
     """A frame's binned pixels (`_pixel_bins`' runs) into the cells, once per cell it touched.
@@ -279,7 +279,7 @@ def _fold_frame(nd: int, ni: int, start: Any, sj: Any, se: Any, row: Any, cells:
         lo = hi
 
 
-@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+@numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
 def _frame_images(t_hit: Any, normals: Any, rays: Any, depth: Any, depth_scale: float,
                   z_ref: Any, inc: Any, z_meas: Any) -> None:
     for i in range(depth.shape[0]):
@@ -318,12 +318,17 @@ def inclination_guess(cos_e: NDArray[np.float64]) -> NDArray[np.int16] | NDArray
 
 
 def cos_edges(grid: Grid) -> NDArray[np.float64]:
-    """Cosines of the inclination edges (decreasing), cached on the grid's edge array."""
+    """Cosines of the inclination edges (decreasing), cached on the grid's edge array.
+
+    In long double, rounded once to float64: the C library's double cos (and numpy's) picks an
+    FMA or an AVX-512 variant by the CPU and rounds the last bit differently now and then, which
+    would move a bin edge, and a pixel on it, from one CPU to another; the long double cos has one
+    implementation (where long double is double, e.g. on Windows, the plain cos is used)."""
     e = grid.inclination_edges_deg
     key = (e.size, float(e[0]), float(e[-1]))
     hit = _COS_CACHE.get(key)
     if hit is None:
-        hit = np.cos(np.radians(e))
+        hit = np.cos(np.radians(e.astype(np.longdouble))).astype(np.float64)
         _COS_CACHE[key] = hit
     return hit
 
