@@ -24,12 +24,14 @@ from depthstation.simulate.effects.base import (
     FrameJitter,
     PixelContext,
 )
+from depthstation.simulate.effects.color_camera import ColorCamera
 from depthstation.simulate.effects.depth_scale import DepthScale
 from depthstation.simulate.effects.dropout import Dropout
 from depthstation.simulate.effects.flying_pixels import FlyingPixels
 from depthstation.simulate.effects.quantization import Quantization
 
-FUSABLE = (DisparityShift, DisparityJitter, DepthScale, Quantization, Dropout, FlyingPixels)
+FUSABLE = (DisparityShift, DisparityJitter, DepthScale, Quantization, Dropout, FlyingPixels,
+           ColorCamera)  # the colour camera leaves the depth alone
 
 
 @njit(cache=True, nogil=True)

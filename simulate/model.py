@@ -101,7 +101,10 @@ class SensorModel:
                  f'preset = "{self.camera.name}"']
         lines += [f"{k} = {_toml_value(v)}" for k, v in self.camera_overrides.items()]
         for e in self.effects:
-            lines += ["", f"[effects.{e.name}]"]
+            lines += ["", f"# {e.meaning}"] if e.meaning else [""]
+            if e.source:
+                lines += [f"# source: {e.source}"]
+            lines += [f"[effects.{e.name}]"]
             lines += [f"{k} = {_toml_value(v)}  # {e.units[k]}" for k, v in e.params.items()]
         return "\n".join(lines) + "\n"
 
@@ -186,7 +189,8 @@ def model_from_dict(data: dict[str, Any], name: str, source: Path | None = None)
         if spec and unknown:  # a misspelt name first: else it would read as the right one missing
             raise InputError(source, f"model: unknown parameter 'effects.{ename}.{unknown[0]}' "
                                      f"(known: {', '.join(spec)})")
-        missing = [k for k in spec if k not in params]
+        optional = cls.OPTIONAL if cls is not None else frozenset()
+        missing = [k for k in spec if k not in params and k not in optional]
         if missing:  # an effect named without its value would run at a default nobody chose
             _, unit, meaning = spec[missing[0]]
             raise InputError(source, f"model: missing key 'effects.{ename}.{missing[0]}' ({unit}: {meaning})")

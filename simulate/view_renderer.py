@@ -10,6 +10,8 @@ from numpy.typing import NDArray
 
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.frames import FrameSet
+from depthstation.simulate.color_pipeline import ColorNoise, develop
+from depthstation.simulate.effects.color_camera import ColorCamera
 from depthstation.simulate.effects.base import PixelContext
 from depthstation.simulate.model import SensorModel
 from depthstation.simulate.scene import Scene
@@ -75,8 +77,20 @@ class ViewRenderer:
         self._ctx_key: tuple[float, float] | None = None
         self._pose: NDArray[np.float64] | None = None
         ci = info.color_intrinsics
+        # a model with a `color_camera` effect forms its colour image as a real RGB camera does
+        # (color_pipeline); without one, the ideal camera: box-filtered pixels, gamma, Gaussian noise
+        cam = model.effect("color_camera")
+        self.color_camera = cam if isinstance(cam, ColorCamera) else None
+        self._color_scale: NDArray[np.float32] | None = None
+        self._camera_noise = (ColorNoise((ci.height, ci.width, 3), bool(self.color_camera.params["demosaic"]),
+                                         self.rng)
+                              if self.want_color and ci is not None and self.color_camera is not None
+                              and self.color_camera.params["full_well_e"] > 0 else None)
+        if self.color_camera is not None:
+            self.psf_sigma_px = self.color_camera.params["psf_sigma_px"]
         self._color_noise = (NoiseBank((ci.height, ci.width, 3), color_noise_dn, self.rng)
-                             if self.want_color and ci is not None and color_noise_dn > 0 else None)
+                             if self.want_color and ci is not None and color_noise_dn > 0
+                             and self.color_camera is None else None)
         di = info.depth_intrinsics
         self._ir_noise = NoiseBank((di.height, di.width), IR_NOISE_DN, self.rng) if infrared else None
 
@@ -94,7 +108,10 @@ class ViewRenderer:
             color_pose = pose @ np.linalg.inv(self.info.depth_to_color.matrix)
             lin = render_color_linear(self.scene, self.info.color_intrinsics, color_pose, self.rc,
                                       psf_sigma_px=self.psf_sigma_px)
-            self.color_base = encode_srgb(lin)
+            if self.color_camera is not None:
+                self.color_base, self._color_scale = develop(lin, self.color_camera)
+            else:
+                self.color_base = encode_srgb(lin)
         if self.want_ir:
             g = self.geometry
             cos = np.cos(np.radians(np.nan_to_num(g.inclination_deg, nan=90.0)))
@@ -130,7 +147,10 @@ class ViewRenderer:
         color = None
         if self.color_base is not None:
             noise = self._color_noise
-            color = noise.apply(self.color_base, rng) if noise else self.color_base.copy()
+            if self._camera_noise is not None and self._color_scale is not None:
+                color = self._camera_noise.apply(self.color_base, self._color_scale, rng or self.rng)
+            else:
+                color = noise.apply(self.color_base, rng) if noise else self.color_base.copy()
         ir = None
         if self.ir_base is not None and self._ir_noise is not None:
             ir = self._ir_noise.apply(np.clip(self.ir_base, 0, 255).astype(np.uint8), rng)

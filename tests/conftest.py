@@ -54,7 +54,8 @@ def small_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     proto = root / "p.toml"
     proto.write_text((Path(__file__).parents[1] / "protocols" / "demo-d455.toml").read_text()
                      .replace("width = 1280", "width = 640").replace("height = 720", "height = 360"))
-    code = run_cli(["simulate", "checkerboard", "--protocol", str(proto), "--out", str(root / "s"),
+    code = run_cli(["simulate", "checkerboard", "--protocol", str(proto), "--model", "d455-ideal",
+                    "--out", str(root / "s"),
                     "--frames", "12", "--standpoint", "standpoint_01", "--standpoint", "standpoint_02"])
     assert code == 0
     return root / "s"

@@ -45,7 +45,7 @@ def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def done_session(tmp_path_factory: pytest.TempPathFactory, tiny: Path) -> Path:
     """A finished two-standpoint session, recorded once with --rrd (copied by the tests that change it)."""
     root = tmp_path_factory.mktemp("done")
-    code = run_cli(["acquire", "session", "--camera", "sim", "--protocol", str(tiny), "--session",
+    code = run_cli(["acquire", "session", "--camera", "sim:d455-ideal", "--protocol", str(tiny), "--session",
                     str(root / "s"), "--rrd", str(root / "live.rrd"), *FAST])
     assert code == 0
     return root / "s"
@@ -53,7 +53,7 @@ def done_session(tmp_path_factory: pytest.TempPathFactory, tiny: Path) -> Path:
 
 def depth_only_recording(path: Path) -> Path:
     """A RealSense recording of 3 depth frames and no colour stream."""
-    cam = SimulatedCamera("d455")
+    cam = SimulatedCamera("d455-ideal")
     info = cam.start(Streams(width=640, height=360, color=False))
     frames = [cam.wait_for_frames() for _ in range(3)]
     write_realsense_recording(path, info, frames)
@@ -74,13 +74,14 @@ def test_session_run_writes_one_recording_and_a_resume_writes_beside_it(
     assert [e["status"] for e in data["standpoints"]] == ["complete", "complete"]
     before = rrd.read_bytes()
     s = copy(done_session, tmp_path)
-    code, err = acq(capsys, "session", "--camera", "sim", "--session", str(s), "--resume", "--rrd", str(rrd),
+    code, err = acq(capsys, "session", "--camera", "sim:d455-ideal", "--session", str(s), "--resume",
+                    "--rrd", str(rrd),
                     *FAST)
     assert code == 0, err
     assert rrd.read_bytes() == before  # the earlier run's recording is kept
     assert (rrd.parent / "live.resume-1.rrd").is_file()
     # a new session never overwrites an existing --rrd, and the message offers no --force acquire lacks
-    code, err = acq(capsys, "session", "--camera", "sim", "--protocol", str(tiny), "--session",
+    code, err = acq(capsys, "session", "--camera", "sim:d455-ideal", "--protocol", str(tiny), "--session",
                     str(tmp_path / "new"), "--rrd", str(rrd), *FAST)
     assert code == 2 and "live.rrd: exists" in err and "--force" not in err
     assert not (tmp_path / "new").exists()
@@ -90,7 +91,7 @@ def test_resume_refuses_another_camera(done_session: Path, tmp_path: Path,
                                        capsys: pytest.CaptureFixture[str]) -> None:
     s = copy(done_session, tmp_path)
     before = (s / "session.json").read_text()
-    code, err = acq(capsys, "capture", "--camera", "sim:d435", "--session", str(s), "--resume", *CAP)
+    code, err = acq(capsys, "capture", "--camera", "sim:d435-ideal", "--session", str(s), "--resume", *CAP)
     assert code == 2, err
     assert str(s) in err and "D455" in err and "D435" in err and "baseline_m" in err
     assert json.loads((s / "session.json").read_text())["standpoints"] == json.loads(before)["standpoints"]
@@ -127,7 +128,7 @@ def test_resume_records_again_a_missing_or_cut_standpoint(done_session: Path, tm
     (s / "standpoint_01.mcap").unlink()
     cut = (s / "standpoint_02.mcap").read_bytes()
     (s / "standpoint_02.mcap").write_bytes(cut[: len(cut) // 2])
-    code, err = acq(capsys, "capture", "--camera", "sim", "--session", str(s), "--resume", *CAP)
+    code, err = acq(capsys, "capture", "--camera", "sim:d455-ideal", "--session", str(s), "--resume", *CAP)
     assert code == 0, err
     assert "standpoint_01.mcap is missing" in err and "standpoint_02.mcap is damaged" in err
     data = json.loads((s / "session.json").read_text())
@@ -141,12 +142,14 @@ def test_resume_records_again_a_missing_or_cut_standpoint(done_session: Path, tm
 def test_resume_uses_the_stored_protocol_and_refuses_another_plan(
         done_session: Path, tmp_path: Path, tiny: Path, capsys: pytest.CaptureFixture[str]) -> None:
     s = copy(done_session, tmp_path)
-    code, err = acq(capsys, "capture", "--camera", "sim", "--session", str(s), "--resume", "--protocol",
+    code, err = acq(capsys, "capture", "--camera", "sim:d455-ideal", "--session", str(s), "--resume",
+                    "--protocol",
                     str(tiny), *CAP)
     assert code == 0 and "protocol stored in session.json" in err
     other = tmp_path / "four.toml"
     other.write_text(TINY_TOML.replace("max_distance_m = 1.8", "max_distance_m = 3.4"))
-    code, err = acq(capsys, "capture", "--camera", "sim", "--session", str(s), "--resume", "--protocol",
+    code, err = acq(capsys, "capture", "--camera", "sim:d455-ideal", "--session", str(s), "--resume",
+                    "--protocol",
                     str(other), *CAP)
     assert code == 2 and "four.toml" in err and "(4)" in err and "(2)" in err
     assert "leave --protocol out" in err
@@ -199,7 +202,8 @@ def test_warmup_that_never_settles_is_a_warning(tmp_path: Path, tiny: Path,
                                                 capsys: pytest.CaptureFixture[str]) -> None:
     """The simulated projector still climbs ~2 °C/min at the protocol's 1-min maximum (tolerance 0.1)."""
     s = tmp_path / "s"
-    code, err = acq(capsys, "warmup", "--camera", "sim", "--protocol", str(tiny), "--session", str(s),
+    code, err = acq(capsys, "warmup", "--camera", "sim:d455-ideal", "--protocol", str(tiny),
+                    "--session", str(s),
                     "--accelerate", "1000", "--interval", "15", "--strict")
     assert code == 3, err
     assert "warm-up ended without the temperature settling" in err
@@ -287,7 +291,8 @@ def test_calibrating_a_captured_session_keeps_the_earlier_table(done_session: Pa
     shutil.copytree(done_session, s)
     before = json.loads((s / "session.json").read_text())["calibration"]
     assert before.get("table_after_b64")
-    code, err = acq(capsys, "calibrate", "--camera", "sim", "--session", str(s), "--resume", "--yes",
+    code, err = acq(capsys, "calibrate", "--camera", "sim:d455-ideal", "--session", str(s), "--resume",
+                    "--yes",
                     "--seed", "5", "--strict")
     data = json.loads((s / "session.json").read_text())
     assert data["calibration"]["table_after_b64"] != before["table_after_b64"]  # a new table
@@ -304,7 +309,8 @@ def test_a_session_that_stores_no_protocol_resumes_only_with_one_given(
     imported = tmp_path / "imp"
     assert run_cli(["capture", "import", str(done_session), "--out", str(imported)]) == 0
     assert json.loads((imported / "session.json").read_text())["protocol"] is None
-    code, err = acq(capsys, "capture", "--camera", "sim", "--session", str(imported), "--resume", *CAP)
+    code, err = acq(capsys, "capture", "--camera", "sim:d455-ideal", "--session", str(imported),
+                    "--resume", *CAP)
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert str(imported / "session.json") in err and "--protocol" in err
     # a resume refused later (a recording without the colour the protocol asks) stores nothing
@@ -313,7 +319,7 @@ def test_a_session_that_stores_no_protocol_resumes_only_with_one_given(
                     "--protocol", str(tiny), *CAP)
     assert code == 2, err
     assert json.loads((imported / "session.json").read_text())["protocol"] is None
-    code, err = acq(capsys, "capture", "--camera", "sim", "--session", str(imported), "--resume",
+    code, err = acq(capsys, "capture", "--camera", "sim:d455-ideal", "--session", str(imported), "--resume",
                     "--protocol", str(tiny), *CAP)
     assert code == 0, err
     assert json.loads((imported / "session.json").read_text())["protocol"]["name"] == "small"

@@ -34,7 +34,7 @@ def test_guided_session_with_simulated_operator(tmp_path: Path) -> None:
     proto_path.write_text(SIM_TOML.replace("{frames}", "5"))
     proto = load_protocol(proto_path)
     sess = tmp_path / "session"
-    r = subprocess.run([EXE, "acquire", "session", "--camera", "sim", "--protocol", str(proto_path),
+    r = subprocess.run([EXE, "acquire", "session", "--camera", "sim:d455-ideal", "--protocol", str(proto_path),
                         "--session", str(sess), "--yes", "--accelerate", "400", "--interval", "15",
                         "--max-guidance", "90", "--seed", "2"], capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -73,7 +73,7 @@ def test_simulated_disconnect_is_reported_and_redone(tmp_path: Path) -> None:
                                inclinations_deg=(0.0,)),
                      tolerances=Tolerances(still_seconds=0.3))
     # in place from the start: ~10 frames to be still, then 8 to record; unplug on frame 14
-    cam = SimulatedCamera("d455", board=proto.board, disconnect_after_frames=14, failed_reconnects=2)
+    cam = SimulatedCamera("d455-ideal", board=proto.board, disconnect_after_frames=14, failed_reconnects=2)
     op = SimulatedOperator(proto.board, Stance(range_m=1.2), seed=0)
     cam.set_pose(op.pose(0.0))
     states: list[str] = []
@@ -102,7 +102,7 @@ def test_no_dropped_frame_at_real_time(tmp_path: Path) -> None:
                      plan=Plan(frames_per_standpoint=45, start_distance_m=0.8, max_distance_m=0.8,
                                inclinations_deg=(0.0,)),
                      tolerances=Tolerances(still_seconds=0.2))
-    cam = SimulatedCamera("d455", board=proto.board, real_time=True,
+    cam = SimulatedCamera("d455-ideal", board=proto.board, real_time=True,
                           pose=standpoint_pose(proto.board, 0.8, 0.0))
     session = Session.create(tmp_path / "s", protocol=proto)
     GuidedCapture(cam, proto, session, max_guidance_s=10).run()

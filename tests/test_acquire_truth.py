@@ -13,7 +13,7 @@ import pytest
 from depthstation.core.protocol import Plan, Protocol, Streams, Tolerances
 
 
-def run_session(out: Path, proto: Protocol, seed: int, model: Any = "d455") -> tuple[list[Any], Any]:
+def run_session(out: Path, proto: Protocol, seed: int, model: Any = "d455-ideal") -> tuple[list[Any], Any]:
     """In-process: the CLI's wiring (operator steps on frame time) without the subprocess."""
     from depthstation.acquire.guided_capture import GuidedCapture
     from depthstation.core.capture.session import Session
@@ -92,7 +92,7 @@ def test_end_of_range_moves_to_the_next_trajectory(tmp_path: Path) -> None:
                                inclinations_deg=(0.0, 30.0)),
                      tolerances=Tolerances(distance_m=0.05, inclination_deg=3.0, still_seconds=0.3,
                                            end_fill_rate=0.5))
-    short = load_model("d455").with_effect("dropout", range_z50_m=1.7, range_width_m=0.05)
+    short = load_model("d455-ideal").with_effect("dropout", range_z50_m=1.7, range_width_m=0.05)
     outcomes, _ = run_session(tmp_path / "s", proto, seed=1, model=short)
     plan = proto.plan.standpoints()
     names = [sp.name for sp in plan]

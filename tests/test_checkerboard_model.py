@@ -32,7 +32,7 @@ def test_noise_accuracy_and_geometry_match_the_model() -> None:
     # the default model's noise, all of it white: with its window-shared part (9 px) a board's mean
     # and tilt vary like ~50 independent pixels a frame at 5 m, not thousands, and the 1 mm and
     # 0.5 deg checks below would need 50 times the frames (window noise: tests/test_explain_terms.py)
-    model = load_model("d455").white_noise()
+    model = load_model("d455-ideal").white_noise()
     info = model.camera.stream_info(1280, 720, 30.0)  # the board's squares are 12 px at 5 m
     renderer = ViewRenderer(board_scene(board), model, info, seed=0)
     for k, (dist, incl, side) in enumerate(STANDPOINTS):

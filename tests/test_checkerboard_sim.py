@@ -19,7 +19,7 @@ def test_simulated_standpoints_match_truth(tmp_path: Path) -> None:
 
     proto = load_protocol("demo-d455")
     names = ["standpoint_01", "standpoint_04", "standpoint_06"]
-    out = simulate_checkerboard(proto, "d455", tmp_path / "sim", frames=3, standpoints=names)
+    out = simulate_checkerboard(proto, "d455-ideal", tmp_path / "sim", frames=3, standpoints=names)
     truth = {s["name"]: s for s in json.loads((out / "truth.json").read_text())["standpoints"]}
     recs = open_inputs([out])
     assert sorted(r.name for r in recs) == names
@@ -50,7 +50,7 @@ def test_pose_inclination_head_on_far_demo_standpoint(tmp_path: Path) -> None:
 
     proto = load_protocol("demo-d455")
     far = max((s for s in proto.plan.standpoints() if s.inclination_deg == 0), key=lambda s: s.distance_m)
-    out = simulate_checkerboard(proto, "d455", tmp_path / "sim", standpoints=[far.name])
+    out = simulate_checkerboard(proto, "d455-ideal", tmp_path / "sim", standpoints=[far.name])
     truth = json.loads((out / "truth.json").read_text())["standpoints"][0]
     r = evaluate_recording(open_inputs([out])[0], proto.board, frames=10)
     assert abs(r.figures["inclination_deg"] - truth["inclination_deg"]) < 0.5
@@ -71,7 +71,7 @@ def test_db3_gives_the_same_table_as_mcap(tmp_path: Path) -> None:
     rows: dict[str, list[dict[str, Any]]] = {}
     infos = {}
     for fmt in ("mcap", "db3"):
-        out = simulate_checkerboard(proto, "d455", tmp_path / fmt, fmt=fmt, frames=3, standpoints=names,
+        out = simulate_checkerboard(proto, "d455-ideal", tmp_path / fmt, fmt=fmt, frames=3, standpoints=names,
                                     seed=3)
         recs = sorted(open_inputs([out]), key=lambda r: r.name)
         assert [r.name for r in recs] == names

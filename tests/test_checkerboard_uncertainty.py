@@ -43,7 +43,7 @@ def _study(tmp: Path, colour_noise_dn: float | None, monkeypatch: pytest.MonkeyP
     proto = load_protocol("demo-d455")
     names = [s.name for s in proto.plan.standpoints()][:len(DISTANCES)]
     poses = {n: _vertical_pose(proto.board, d, TILT_DEG) for n, d in zip(names, DISTANCES, strict=True)}
-    out = sim.simulate_checkerboard(proto, "d455", tmp / "sim", frames=FRAMES, standpoints=names,
+    out = sim.simulate_checkerboard(proto, "d455-ideal", tmp / "sim", frames=FRAMES, standpoints=names,
                                     poses=poses, seed=1)
     recs = sorted(open_inputs([out]), key=lambda r: r.name)
     results = [evaluate_recording(r, proto.board, frames=FRAMES) for r in recs]

@@ -35,7 +35,7 @@ def test_frontal_wall_reads_the_model_disparity_noise(distance_m: float) -> None
     from depthstation.simulate.scene import Scene, Surface, quad
     from depthstation.simulate.view_renderer import ViewRenderer
 
-    model = load_model("d455")
+    model = load_model("d455-ideal")
     # the subpixel RMS sees the whole matching noise: white and window-shared parts together
     sigma = float(np.hypot(*(model.effect(name).params["sigma_px"]  # type: ignore[union-attr]
                              for name in ("disparity_noise", "window_noise"))))
@@ -122,7 +122,7 @@ def test_study_table_and_roi(tmp_path: Path) -> None:
     from depthstation.simulate.checkerboard_session import simulate_checkerboard
 
     proto = load_protocol("demo-d455")
-    out = simulate_checkerboard(proto, "d455", tmp_path / "sim", frames=3, standpoints=["standpoint_01"],
+    out = simulate_checkerboard(proto, "d455-ideal", tmp_path / "sim", frames=3, standpoints=["standpoint_01"],
                                 seed=2)
     rec = open_inputs([out])[0]
     r = evaluate_recording(rec, proto.board, frames=3, roi=0.4)

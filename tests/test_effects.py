@@ -26,6 +26,9 @@ TEST_PARAMS: dict[str, dict[str, float]] = {
     "flying_pixels": {"edge_probability": 0.4, "width_px": 1.5, "spread_ratio": 0.05},
     "reference_pose_noise": {"corner_sigma_px": 0.2},
     "window_noise": {"sigma_px": 0.1, "window_px": 5.0},
+    "incidence_noise": {"sigma_px": 0.08, "exponent": 1.0, "max_deg": 80.0},
+    "static_pattern": {"sigma_px": 0.2, "length": 0.05, "pattern_seed": 3.0},
+    "color_camera": {"psf_sigma_px": 0.8, "full_well_e": 250.0, "read_noise_e": 4.0},  # leaves depth alone
 }
 FX, PPX, PPY, B = 674.42, 641.8, 358.1, 0.095
 N = 1500  # samples per cell
@@ -125,7 +128,7 @@ def test_model_sample_matches_model_signature(fused: bool) -> None:
     """The whole default model plus calibration effects, fused pass and effect-by-effect alike."""
     from depthstation.simulate.model import load_model
 
-    model = (load_model("d455").with_effect("disparity_offset", offset_px=0.1)
+    model = (load_model("d455-ideal").with_effect("disparity_offset", offset_px=0.1)
              .with_effect("albedo_noise", sigma_px_black=0.1).with_effect("depth_scale", scale_error=0.002)
              .with_effect("lr_focal_mismatch", ratio=2e-4))
     rng = np.random.default_rng(11)

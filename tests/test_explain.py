@@ -25,7 +25,7 @@ def plain_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from depthstation.simulate.checkerboard_session import simulate_checkerboard
 
     out = tmp_path_factory.mktemp("plain") / "sim"
-    return simulate_checkerboard("demo-d455", "d455", out, frames=6, seed=11)
+    return simulate_checkerboard("demo-d455", "d455-ideal", out, frames=6, seed=11)
 
 
 @pytest.fixture(scope="module")
@@ -34,12 +34,12 @@ def wide_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from depthstation.simulate.checkerboard_session import simulate_checkerboard
 
     out = tmp_path_factory.mktemp("wide") / "sim"
-    return simulate_checkerboard(wide_protocol(), "d455", out, frames=6, seed=11)
+    return simulate_checkerboard(wide_protocol(), "d455-ideal", out, frames=6, seed=11)
 
 
 def _explain(real: Path, out: Path, *extra: str) -> dict:
     r = subprocess.run([str(EXE), "explain", str(real), "--board", str(ROOT / "protocols" / "demo-d455.toml"),
-                        "--model", "d455", "--out", str(out), "--frames", "6", "--seed", "3", *extra],
+                        "--model", "d455-ideal", "--out", str(out), "--frames", "6", "--seed", "3", *extra],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     return json.loads((out / "explain.json").read_text())
@@ -163,7 +163,8 @@ def test_depth_the_real_camera_loses_is_said(plain_session: Path, tmp_path: Path
 
     real = conceal(plain_session, tmp_path / "real", dark_dropout, noise_seed=5)
     r = subprocess.run([str(EXE), "explain", str(real), "--board", str(ROOT / "protocols" / "demo-d455.toml"),
-                        "--model", "d455", "--out", str(tmp_path / "out"), "--frames", "6", "--seed", "3",
+                        "--model", "d455-ideal", "--out", str(tmp_path / "out"), "--frames", "6",
+                                                              "--seed", "3",
                         "--no-resimulate", "--no-discover"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     fills = json.loads((tmp_path / "out" / "explain.json").read_text())["valid_depth"]
@@ -182,7 +183,7 @@ def test_real_d435_runs_end_to_end(charuco_dir: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
     r = subprocess.run([str(EXE), "explain", str(charuco_dir / "pose03"), str(charuco_dir / "pose05"),
                         str(charuco_dir / "pose07"), "--board", str(charuco_dir / "board.json"),
-                        "--model", "d435", "--out", str(out), "--frames", "3", "--no-resimulate"],
+                        "--model", "d435-ideal", "--out", str(out), "--frames", "3", "--no-resimulate"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     data = json.loads((out / "explain.json").read_text())

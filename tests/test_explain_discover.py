@@ -30,7 +30,7 @@ def small_session(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     p = wide_protocol(320, 180)
     p = replace(p, plan=replace(p.plan, start_distance_m=1.0, step_m=0.5, max_distance_m=3.0))
-    return simulate_checkerboard(p, "d455", tmp_path_factory.mktemp("small") / "sim", frames=6, seed=11)
+    return simulate_checkerboard(p, "d455-ideal", tmp_path_factory.mktemp("small") / "sim", frames=6, seed=11)
 
 
 def _run(real: Path, out: Path) -> dict[str, Any]:
@@ -38,7 +38,7 @@ def _run(real: Path, out: Path) -> dict[str, Any]:
     from depthstation.evaluate.explain.run import run_explain
     from depthstation.simulate.model import load_model
 
-    return run_explain([real], ROOT / "protocols" / "demo-d455.toml", load_model("d455"), out, frames=6,
+    return run_explain([real], ROOT / "protocols" / "demo-d455.toml", load_model("d455-ideal"), out, frames=6,
                        seed=3)
 
 

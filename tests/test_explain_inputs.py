@@ -29,7 +29,8 @@ def _protocol(root: Path, width: int = 320, height: int = 180) -> Path:
 def small(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Two 320x180 standpoints of 3 frames (1.0 and 1.5 m); `p_320.toml` beside them is the board."""
     root = tmp_path_factory.mktemp("small")
-    assert run_cli(["simulate", "checkerboard", "-p", str(_protocol(root)), "--out", str(root / "s"),
+    assert run_cli(["simulate", "checkerboard", "--model", "d455-ideal", "-p", str(_protocol(root)),
+                    "--out", str(root / "s"),
                     "--seed", "1"]) == 0
     return root
 
@@ -44,7 +45,8 @@ def test_mixed_resolutions_refused(small: Path, tmp_path: Path, capsys: pytest.C
     """A 640x360 standpoint among 320x180 ones would be simulated at 320x180: refused, each camera's
     standpoints named."""
     big = tmp_path / "big"
-    assert run_cli(["simulate", "checkerboard", "-p", str(_protocol(tmp_path, 640, 360)), "--out", str(big),
+    assert run_cli(["simulate", "checkerboard", "--model", "d455-ideal", "-p",
+                    str(_protocol(tmp_path, 640, 360)), "--out", str(big),
                     "--standpoint", "standpoint_02"]) == 0
     (big / "standpoint_02.mcap").rename(big / "far.mcap")
     code, err = _explain(capsys, str(small / "s" / "standpoint_01.mcap"), str(big / "far.mcap"),
@@ -67,7 +69,8 @@ def test_two_frame_standpoint_left_out_of_noise_tests(small: Path, tmp_path: Pat
     """A standpoint of 2 frames among 3-frame ones: warned, and no false noise mismatch (its temporal
     variance has no scatter over frames: t ~ 1e5 before)."""
     short = tmp_path / "short"
-    assert run_cli(["simulate", "checkerboard", "-p", str(small / "p_320.toml"), "--out", str(short),
+    assert run_cli(["simulate", "checkerboard", "--model", "d455-ideal", "-p",
+                    str(small / "p_320.toml"), "--out", str(short),
                     "--frames", "2", "--standpoint", "standpoint_02", "--seed", "5"]) == 0
     out = tmp_path / "e"
     code, err = _explain(capsys, str(small / "s" / "standpoint_01.mcap"), str(short / "standpoint_02.mcap"),
@@ -139,7 +142,7 @@ def test_model_camera_differing_from_the_recording_is_warned(
     model = tmp_path / "m.toml"
     model.write_text('[camera]\npreset = "d455"\nbaseline_m = 0.05\ndepth_units_m = 1e-4\n'
                      'depth_hfov_deg = 70.0\ndepth_to_color_translation_m = [0.0, 0.0, 0.0]\n')
-    runs = {"m": str(model), "d435": "d435", "d455": "d455"}
+    runs = {"m": str(model), "d435": "d435-ideal", "d455": "d455-ideal"}
     said = {}
     for key, mdl in runs.items():
         out = tmp_path / key
@@ -183,7 +186,8 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from depthstation.simulate.scan_sequence import simulate_scan
 
     out = tmp_path_factory.mktemp("room") / "sim"
-    return simulate_scan("room", "walk", "d455", out, frames=24, width=256, height=144, color=False, seed=5)
+    return simulate_scan("room", "walk", "d455-ideal", out, frames=24, width=256, height=144,
+                         color=False, seed=5)
 
 
 def test_scan_frames_without_pose_are_counted(room: Path, tmp_path: Path,

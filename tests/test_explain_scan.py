@@ -19,7 +19,7 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from depthstation.simulate.scan_sequence import simulate_scan
 
     out = tmp_path_factory.mktemp("room") / "sim"
-    return simulate_scan("room", "walk", "d455", out, frames=24, width=256, height=144, color=False, seed=5)
+    return simulate_scan("room", "walk", "d455-ideal", out, frames=24, width=256, height=144, color=False, seed=5)
 
 
 def _conceal(sim: Path, out: Path, c_per_m: float, hidden: Any = None) -> Path:
@@ -57,7 +57,7 @@ def _conceal(sim: Path, out: Path, c_per_m: float, hidden: Any = None) -> Path:
 
 def _explain_scan(room: Path, real: Path, out: Path) -> dict[str, Any]:
     r = subprocess.run([str(EXE), "explain", "--scan", str(real), "--poses", str(room / "trajectory.txt"),
-                        "--reference", str(room / "scene.ply"), "--model", "d455", "--no-icp",
+                        "--reference", str(room / "scene.ply"), "--model", "d455-ideal", "--no-icp",
                         "--block-frames", "4", "--out", str(out), "--seed", "2"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -96,7 +96,7 @@ def test_scan_null_selects_nothing(room: Path, tmp_path: Path) -> None:
     real = _conceal(room, tmp_path / "real", 0.0)
     out = tmp_path / "out"
     r = subprocess.run([str(EXE), "explain", "--scan", str(real), "--poses", str(room / "trajectory.txt"),
-                        "--reference", str(room / "scene.ply"), "--model", "d455", "--no-icp",
+                        "--reference", str(room / "scene.ply"), "--model", "d455-ideal", "--no-icp",
                         "--block-frames", "4", "--out", str(out), "--seed", "2", "--no-resimulate"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]

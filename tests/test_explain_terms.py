@@ -90,7 +90,7 @@ def test_bad_generic_term_is_refused() -> None:
 def test_window_noise_shares_the_error_of_a_box() -> None:
     """window_noise against a running-sum box filter's statistics: variance sigma^2, correlation
     (1 - k/w) along u and v, and the mean of an n x n patch varying like w^2 / n^2 independent pixels."""
-    model = _plain(load_model("d455")).with_effect("window_noise", sigma_px=0.1, window_px=9)
+    model = _plain(load_model("d455-ideal")).with_effect("window_noise", sigma_px=0.1, window_px=9)
     z = np.full((90, 120), 2.0, dtype=np.float32)
     v, u = np.mgrid[0:90, 0:120].astype(np.float64)
     ctx = PixelContext(z_m=z, u=u, v=v, fx=FX, ppx=60.0, ppy=45.0, baseline_m=B)

@@ -72,7 +72,7 @@ def test_toml_through_tomli_without_tomllib(tmp_path: Path) -> None:
         from depthstation.core.protocol import load_protocol
         from depthstation.simulate.model import load_model
         p = load_protocol("demo-d455")
-        assert p.board.squares_x == 7 and load_model("d455").camera.baseline_m > 0
+        assert p.board.squares_x == 7 and load_model("d455-ideal").camera.baseline_m > 0
         open("bad.toml", "w").write("[board\\n")
         from depthstation.core.errors import InputError
         try:

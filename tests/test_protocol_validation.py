@@ -77,7 +77,7 @@ def test_a_recording_of_another_model_does_not_fit_the_protocol(tmp_path: Path, 
     p = tmp_path / "p.toml"
     p.write_text(TINY_TOML.replace("[plan]", f'[device]\nmodel = "{model}"\n\n[plan]'))
     proto = load_protocol(p)
-    info = SimulatedCamera("d455").start(proto.streams)
+    info = SimulatedCamera("d455-ideal").start(proto.streams)
     info = replace(info, device={**(info.device or {}), "name": name})
     said = recording_misfits(info, proto)
     assert (said == []) is fits, said
@@ -93,6 +93,6 @@ def test_a_recording_at_another_frame_rate_does_not_fit_the_protocol(tmp_path: P
     p = tmp_path / "p.toml"
     p.write_text(TINY_TOML.replace("fps = 30", "fps = 15"))
     proto = load_protocol(p)
-    info = SimulatedCamera("d455").start(replace(proto.streams, fps=30))
+    info = SimulatedCamera("d455-ideal").start(replace(proto.streams, fps=30))
     assert recording_misfits(info, proto) == ["30 fps, the protocol asks 15"]
     assert recording_misfits(replace(info, fps=15.0), proto) == []

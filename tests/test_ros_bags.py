@@ -36,7 +36,7 @@ def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 
     proto = load_protocol("demo-d455")
     root = tmp_path_factory.mktemp("ros")
-    out = simulate_checkerboard(proto, "d455", root / "sim", frames=3, standpoints=NAMES, seed=3)
+    out = simulate_checkerboard(proto, "d455-ideal", root / "sim", frames=3, standpoints=NAMES, seed=3)
     recs = sorted(open_inputs([out]), key=lambda r: r.name)
     return {"root": root, "board": proto.board, "recs": recs, "rows": [_row(r, proto.board) for r in recs]}
 

@@ -127,7 +127,7 @@ def test_standpoints_of_two_cameras_are_warned(session: Path, tmp_path: Path,
     first camera only, and the fitted noise curve mixed two baselines without a word."""
     other = tmp_path / "d435"
     code = run_cli(["simulate", "checkerboard", "--protocol", str(session.parent / "p.toml"),
-                    "--model", "d435", "--out", str(other), "--frames", "12",
+                    "--model", "d435-ideal", "--out", str(other), "--frames", "12",
                     "--standpoint", "standpoint_02"])
     assert code == 0
     work = tmp_path / "mixed"

@@ -37,7 +37,7 @@ def walk(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     from depthstation.simulate.poses import write_tum as write_poses
     from depthstation.simulate.scan_sequence import simulate_scan
 
-    model = load_model("d455").without_effect("flying_pixels").with_effect("depth_scale",
+    model = load_model("d455-ideal").without_effect("flying_pixels").with_effect("depth_scale",
                                                                            scale_error=SCALE_ERROR)
     root = tmp_path_factory.mktemp("walk")
     n = 16

@@ -22,7 +22,7 @@ def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     # flying pixels depend on the distance to depth edges, which the grid does not resolve; the
     # noise all white (same total): the grid's standard errors count pixels as independent, which
     # the window-shared part of the default noise is not
-    model = load_model("d455").without_effect("flying_pixels").white_noise()
+    model = load_model("d455-ideal").without_effect("flying_pixels").white_noise()
     root = tmp_path_factory.mktemp("simscan")
     # 8 views spread over one turn round the table (the default walk moves 6 cm in 6 frames,
     # which leaves the rotation about the vertical unconstrained within the 0.5-2 m band)

@@ -34,7 +34,7 @@ def _centre_depth(cam: SimulatedCamera, n: int = 4) -> float:
 
 
 def test_protocols_and_info() -> None:
-    cam = SimulatedCamera("d455")
+    cam = SimulatedCamera("d455-ideal")
     assert isinstance(cam, Camera) and isinstance(cam, CalibratableCamera)
     with pytest.raises(CameraError):
         cam.wait_for_frames()
@@ -47,7 +47,7 @@ def test_protocols_and_info() -> None:
 
 def test_warm_up_follows_first_order_model_on_accelerated_clock() -> None:
     clock = FakeClock()
-    cam = SimulatedCamera("d455", clock=clock, clock_scale=60.0)  # one clock second = one device minute
+    cam = SimulatedCamera("d455-ideal", clock=clock, clock_scale=60.0)  # one clock second = one device minute
     cam.start(STREAMS)
     temps = []
     for minute in (0, 6, 12, 24, 120):
@@ -60,8 +60,8 @@ def test_warm_up_follows_first_order_model_on_accelerated_clock() -> None:
 
 def test_thermal_drift_and_tare() -> None:
     clock = FakeClock()
-    pose = standpoint_pose(SimulatedCamera().board, 1.5, 0.0)
-    cam = SimulatedCamera("d455", clock=clock, pose=pose, seed=3)
+    pose = standpoint_pose(SimulatedCamera("d455-ideal").board, 1.5, 0.0)
+    cam = SimulatedCamera("d455-ideal", clock=clock, pose=pose, seed=3)
     info = cam.start(STREAMS)
     fb = info.depth_intrinsics.fx * 0.095
     cold = _centre_depth(cam)
@@ -86,7 +86,7 @@ def test_thermal_drift_and_tare() -> None:
 
 
 def test_on_chip_health_and_apply() -> None:
-    cam = SimulatedCamera("d455")
+    cam = SimulatedCamera("d455-ideal")
     with pytest.raises(CameraError):
         cam.run_on_chip_calibration()
     cam.start(STREAMS)
@@ -101,7 +101,7 @@ def test_on_chip_health_and_apply() -> None:
 
 
 def test_disconnect_and_reconnect() -> None:
-    cam = SimulatedCamera("d455", disconnect_after_frames=2, failed_reconnects=1)
+    cam = SimulatedCamera("d455-ideal", disconnect_after_frames=2, failed_reconnects=1)
     cam.start(STREAMS)
     first = [cam.wait_for_frames().index for _ in range(2)]
     with pytest.raises(CameraDisconnected):
@@ -118,13 +118,13 @@ def test_disconnect_and_reconnect() -> None:
 
 def test_pose_provider_gets_device_time() -> None:
     seen: list[float] = []
-    board = SimulatedCamera().board
+    board = SimulatedCamera("d455-ideal").board
 
     def provider(t: float) -> np.ndarray:
         seen.append(t)
         return standpoint_pose(board, 1.0 + 0.5 * t, 0.0)
 
-    cam = SimulatedCamera("d455", pose_provider=provider)
+    cam = SimulatedCamera("d455-ideal", pose_provider=provider)
     cam.start(STREAMS)
     d = [_centre_depth(cam, 1) for _ in range(3)]
     np.testing.assert_allclose(np.diff(seen), 1 / 30, atol=1e-9)
@@ -134,7 +134,7 @@ def test_pose_provider_gets_device_time() -> None:
 def test_real_time_pacing() -> None:
     import time
 
-    cam = SimulatedCamera("d455", real_time=True, clock_scale=2.0)
+    cam = SimulatedCamera("d455-ideal", real_time=True, clock_scale=2.0)
     cam.start(Streams(width=256, height=144, fps=30, color=False))
     t0 = time.monotonic()
     for _ in range(5):

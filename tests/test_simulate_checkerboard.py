@@ -25,7 +25,7 @@ def test_opencv_finds_board_at_every_standpoint_full_resolution() -> None:
     is the full-resolution image cropped; corners must also land where the true pose projects them.
     """
     proto = load_protocol("checkerboard-d455")
-    model = load_model("d455")
+    model = load_model("d455-ideal")
     info = model.camera.stream_info(1280, 720)
     ci = info.color_intrinsics
     assert ci is not None
@@ -72,7 +72,7 @@ def test_standpoint_pose_is_exact() -> None:
 def test_session_reads_back_with_truth(tmp_path: Path) -> None:
     from depthstation.core.capture.registry import open_inputs
 
-    out = simulate_checkerboard("demo-d455", "d455", tmp_path / "sim", frames=3,
+    out = simulate_checkerboard("demo-d455", "d455-ideal", tmp_path / "sim", frames=3,
                                 standpoints=["standpoint_01", "standpoint_05"])
     truth = json.loads((out / "truth.json").read_text())
     assert [s["name"] for s in truth["standpoints"]] == ["standpoint_01", "standpoint_05"]
@@ -94,7 +94,7 @@ def test_session_reads_back_with_truth(tmp_path: Path) -> None:
     from depthstation.core.errors import InputError
 
     with pytest.raises(InputError, match="not empty"):
-        simulate_checkerboard("demo-d455", "d455", out, frames=1)
+        simulate_checkerboard("demo-d455", "d455-ideal", out, frames=1)
 
 
 def proto_center() -> np.ndarray:
@@ -104,7 +104,7 @@ def proto_center() -> np.ndarray:
 def test_same_seed_same_frames(tmp_path: Path) -> None:
     from depthstation.core.capture.registry import open_recording
 
-    a, b = (simulate_checkerboard("demo-d455", "d455", tmp_path / n, frames=2,
+    a, b = (simulate_checkerboard("demo-d455", "d455-ideal", tmp_path / n, frames=2,
                                   standpoints=["standpoint_02"], seed=5) for n in ("a", "b"))
     fa = list(open_recording(a / "standpoint_02.mcap").frames())
     fb = list(open_recording(b / "standpoint_02.mcap").frames())
@@ -118,10 +118,10 @@ def test_same_seed_same_frames(tmp_path: Path) -> None:
 
 def test_db3_plays_back_through_pyrealsense2(tmp_path: Path) -> None:
     rs = pytest.importorskip("pyrealsense2")
-    out = simulate_checkerboard("demo-d455", "d455", tmp_path / "db", fmt="db3", frames=5,
+    out = simulate_checkerboard("demo-d455", "d455-ideal", tmp_path / "db", fmt="db3", frames=5,
                                 standpoints=["standpoint_01"])
     path = out / "standpoint_01.db3"
-    model = load_model("d455")
+    model = load_model("d455-ideal")
     info = model.camera.stream_info(640, 360)
     cfg = rs.config()
     cfg.enable_device_from_file(str(path), repeat_playback=False)
@@ -156,7 +156,7 @@ def test_charuco_board_is_detected_with_its_ids() -> None:
 
     board = Board(type="charuco", squares_x=7, squares_y=5, square_length_m=0.06, marker_length_m=0.045,
                   dictionary="DICT_4X4_50")
-    model = load_model("d435")
+    model = load_model("d435-ideal")
     info = model.camera.stream_info(1280, 720)
     ci = info.color_intrinsics
     assert ci is not None
@@ -224,7 +224,7 @@ def test_detected_corners_have_no_static_bias(charuco: bool) -> None:
 
     board = (Board(type="charuco", squares_x=7, squares_y=5, square_length_m=0.06, marker_length_m=0.045,
                    dictionary="DICT_4X4_50") if charuco else Board())
-    info = load_model("d455").camera.stream_info(1280, 720)
+    info = load_model("d455-ideal").camera.stream_info(1280, 720)
     ci = info.color_intrinsics
     assert ci is not None
     scene = board_scene(board)

@@ -61,7 +61,8 @@ def test_scan_writes_sequence_trajectory_and_mesh(tmp_path: Path) -> None:
     from depthstation.simulate.scene import mesh_scene
 
     out = tmp_path / "scan"
-    r = _run("scan", "--scene", "room", "--trajectory", "walk", "--out", str(out), "--frames", "3",
+    r = _run("scan", "--scene", "room", "--trajectory", "walk", "-m", "d455-ideal", "--out", str(out),
+             "--frames", "3",
              "--width", "320", "--height", "240")
     assert r.returncode == 0, r.stderr
     stamps, poses = read_tum(out / "trajectory.txt")

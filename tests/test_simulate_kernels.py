@@ -122,7 +122,7 @@ def test_effect_memo_answers_each_context_with_its_own_value() -> None:
 def test_rasterised_geometry_equals_ray_casting(frame: int) -> None:
     # the walk's views of the room: every map from the rasteriser's hit triangles equals the map
     # from Open3D's rays and per-pixel normals
-    model = load_model("d455")
+    model = load_model("d455-ideal")
     scene = load_scene("room")
     _, poses = scan_trajectory("walk", scene, 30.0, frame + 1)
     intr = model.camera.stream_info(320, 240, 30.0).depth_intrinsics
@@ -146,7 +146,7 @@ def test_board_views_rasterised_equal_ray_casting(standpoint: int) -> None:
     from depthstation.simulate.scene_render import render_color_linear
 
     proto = load_protocol("checkerboard-d455")
-    info = stream_info_for(proto, load_model("d455"))
+    info = stream_info_for(proto, load_model("d455-ideal"))
     intr, ci = info.depth_intrinsics.scaled(640, 360), info.color_intrinsics
     assert ci is not None
     ci = ci.scaled(640, 360)
@@ -168,7 +168,7 @@ def test_distorted_views_fall_back_to_ray_casting() -> None:
     # no pinhole grid to rasterise: the default renderer casts the rays with Open3D's scene
     from dataclasses import replace
 
-    model = load_model("d455")
+    model = load_model("d455-ideal")
     scene = load_scene("room")
     intr = replace(model.camera.stream_info(320, 240, 30.0).depth_intrinsics, model="brown_conrady",
                    coeffs=(0.05, -0.01, 0.0, 0.0, 0.0))

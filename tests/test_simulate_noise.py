@@ -26,7 +26,7 @@ def _wall(z: float, tilt_deg: float = 0.0) -> Scene:
 
 
 def _frames(z: float, n: int, seed: int = 0, tilt_deg: float = 0.0) -> tuple[np.ndarray, Any]:
-    model = load_model("d455")
+    model = load_model("d455-ideal")
     intr = model.camera.depth_intrinsics(W, H)
     g = render_geometry(_wall(z, tilt_deg), intr, np.eye(4))
     ctx = g.context(model.camera.baseline_m)
@@ -37,7 +37,7 @@ def _frames(z: float, n: int, seed: int = 0, tilt_deg: float = 0.0) -> tuple[np.
 
 @pytest.mark.parametrize("z", [0.6, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
 def test_frontal_wall_noise_follows_intel(z: float) -> None:
-    model = load_model("d455")
+    model = load_model("d455-ideal")
     # A wall turned by 3 deg: its z spans many depth units across the patch, so the 1 mm unit and
     # the 1/32 px step average over their phase as on any real wall (a perfectly frontal wall at
     # one z can sit on an unlucky phase of the two lattices and read up to 15 % high at 0.6 m).
@@ -62,7 +62,7 @@ def test_frontal_wall_noise_follows_intel(z: float) -> None:
 
 
 def test_depth_unit_and_disparity_step_show_in_values() -> None:
-    model = load_model("d455")
+    model = load_model("d455-ideal")
     fb = model.camera.depth_intrinsics(W, H).fx * model.camera.baseline_m
     # near: the disparity step (0.35 mm at 0.6 m) is finer than the 1 mm unit -> 1 mm steps
     zs, _ = _frames(0.6, 2)
@@ -80,7 +80,7 @@ def test_depth_unit_and_disparity_step_show_in_values() -> None:
 
 
 def test_min_z_drops_depth() -> None:
-    model = load_model("d455")
+    model = load_model("d455-ideal")
     zmin = model.camera.min_z_m(1280, 720)
     assert 0.50 < zmin < 0.53  # Intel: about 0.52 m at 1280x720
     zs, _ = _frames(0.9 * model.camera.min_z_m(W, H), 1)

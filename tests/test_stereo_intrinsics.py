@@ -36,7 +36,7 @@ def test_simulated_noise_of_aligned_depth_follows_the_stereo_focal_length() -> N
                        inclination_deg=np.zeros_like(z), albedo=np.full_like(z, 0.8),
                        surface=np.zeros((h, w), dtype=np.int32), points_world=np.zeros((h, w, 3), np.float32),
                        edge_distance_px=np.full_like(z, np.inf), intrinsics=color, cam_to_world=np.eye(4))
-    model = load_model("d455")
+    model = load_model("d455-ideal")
     plain = geo.context(0.095)
     aligned = geo.context(0.095, stereo=stereo)
     assert aligned.fx == stereo.fx

@@ -105,8 +105,8 @@ def test_realsense_ros_bag_with_yuyv_colour(tmp_path: Path, storage: str) -> Non
 def test_simulated_sequence_in_yuyv_and_compact_keeps_it(tmp_path: Path) -> None:
     from depthstation.simulate.scan_sequence import simulate_scan
 
-    a = simulate_scan("room", "walk", "d455", tmp_path / "yuv", frames=2, width=320, height=240)
-    b = simulate_scan("room", "walk", "d455", tmp_path / "rgb", frames=2, width=320, height=240,
+    a = simulate_scan("room", "walk", "d455-ideal", tmp_path / "yuv", frames=2, width=320, height=240)
+    b = simulate_scan("room", "walk", "d455-ideal", tmp_path / "rgb", frames=2, width=320, height=240,
                       color_encoding="rgb8")
     ra, rb = open_recording(a / "sequence.mcap"), open_recording(b / "sequence.mcap")
     assert ra.metadata["format"]["color_encoding"] == yuv.ENCODING

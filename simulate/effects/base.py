@@ -111,9 +111,13 @@ class Effect:
 
     name: ClassVar[str] = ""
     meaning: ClassVar[str] = ""
+    source: ClassVar[str] = ""   # where the physics and its magnitude come from (`simulate model` prints it)
     stage: ClassVar[int] = 50
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {}
     time_dependent: ClassVar[bool] = False   # depends on time or temperature (context per frame)
+    # parameters added after models were written: a model TOML may omit them (their default is the
+    # effect as it was before them)
+    OPTIONAL: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self, params: dict[str, Any] | None = None, **kwargs: float) -> None:
         given = dict(params or {})

@@ -18,6 +18,8 @@ class DisparityNoise(DisparityJitter):
 
     name: ClassVar[str] = "disparity_noise"
     meaning: ClassVar[str] = "zero-mean Gaussian disparity noise of the subpixel matcher"
+    source: ClassVar[str] = ("Intel D400 datasheet / Grunnet-Jepsen et al. 'Depth camera performance': "
+                             "subpixel RMS 0.08 px, RMS_z = z^2 s / (f B)")
     stage: ClassVar[int] = 20
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
         "sigma_px": (0.08, "px", "RMS of the disparity estimate (Intel's subpixel RMS)"),

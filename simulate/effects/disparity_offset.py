@@ -19,6 +19,8 @@ class DisparityOffset(DisparityShift):
 
     name: ClassVar[str] = "disparity_offset"
     meaning: ClassVar[str] = "constant disparity offset (px); depth bias ~ -z^2 offset / (f B)"
+    source: ClassVar[str] = ("residual imager yaw after on-chip calibration, what tare fixes (Intel "
+                             "'Self-calibration for D400 series')")
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
         "offset_px": (0.0, "px", "added to every disparity (+ = depth too near)"),
     }

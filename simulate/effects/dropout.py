@@ -62,6 +62,8 @@ class Dropout(Effect):
 
     name: ClassVar[str] = "dropout"
     meaning: ClassVar[str] = "pixels without depth: min-z, range, grazing angle, dark surfaces"
+    source: ClassVar[str] = ("D4 disparity search range 126 px (min-z), projector range, grazing "
+                             "angles, dark print (Intel D400 datasheet)")
     stage: ClassVar[int] = 70
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
         "max_disparity_px": (126.0, "px", "disparity search range of the matcher (sets min-z)"),

@@ -20,6 +20,8 @@ class FlyingPixels(Effect):
 
     name: ClassVar[str] = "flying_pixels"
     meaning: ClassVar[str] = "depth mixed across a depth edge within a few pixels of it"
+    source: ClassVar[str] = ("matching window straddling a depth edge (Intel depth post-processing "
+                             "white paper; edge pixels mixed)")
     stage: ClassVar[int] = 50
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
         "edge_probability": (0.3, "1", "probability for a pixel next to a depth edge"),

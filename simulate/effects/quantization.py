@@ -19,6 +19,8 @@ class Quantization(Effect):
 
     name: ClassVar[str] = "quantization"
     meaning: ClassVar[str] = "disparity in 1/32 px steps and depth in 1 mm units"
+    source: ClassVar[str] = ("D4 ASIC: 1/32 px subpixel disparity, z16 depth unit (Intel D400 "
+                             "datasheet)")
     stage: ClassVar[int] = 40
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
         "disparity_step_px": (1.0 / 32.0, "px", "disparity resolution of the ASIC"),

@@ -24,6 +24,9 @@ class SlantNoise(DisparityJitter):
 
     name: ClassVar[str] = "slant_noise"
     meaning: ClassVar[str] = "disparity noise from the disparity gradient across the matching window"
+    source: ClassVar[str] = ("fronto-parallel window on a slanted surface: disparity gradient B "
+                             "tan(theta) / z across it (Bleyer et al. 2011, PatchMatch stereo's "
+                             "slanted windows)")
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
         "window_px": (0.0, "px", "effective width of the matching window"),
     }

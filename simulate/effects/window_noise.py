@@ -22,6 +22,8 @@ class WindowNoise(CorrelatedJitter):
 
     name: ClassVar[str] = "window_noise"
     meaning: ClassVar[str] = "disparity noise shared by neighbouring pixels through the matching window"
+    source: ClassVar[str] = ("Keselman et al. 2017 (census + box aggregation); Intel D400 visual "
+                             "presets (9 x 9 census window)")
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
         "sigma_px": (0.0, "px", "RMS of the window-correlated disparity noise"),
         "window_px": (9.0, "px", "width of the matching window (census 9 x 9 on the D4)"),
