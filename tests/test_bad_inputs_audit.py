@@ -209,3 +209,55 @@ def test_a_broken_e57_is_one_line(tiny_walk: tuple[Path, Path], tmp_path: Path, 
     one_line_error(code, err, str(ref), *words)
     assert len(err.strip().splitlines()) == 1, err  # no libE57 debug dump after the line
     assert "Debug info" not in err and "libe57" not in err.lower()
+
+
+# -- a rosbag2 MCAP cut short ---------------------------------------------------------------------
+@pytest.mark.parametrize("share", [0.5, 0.8])
+@pytest.mark.parametrize("as_folder", [True, False])
+def test_a_cut_rosbag2_mcap_gives_its_complete_chunks(tmp_path: Path, share: float, as_folder: bool,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    from ros_bags import write_bag
+
+    from depthstation.core.run_warnings import collecting
+
+    info = sample_info(160, 120)
+    frames = list(sample_frames(info, 30, seed=1))
+    write_bag(tmp_path / "bag", info, frames)  # rosbags' writer: the recorder's layout
+    (whole,) = (tmp_path / "bag").glob("*.mcap")
+    data = whole.read_bytes()
+    if as_folder:
+        cut = tmp_path / "cut"
+        cut.mkdir()
+        (cut / whole.name).write_bytes(data[: int(len(data) * share)])
+        (cut / "metadata.yaml").write_text((tmp_path / "bag" / "metadata.yaml").read_text())
+    else:
+        cut = tmp_path / "cut.mcap"
+        cut.write_bytes(data[: int(len(data) * share)])
+    with collecting() as found:
+        rec = open_recording(cut)
+        got = list(rec.frames())
+    assert 0 < len(got) < len(frames)
+    assert rec.frame_count == len(got)
+    # a whole chunk holds ~1 MB here: at most the chunk the cut fell in (and its neighbour's share) is lost
+    assert len(got) >= int(share * len(frames)) - 10, len(got)
+    for fs, original in zip(got, frames, strict=False):
+        np.testing.assert_array_equal(fs.depth, original.depth)  # the recovered frames are the first ones
+    lines = [w.line() for w in found]
+    assert any("cut short" in x and f"recovered {len(got)} depth frames" in x for x in lines), lines
+    # the command says it too, with exit 0
+    code, _, err = run_console(["capture", "info", str(cut)], capsys)
+    assert code == 0, err
+    assert f"recovered {len(got)} depth frames" in err and "before its first complete chunk" not in err
+
+
+def test_a_rosbag2_mcap_cut_before_any_chunk_is_bad_input(tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    from ros_bags import write_bag
+
+    info = sample_info(160, 120)
+    write_bag(tmp_path / "bag", info, sample_frames(info, 30, seed=1))
+    (whole,) = (tmp_path / "bag").glob("*.mcap")
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole.read_bytes()[:300])
+    code, _, err = run_console(["capture", "info", str(cut)], capsys)
+    one_line_error(code, err, str(cut), "cut short before its first complete chunk")

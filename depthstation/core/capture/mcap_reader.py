@@ -256,6 +256,8 @@ def open_mcap(path: Path) -> McapRecording:
                 pass
     if "streams" not in meta and summary is not None:
         raise NotThisFormat(path, "is no depthstation recording (no 'streams' metadata record)")
+    if summary is None and "streams" not in meta:  # a cut rosbag2 MCAP: the ROS reader recovers its chunks
+        raise NotThisFormat(path, "is cut short before its first complete chunk: no frame can be recovered")
     if summary is None and mw.DEPTH_TOPIC not in topics.values():
         raise InputError(path, "is cut short before its first complete chunk: no frame can be recovered")
     if "streams" not in meta:

@@ -24,6 +24,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
 from depthstation.core.capture import rosmsgs
 from depthstation.core.capture.recording import NotThisFormat, Recording
+from depthstation.core.capture.ros_bag import cut_mcap_files
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 
@@ -223,6 +224,8 @@ def open_realsense(path: Path) -> RealsenseRecording:
         reader_cm = AnyReader([path], default_typestore=ts)
         reader = reader_cm.__enter__()
     except Exception as exc:
+        if cut_mcap_files(path):  # a rosbag2 MCAP cut short: the ROS reader recovers its complete chunks
+            raise NotThisFormat(path, f"is no readable ROS bag ({type(exc).__name__}: {exc})") from exc
         raise InputError(path, f"is no readable ROS bag ({type(exc).__name__}: {exc})") from exc
     try:
         return _parse(path, reader, ts)

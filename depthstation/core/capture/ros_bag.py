@@ -22,6 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
 from numpy.typing import NDArray
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -298,6 +300,9 @@ class RosRecording(Recording):
         self.tolerance_ns = int(tolerance_ns)
         self.frame_topic = frame_topic
         self.temperature_topic = temperature_topic
+        self.cut_files: list[Path] = []   # MCAP files cut short: read up to their last complete chunk
+        self.truncated = False
+        self.recovered_frames: int | None = None
 
     def _iter(self, start: int) -> Iterator[FrameSet]:
         kinds = {s.topic: k for k, s in self.streams.items()}
@@ -371,7 +376,16 @@ class RosRecording(Recording):
             for path in self.mcap_files:
                 names: dict[int, str] = {}
                 with path.open("rb") as fh:
-                    for cid, log_time, data in mcap_messages(fh, names):
+                    found = mcap_messages(fh, names)
+                    while True:
+                        try:
+                            cid, log_time, data = next(found)
+                        except StopIteration:
+                            break
+                        except Exception:
+                            if path in self.cut_files:  # the chunk the cut fell in (said at the opening)
+                                break
+                            raise
                         topic = names.get(cid)
                         if topic in topics:
                             yield topic, types[topic], log_time, data, rosmsgs.deserialize
@@ -501,11 +515,117 @@ def _db3_messages(path: Path, topics: set[str]) -> Iterator[tuple[str, int, memo
         con.close()
 
 
+def _cut_short(path: Path) -> bool:
+    """An MCAP without its closing magic: its writer stopped (a kill, a full disk, a copy cut)."""
+    with path.open("rb") as fh:
+        fh.seek(0, 2)
+        if fh.tell() < 2 * len(MCAP_MAGIC):
+            return True
+        fh.seek(-len(MCAP_MAGIC), 2)
+        return fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC
+
+
+def cut_mcap_files(path: Path) -> list[Path]:
+    """The MCAP files of a rosbag2 recording (file or folder) that are cut short."""
+    try:
+        return [f for f in _mcap_files(path) if _cut_short(f)]
+    except OSError:
+        return []
+
+
+@dataclass
+class _CutConnection:
+    id: int
+    topic: str
+    msgtype: str
+    msgcount: int = 0
+
+
+class CutMcapReader:
+    """The part of rosbags' AnyReader that `_open` uses, over rosbag2 MCAP files cut short.
+
+    Why: rosbags refuses an MCAP without its summary ('File end magic is invalid'), and a cut file
+    read as ours was called 'cut short before its first complete chunk' whatever it held. The
+    complete chunks are read in order, as our own MCAP reader reads a cut capture; the chunk the
+    cut fell in is lost."""
+
+    is2 = True
+
+    def __init__(self, path: Path, files: list[Path]) -> None:
+        self.path = path
+        self.files = files
+        self._ts = typestore()
+        self.connections: list[_CutConnection] = []
+        self._by_key: dict[tuple[int, int], _CutConnection] = {}  # (file, channel id)
+        for k, f in enumerate(files):
+            schemas: dict[int, str] = {}
+            for r in self._records(f):
+                if isinstance(r, Schema):
+                    schemas[r.id] = r.name
+                elif isinstance(r, Channel) and (k, r.id) not in self._by_key:
+                    known = next((c for c in self.connections if c.topic == r.topic), None)
+                    conn = known or _CutConnection(len(self.connections), r.topic,
+                                                   schemas.get(r.schema_id, ""))
+                    if known is None:
+                        self.connections.append(conn)
+                    self._by_key[(k, r.id)] = conn
+                elif isinstance(r, Message) and (k, r.channel_id) in self._by_key:
+                    self._by_key[(k, r.channel_id)].msgcount += 1
+        if not any(c.msgcount for c in self.connections):
+            raise InputError(path, "is cut short before its first complete chunk: no frame can be recovered")
+
+    @staticmethod
+    def _records(path: Path) -> Iterator[Any]:
+        """The file's records, messages unpacked from its complete chunks, up to the cut."""
+        with path.open("rb") as fh:
+            records = iter(StreamReader(fh, emit_chunks=False, record_size_limit=None).records)
+            while True:
+                try:
+                    r = next(records)
+                except StopIteration:
+                    return
+                except Exception:  # the cut: a record (a chunk) that ends past the file's end
+                    return
+                yield r
+
+    def __enter__(self) -> CutMcapReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+    def messages(self, connections: list[Any]) -> Iterator[tuple[Any, int, bytes]]:
+        wanted = {id(c) for c in connections}
+        for k, f in enumerate(self.files):
+            for r in self._records(f):
+                if isinstance(r, Message):
+                    conn = self._by_key.get((k, r.channel_id))
+                    if conn is not None and id(conn) in wanted:
+                        yield conn, r.log_time, r.data
+
+    def deserialize(self, raw: Any, msgtype: str) -> Any:
+        return self._ts.deserialize_cdr(raw, msgtype)
+
+
 def open_ros(path: Path, topics: TopicChoice | None = None) -> RosRecording:
-    """Find the streams, read CameraInfo, extrinsics, baseline; count the depth frames."""
+    """Find the streams, read CameraInfo, extrinsics, baseline; count the depth frames. A rosbag2
+    MCAP cut short is read from its complete chunks, with a warning saying how much was recovered."""
     path = Path(path)
     ts = typestore()
     try:
+        files = _mcap_files(path)
+        cut = cut_mcap_files(path)
+        if cut:
+            with CutMcapReader(path, files) as cut_reader:
+                rec = _open(path, cut_reader, topics)
+            rec.cut_files = cut
+            rec.truncated = True
+            rec.recovered_frames = rec.frame_count
+            total = sum(f.stat().st_size for f in files)
+            warn(f"rosbag2 MCAP cut short ({', '.join(f.name for f in cut)} has no summary): recovered "
+                 f"{rec.frame_count} depth frames from its complete chunks ({total / 1e6:.1f} MB of file); "
+                 "what followed the last complete chunk is lost", str(path), "truncated-input")
+            return rec
         with _reader(path, ts) as reader:
             return _open(path, reader, topics)
     except InputError:
