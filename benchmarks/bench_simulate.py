@@ -6,7 +6,7 @@ Prints the time of each stage, the frame rate, and the ratio to the 10 s budget,
 
 `--scan [--frames 1257]`: `simulate scan` of the walk round the room's table (640x480 depth +
 colour as YUYV 4:2:2, the rasteriser, zstd chunks) as a whole call: frames/s (target >= 30 on 2
-cores) and the file size (target: half the issue's 1.65 GB), against the same frames written as
+cores) and the file size (target: at most half of 1.65 GB), against the same frames written as
 before (colour as RGB8 with zstd chunks, the previous default, and with lz4 chunks;
 `--baseline-frames` of them, size scaled to the walk).
 """
@@ -132,7 +132,7 @@ def scan(frames: int, baseline_frames: int) -> None:
           f"(target 30 -> ratio {frames / wall / 30:.2f}); "
           f"CPU {c:.1f} s ({frames / c * 2:.1f} frames/s if spread over 2 cores)")
     print(f"file {size / 1e6:.0f} MB = {size / frames / 1e3:.0f} kB per frame set (raw RGB8 frame sets are "
-          f"{640 * 480 * 5 / 1e3:.0f} kB); the issue's 1.65 GB / this = {1.65e9 / size:.2f}x (goal >= 2)")
+          f"{640 * 480 * 5 / 1e3:.0f} kB); 1.65 GB / this = {1.65e9 / size:.2f}x (goal >= 2)")
     for comp, (old_size, rate) in before.items():
         print(f"  colour as RGB8, {comp} chunks ({baseline_frames} frames written on one thread at "
               f"{rate:.1f} frames/s, size scaled): {old_size / 1e6:.0f} MB = "
