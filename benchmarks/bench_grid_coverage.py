@@ -6,7 +6,7 @@ common to every pixel of a frame (a pose or exposure error, N(0, sigma_f)). The 
 the mean of the model's bias over the very pixels the cell received. Printed: the share of cells
 (with >= --min-count samples and >= 5 frames) whose truth lies within mean +- u95_m, the same for
 1.96 sqrt(var / n), and the median over cells of u95_m / (1.96 x the actual spread of the cell mean
-over the R runs) (1 = honest, < 2 = not inflated; goal of issue 14: coverage >= 93 %).
+over the R runs) (1 = honest, < 2 = not inflated; goal: coverage >= 93 %).
 
     .venv/bin/python benchmarks/bench_grid_coverage.py --runs 200 --sigma-frame-mm 2
 """

@@ -2,7 +2,7 @@
 
 Why: the constants were set on one CPU and cost 1.3x the CPU per frame on another (clusters of 64
 on a 2-vCPU AMD EPYC: the per-cluster bounds loop alone took 7.0 ms per frame at 64 triangles per
-cluster, 3.4 ms at 512; docs/scan-study.md, run 18). This script makes a copy of
+cluster, 3.4 ms at 512; benchmarks/HISTORY.md, the scan study). This script makes a copy of
 `depthstation/core/raster.py` per setting (its own module and numba cache, in a temporary folder),
 renders the benchmark room's frames with each, alternating the order frame by frame, and prints
 each setting's median CPU per frame against the first and whether its output is bit-identical to

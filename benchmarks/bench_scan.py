@@ -6,7 +6,7 @@ mesh of >= 1 M triangles), in one run:
 3. the whole study with each renderer (2 processes, chunks merged; the grids compared),
 4. the nearest-neighbour approach the paper rejected (scipy cKDTree on the reference points).
 
-Goals (issue 17): whole study <= 0.5 x Open3D's casting alone, >= 15 x faster than nearest
+Goals: whole study <= 0.5 x Open3D's casting alone, >= 15 x faster than nearest
 neighbours, memory < 4 GiB. Wall times depend on what else runs on the machine; the CPU seconds
 (this process and its workers) and the ratios between runs of the same invocation do much less.
 

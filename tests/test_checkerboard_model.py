@@ -1,4 +1,4 @@
-"""The study on the simulated D455 against what its sensor model implies (issue 4, 'judged by').
+"""The study on the simulated D455 against what its sensor model implies (the study's acceptance test).
 
 Noise and accuracy are predicted from the effects' analytic signatures (contract 5), not from the
 sampled frames: z variance and z bias per board pixel, turned into orthogonal distances to the
@@ -47,7 +47,7 @@ def test_noise_accuracy_and_geometry_match_the_model() -> None:
         assert f["distance_m"] == pytest.approx(true_dist, rel=0.005)
         # the depth plane's tilt (diagnostic) is fixed by thousands of pixels
         assert abs(f["inclination_depth_deg"] - true_incl) < 0.5, (dist, incl, f["inclination_depth_deg"])
-        # the pose's (the reported inclination, DESIGN §2), issue 4's 0.5 deg everywhere: the
+        # the pose's (the reported inclination, DESIGN §2), within 0.5 deg everywhere: the
         # X-junction corner fit (~0.01 px static error) instead of cornerSubPix (~0.05 px, which
         # tilted the PnP pose of 12 px squares at 5 m by up to 2 deg)
         assert abs(f["inclination_deg"] - true_incl) < 0.5, (dist, incl, f["inclination_deg"])

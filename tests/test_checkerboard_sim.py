@@ -29,7 +29,7 @@ def test_simulated_standpoints_match_truth(tmp_path: Path) -> None:
         assert r.frames_used == 3, r.rejected
         assert abs(r.figures["distance_m"] - t["distance_m"]) < 0.005 * t["distance_m"]
         # the reported inclination is the pose's (DESIGN §2); the depth plane's is a diagnostic
-        tol = 0.5  # issue 4 (12 px squares at 2.6 m: the X-junction corner fit makes it)
+        tol = 0.5  # the study's target (12 px squares at 2.6 m: the X-junction corner fit makes it)
         assert abs(r.figures["inclination_deg"] - t["inclination_deg"]) < tol, rec.name
         assert abs(r.figures["inclination_depth_deg"] - t["inclination_deg"]) < 0.5, rec.name
         assert r.figures["pose_depth_normal_angle_deg"] < tol + 0.5
@@ -37,7 +37,7 @@ def test_simulated_standpoints_match_truth(tmp_path: Path) -> None:
 
 
 def test_pose_inclination_head_on_far_demo_standpoint(tmp_path: Path) -> None:
-    """Issue 4's target: pose inclination within 0.5 deg at 0 deg with the demo's 10 frames.
+    """The study's target: pose inclination within 0.5 deg at 0 deg with the demo's 10 frames.
 
     12 px squares at 2.6 m / 640x360: cornerSubPix's phase bias (~0.05 px) read 0.9 deg here; the
     X-junction fit (corners.py, ~0.01 px) brings it to a few hundredths.

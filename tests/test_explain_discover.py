@@ -55,7 +55,7 @@ def _xy(u: Any, v: Any, cam: dict[str, float]) -> tuple[Any, Any]:
 # name: (hidden effect in its own form, random?, expected quantity, axes, coefficients (truth))
 ROLL = 2e-3   # rad: right imager rolled about the optical axis
 CASES: dict[str, tuple[Any, bool, str, list[str], dict[str, float]]] = {
-    # relative roll: delta = -f roll y, zero-mean over the board (issue 16: "no mismatch reported")
+    # relative roll: delta = -f roll y, zero-mean over the board (the catalogue alone: "no mismatch reported")
     "roll_bias_along_v": (lambda z, u, v, b, t, temp, cam: _shift(z, -cam["fx"] * ROLL * _xy(u, v, cam)[1],
                                                                   cam),
                           False, "bias", ["v"], {"c1": -ROLL}),

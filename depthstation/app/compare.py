@@ -17,7 +17,7 @@ from depthstation.core.errors import InputError
 from depthstation.core.grid import Grid
 from depthstation.core.run_warnings import warn
 
-# The figures of a standpoint that are compared (checkerboard standpoints.csv, issue 4).
+# The figures of a standpoint that are compared (columns of the checkerboard study's standpoints.csv).
 STANDPOINT_COLUMNS = (
     "frames", "fill_rate", "reference_distance_std_m", "noise_m", "noise_std_m", "accuracy_m",
     "accuracy_std_m", "accuracy_rms_m", "noise_black_m", "noise_white_m", "accuracy_black_m",

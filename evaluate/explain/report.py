@@ -47,7 +47,7 @@ def reference_lookalikes(selected: list[Any]) -> list[dict[str, Any]]:
 
 
 def explain_dict(ex: Explanation) -> dict[str, Any]:
-    """The content of explain.json (contract of issue 7)."""
+    """The content of explain.json (its keys are the users' contract: docs/results.md, docs/explain.md)."""
     before = ex.before.summary()
     after = ex.after.summary() if ex.after is not None else None
     present = {e.name: dict(e.params) for e in ex.model.effects}

@@ -106,7 +106,7 @@ def _dir_sum(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float, r
 @cache
 def pixel_bins_kernel(pinhole: bool) -> Any:
     """`_pixel_bins` compiled for pinhole rays (built from per-column and per-row products, without
-    reading a 12-byte ray per pixel: the study step 0.97-0.99x, docs/scan-study.md run 19) or for
+    reading a 12-byte ray per pixel: the study step 0.97-0.99x, docs/scan-study.md, Speed) or for
     per-pixel rays (a lens); the choice a constant, so the other path folds away."""
 
     @numba.njit(cache=True, nogil=True, fastmath=EXACT_MATH)
