@@ -26,7 +26,7 @@ class SlantBias(DisparityShift):
     OPTIONAL: ClassVar[frozenset[str]] = frozenset({"max_deg"})
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
         "offset_px_at_45": (0.0, "px", "disparity offset at 45 degrees (+ = too near)"),
-        "max_deg": (89.0, "deg", "inclination beyond which the offset stops growing (grazing pixels drop out)"),
+        "max_deg": (89.0, "deg", "inclination beyond which the offset stops growing"),
     }
 
     def validate(self) -> None:
@@ -34,5 +34,6 @@ class SlantBias(DisparityShift):
             raise ValueError(f"max_deg must lie in (0, 90) deg, got {self.params['max_deg']:g}")
 
     def shift_px(self, ctx: PixelContext) -> Array:
-        inc = np.radians(np.clip(np.asarray(ctx.inclination_deg, dtype=np.float64), 0.0, self.params["max_deg"]))
+        inc = np.asarray(ctx.inclination_deg, dtype=np.float64)
+        inc = np.radians(np.clip(inc, 0.0, self.params["max_deg"]))
         return np.asarray(self.params["offset_px_at_45"] * np.tan(inc) ** 2)
