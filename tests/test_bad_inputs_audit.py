@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from depthstation.core.capture.mcap_writer import McapFileWriter
+from depthstation.core.capture.mcap_writer import McapFileWriter, write_mcap
 from depthstation.core.capture.registry import open_recording
 from depthstation.core.capture.sample_recordings import sample_frames, sample_info
 
@@ -107,8 +107,6 @@ def tiny_walk(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """A 3-frame synthetic walk and its poses: enough to reach the reference's reading."""
     from depthstation.evaluate.scan.synthetic import make_sequence
     from depthstation.evaluate.scan.trajectory import write_tum
-
-    from depthstation.core.capture.mcap_writer import write_mcap
 
     root = tmp_path_factory.mktemp("walk")
     seq = make_sequence(frames=3, width=40, height=30, seed=1)
@@ -261,3 +259,44 @@ def test_a_rosbag2_mcap_cut_before_any_chunk_is_bad_input(tmp_path: Path,
     cut.write_bytes(whole.read_bytes()[:300])
     code, _, err = run_console(["capture", "info", str(cut)], capsys)
     one_line_error(code, err, str(cut), "cut short before its first complete chunk")
+
+
+# -- wrong images on a ROS depth topic ------------------------------------------------------------
+def _odd_bag(path: Path, change: str) -> Path:
+    """A realsense-ros bag whose depth topic carries bgr8 images, or whose third depth message holds
+    half its data (written by rosbags, through the test's own bag writer)."""
+    from ros_bags import BagWriter
+
+    class Odd(BagWriter):
+        def _image(self, a: np.ndarray, encoding: str, t_ns: int, frame_id: str) -> tuple[str, Any]:
+            if encoding == "16UC1" and change == "bgr8":
+                a, encoding = np.repeat((a >> 8).astype(np.uint8)[..., None], 3, axis=2), "bgr8"
+            msgtype, msg = super()._image(a, encoding, t_ns, frame_id)
+            if encoding == "16UC1" and change == "short" and self.seq == 2:
+                msg.data = msg.data[: len(msg.data) // 2]
+            return msgtype, msg
+
+    info = sample_info(160, 120)
+    with Odd(path, info) as w:
+        w.write_frames(sample_frames(info, 5, seed=1))
+    return path
+
+
+def test_bgr8_on_the_depth_topic_is_one_error_and_no_false_warning(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bag = _odd_bag(tmp_path / "bag", "bgr8")
+    code, _, err = run_console(["capture", "import", str(bag), "--out", str(tmp_path / "imp")], capsys)
+    one_line_error(code, err, str(bag), "/camera/camera/depth/image_rect_raw", "message 0", "bgr8",
+                   "single-channel")
+    assert "65.53 m" not in err and "warning" not in err  # nothing said about depth it never read
+    assert not (tmp_path / "imp").exists()
+
+
+def test_image_data_shorter_than_the_image_names_topic_message_and_sizes(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bag = _odd_bag(tmp_path / "bag", "short")
+    code, _, err = run_console(["capture", "import", str(bag), "--out", str(tmp_path / "imp")], capsys)
+    line = one_line_error(code, err, str(bag), "/camera/camera/depth/image_rect_raw", "message 2",
+                          "38400 bytes", "holds 19200")
+    assert "reshape" not in line
+    assert not (tmp_path / "imp").exists()

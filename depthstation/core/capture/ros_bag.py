@@ -402,20 +402,23 @@ class RosRecording(Recording):
 
     def _frameset(self, order: int, stamp: int, depth: tuple[Any, str], parts: dict[str, tuple[Any, str]],
                   stamps: dict[str, int], record: dict[str, Any] | None) -> FrameSet:
-        d = self._depth(self._pixels("depth", *depth))
-        if d.ndim != 2:
-            raise InputError(self.path, f"depth topic {self.streams['depth'].topic} holds no "
-                                        f"single-channel image (shape {d.shape})")
+        pixels = self._pixels("depth", *depth, order=order)
+        if pixels.ndim != 2:  # refused before any conversion: a colour image read as depth said nothing true
+            enc = getattr(depth[0], "encoding", None) or getattr(depth[0], "format", "?")
+            raise InputError(self.path, f"depth topic {self.streams['depth'].topic}, message {order}: "
+                                        f"{enc!s} holds no single-channel depth image (shape "
+                                        f"{pixels.shape}); give the depth topic with --depth-topic")
+        d = self._depth(pixels)
         self._check_size("depth", d, self.info.depth_intrinsics)
         color = infrared = None
         if "color" in parts:
-            color = self._pixels("color", *parts["color"])
+            color = self._pixels("color", *parts["color"], order=order)
             self._check_size("color", color, self.info.color_intrinsics)
             if color.ndim == 2:
                 color = np.repeat((color >> 8 if color.dtype == np.uint16 else color)[..., None], 3, axis=2)
             color = color.astype(np.uint8, copy=False)
         if "infrared" in parts:
-            ir = self._pixels("infrared", *parts["infrared"])
+            ir = self._pixels("infrared", *parts["infrared"], order=order)
             self._check_size("infrared", ir, self.info.infrared_intrinsics)
             ir = ir[..., 0] if ir.ndim == 3 else ir
             infrared = (ir >> 8 if ir.dtype == np.uint16 else ir).astype(np.uint8, copy=False)
@@ -437,12 +440,15 @@ class RosRecording(Recording):
                      code="ros-reading")
         return rosmsgs.depth_to_units(image, units)
 
-    def _pixels(self, kind: str, msg: Any, msgtype: str) -> NDArray[Any]:
-        """An image's pixels; an encoding we cannot read is bad input naming the bag and topic."""
+    def _pixels(self, kind: str, msg: Any, msgtype: str, order: int | None = None) -> NDArray[Any]:
+        """An image's pixels; an encoding we cannot read or data shorter than the image is bad input
+        naming the bag, the topic and the message (depth frame `order`; its partner for the others)."""
         try:
             return _pixels(msg, msgtype)
         except ValueError as exc:
-            raise InputError(self.path, f"{kind} topic {self.streams[kind].topic}: {exc}") from exc
+            where = "" if order is None else (f", message {order}" if kind == "depth"
+                                              else f", the image paired with depth message {order}")
+            raise InputError(self.path, f"{kind} topic {self.streams[kind].topic}{where}: {exc}") from exc
 
     def _check_size(self, kind: str, image: NDArray[Any], intr: Intrinsics | None) -> None:
         """An image of another size than its CameraInfo: every pixel on the wrong ray (PNG sets

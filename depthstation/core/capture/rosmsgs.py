@@ -125,7 +125,11 @@ def image_array(msg: Any) -> NDArray[Any]:
     itemsize = np.dtype(dtype).itemsize
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     raw = np.asarray(msg.data, dtype=np.uint8)
-    rows = raw[: h * step].reshape(h, step)[:, : w * channels * itemsize]
+    row = w * channels * itemsize
+    if step < row or raw.size < h * step:  # a cut or mislabelled message: say its sizes, not numpy's
+        raise ValueError(f"{enc} image of {w}x{h} needs {h} rows of {max(step, row)} bytes "
+                         f"({h * max(step, row)} bytes; step {step}), its data holds {raw.size}")
+    rows = raw[: h * step].reshape(h, step)[:, :row]
     a = np.ascontiguousarray(rows).view(np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<"))
     a = a.astype(dtype, copy=False)
     a = a.reshape(h, w, channels) if channels > 1 else a.reshape(h, w)
