@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+from typing import Any
 
 import typer
 from rich.console import Console
@@ -127,10 +128,12 @@ def correct(
     """Remove the model's depth bias from every pixel of a recording (inclination from the depth's own
     normals); the result is a recording in the station's format."""
     with progress(transient=True) as bar:
-        task = bar.add_task("correcting", total=None, status="")
+        tasks: list[Any] = []
 
         def step(i: int, total: int | None) -> None:
-            bar.update(task, completed=i + 1, total=total)
+            if not tasks:   # the bar starts with the first frame, once the inputs were checked
+                tasks.append(bar.add_task("correcting", total=total, status=""))
+            bar.update(tasks[0], completed=i + 1, total=total)
 
         s = correct_recording(sequence, model_file, out, sigma=sigma, compression=compression, on_frame=step)
     st = s["stats"]

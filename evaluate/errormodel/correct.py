@@ -35,6 +35,7 @@ from depthstation.evaluate.errormodel.schema import ErrorModel, load_model
 
 SIGMA_TOPIC = "/camera/depth/sigma"
 CORRECTION_FILE = "correction.json"
+THREADS = 2                 # kernel threads (the machines this runs on have two cores)
 OUTSIDE_WARN_SHARE = 0.01   # warn when more of the valid pixels than this fall outside the domain
 
 
@@ -111,7 +112,8 @@ def correct_recording(sequence: Path, model_path: Path, out: Path, *, sigma: boo
     out_units = min(info.depth_units_m, 0.001)
     out_info: StreamInfo = replace(info, depth_units_m=out_units) if out_units != info.depth_units_m else info
     x, y = ray_planes(info.depth_intrinsics)
-    corr = Corrector(model, np.asarray(x), np.asarray(y), info.depth_units_m, out_units)
+    corr = Corrector(model, np.asarray(x), np.asarray(y), info.depth_units_m, out_units,
+                     threads=min(THREADS, os.cpu_count() or 1))
     meta = {k: v for k, v in rec.metadata.items() if k != "format"}
     cut = cut_source(rec)
     meta["source"] = dict(rec.metadata.get("source") or {}, path=str(rec.path))
@@ -175,6 +177,8 @@ def correct_recording(sequence: Path, model_path: Path, out: Path, *, sigma: boo
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        corr.close()
     share = stats.outside_domain / max(stats.pixels, 1)
     if share > OUTSIDE_WARN_SHARE:
         warn(f"{100 * share:.1f} % of the depth pixels lie outside the model's domain (distance "
