@@ -10,10 +10,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.core.board import Board
+from depthstation.core.camera_model import Intrinsics
 from depthstation.core.errors import InputError
 from depthstation.evaluate.checkerboard.corners import refine_xjunctions
 
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+# A corner is confirmed when it lies on the plane's projection of the other corners: its residual
+# against a robust homography fit stays below OUTLIER_FLOOR_PX and OUTLIER_SIGMAS robust standard
+# deviations of the frame's residuals. Good corners reproject within 0.01-0.05 px (simulated
+# D455, 1-6 m, 0-60 deg; docs/checkerboard-study.md), so 0.5 px is 10-50 of their sigmas, while a
+# corner OpenCV put on the wrong junction or an edge (11.7 px at 5.8 m / 45 deg, seed 1) is far
+# beyond it.
+OUTLIER_FLOOR_PX = 0.5
+OUTLIER_SIGMAS = 8.0
 
 
 @dataclass(frozen=True)
@@ -33,6 +43,83 @@ def to_gray(color_rgb: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return np.asarray(cv2.cvtColor(color_rgb, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
 
 
+def corner_residuals(image_points: NDArray[np.float64], object_points: NDArray[np.float64],
+                     intr: Intrinsics | None = None) -> NDArray[np.float64]:
+    """Each corner's distance (px) from the board plane's projection fitted robustly to the corners
+    (`plane_fit`); NaN for every corner when fewer than 5 corners or no fit."""
+    return plane_fit(image_points, object_points, intr)[0]
+
+
+def plane_fit(image_points: NDArray[np.float64], object_points: NDArray[np.float64],
+              intr: Intrinsics | None = None, trusted: NDArray[np.bool_] | None = None
+              ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(residuals in px, predicted pixel positions N x 2) of the corners against the board plane's
+    projection: RANSAC (OpenCV's, seeded: the same answer every run) with the outlier floor as
+    its threshold, then least squares on the corners within the outlier bound. A corner's
+    prediction is where the others put it. Half the corners may be off: cornerSubPix put 11 of
+    24 corners 1.0-1.4 px off on a blurred board at 4.5 m / 60 deg.
+
+    With `intr` the lens is inverted first, so that a plane maps by an exact homography (the
+    distortion of a wide board would otherwise read as residuals), and the predictions are
+    distorted back; without, the pixels are taken as a pinhole's. `trusted`: fit to these corners
+    only (at least 6 of them; else to all). NaN when fewer than 5 corners.
+    """
+    img = np.asarray(image_points, dtype=np.float64).reshape(-1, 2)
+    obj = np.asarray(object_points, dtype=np.float64).reshape(-1, 3)[:, :2]
+    n = len(img)
+    nan = (np.full(n, np.nan), np.full((n, 2), np.nan))
+    if n < 5:
+        return nan
+    lens = intr is not None and bool(np.any(intr.opencv_distortion() != 0.0))
+    if lens:
+        assert intr is not None
+        iterated = getattr(cv2, "undistortPointsIter", cv2.undistortPoints)
+        img = np.asarray(iterated(img.reshape(-1, 1, 2), intr.K, intr.opencv_distortion(), R=np.eye(3),
+                                  P=intr.K, criteria=_UNDISTORT_CRITERIA), dtype=np.float64).reshape(-1, 2)
+    use = (np.asarray(trusted, dtype=bool) if trusted is not None and np.count_nonzero(trusted) >= 6
+           else np.ones(n, dtype=bool))
+    hmat, _ = cv2.findHomography(obj[use], img[use], cv2.RANSAC, OUTLIER_FLOOR_PX, maxIters=2000,
+                                 confidence=0.999)
+    if hmat is None or not np.all(np.isfinite(hmat)):
+        return nan
+
+    def predicted(h: NDArray[np.float64]) -> NDArray[np.float64]:
+        p = np.column_stack([obj, np.ones(n)]) @ h.T
+        return np.asarray(p[:, :2] / p[:, 2:3], dtype=np.float64)
+
+    pred = predicted(hmat)
+    res = np.hypot(*(pred - img).T)
+    keep = use & (res <= outlier_bound(res[use]))
+    if keep.sum() >= 5:
+        refit, _ = cv2.findHomography(obj[keep], img[keep], 0)
+        if refit is not None and np.all(np.isfinite(refit)):
+            pred = predicted(refit)
+            res = np.hypot(*(pred - img).T)
+    if lens:
+        assert intr is not None
+        rays = np.column_stack([(pred[:, 0] - intr.ppx) / intr.fx, (pred[:, 1] - intr.ppy) / intr.fy,
+                                np.ones(n)])
+        uv, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), intr.K, intr.opencv_distortion())
+        pred = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    return np.asarray(res, dtype=np.float64), pred
+
+
+def outlier_bound(residuals: NDArray[np.float64]) -> float:
+    """The residual (px) above which a corner is not confirmed: OUTLIER_SIGMAS standard deviations
+    of the corners' noise, at least OUTLIER_FLOOR_PX. The noise is read off the best quarter (the
+    lower quartile of a 2-D Gaussian's magnitude is 0.759 sigma), so that up to three quarters of
+    the corners may be off without widening the bound."""
+    q = float(np.nanpercentile(residuals, 25)) if np.any(np.isfinite(residuals)) else 0.0
+    return max(OUTLIER_FLOOR_PX, OUTLIER_SIGMAS * q / 0.7585)
+
+
+def corner_outliers(image_points: NDArray[np.float64], object_points: NDArray[np.float64],
+                    intr: Intrinsics | None = None) -> NDArray[np.bool_]:
+    """Corners that disagree with the board plane the others lie on (`corner_residuals`)."""
+    res = corner_residuals(image_points, object_points, intr)
+    return np.asarray(np.isfinite(res) & (res > outlier_bound(res)), dtype=bool)
+
+
 def charuco_legacy(board: Board) -> bool:
     """OpenCV's legacy ChArUco pattern flag that gives `board.first_square_black`.
 
@@ -45,9 +132,13 @@ def charuco_legacy(board: Board) -> bool:
 class BoardDetector:
     """Detects one board type repeatedly; the OpenCV objects are built once."""
 
-    def __init__(self, board: Board, subpix: bool = True, model_fit: bool = True) -> None:
+    def __init__(self, board: Board, subpix: bool = True, model_fit: bool = True,
+                 intr: Intrinsics | None = None) -> None:
         self.board = board
         self.subpix = subpix
+        self.intr = intr  # the colour lens: corners are checked against the plane in its undistorted pixels
+        # why the last image gave no detection although OpenCV found a board (None: not found)
+        self.rejection: str | None = None
         # plain boards: cornerSubPix's phase-dependent bias (~0.05 px, static for a still camera)
         # removed by an X-junction model fit (~0.01 px); ChArUco corners keep OpenCV's refinement
         # (a marker can reach into the fit window)
@@ -79,6 +170,7 @@ class BoardDetector:
     def detect(self, color: NDArray[np.uint8]) -> Detection | None:
         """Corners of the board in an RGB (or grey) image, or None when the board is not found."""
         gray = to_gray(color)
+        self.rejection = None
         if self.board.type == "charuco":
             return self._detect_charuco(gray)
         return self._detect_chessboard(gray)
@@ -87,25 +179,70 @@ class BoardDetector:
         """Track the last frame's corners when they still sit on the board's X-junctions (a still
         standpoint: ~1 ms instead of 8-100 ms); otherwise search. The fast check comes first (12 ms
         without a board instead of 260 ms); the full search only while it keeps paying off: small,
-        steep boards fail the fast check but are found by the full one."""
+        steep boards fail the fast check but are found by the full one.
+
+        Every corner kept is confirmed: it lies on the plane the other corners span
+        (`corner_outliers`). A tracked set that fails is searched afresh; a search that fails is
+        redone by OpenCV's sector-based detector (findChessboardCornersSB, which found the corner
+        the classic search put 11.7 px off within 0.45 px); when that fails too, the frame is
+        dropped (`rejection` says why) rather than carrying a corner no detector confirms."""
         if self._last is not None and self.subpix:
             tracked = self._track(gray, self._last)
             if tracked is not None:
-                self._last = tracked
-                return Detection(self._model_fit(gray, tracked), self._corners,
-                                 np.arange(len(tracked), dtype=np.int64))
+                fitted = self._model_fit(gray, tracked)
+                if not np.any(corner_outliers(fitted, self._corners, self.intr)):
+                    self._last = tracked
+                    return Detection(fitted, self._corners, np.arange(len(tracked), dtype=np.int64))
         self._last = None
         det = self._search_chessboard(gray)
-        if det is not None and self.subpix:
-            self._last = det.image_points.astype(np.float32)
-            det = Detection(self._model_fit(gray, self._last), det.object_points, det.ids)
-        return det
+        if det is None or not self.subpix:
+            return det
+        for search in (lambda: det, lambda: self._search_sb(gray, det)):  # the second only when needed
+            attempt = search()
+            if attempt is None:
+                continue
+            fitted = self._model_fit(gray, attempt.image_points.astype(np.float32))
+            res = corner_residuals(fitted, attempt.object_points, self.intr)
+            worst = int(np.nanargmax(res)) if np.any(np.isfinite(res)) else -1
+            if worst < 0 or res[worst] <= outlier_bound(res):
+                self._last = attempt.image_points.astype(np.float32)
+                return Detection(fitted, attempt.object_points, attempt.ids)
+            self.rejection = (f"board corner {worst} lies {res[worst]:.1f} px off the plane of the "
+                              "others; no detection confirmed it")
+        return None
+
+    def _search_sb(self, gray: NDArray[np.uint8], like: Detection) -> Detection | None:
+        """OpenCV's sector-based chessboard detector, its corners refined like the classic's and
+        in the classic detection's order (`like`: the two may start at opposite ends of the board)."""
+        flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
+        found, corners = cv2.findChessboardCornersSB(gray, self.board.inner_corners, flags=flags)
+        if not found or corners is None:
+            return None
+        pts = corners.reshape(-1, 2).astype(np.float32)
+        if len(pts) == len(like.image_points):
+            ahead = float(np.median(np.hypot(*(pts - like.image_points).T)))
+            turned = float(np.median(np.hypot(*(pts[::-1] - like.image_points).T)))
+            if turned < ahead:
+                pts = np.ascontiguousarray(pts[::-1])
+        return self._refined(gray, pts)
 
     def _model_fit(self, gray: NDArray[np.uint8], pts: NDArray[np.float32]) -> NDArray[np.float64]:
-        """cornerSubPix's corners refined by the X-junction fit (each failed fit keeps its input)."""
+        """cornerSubPix's corners refined by the X-junction fit (each failed fit keeps its input).
+
+        A corner off the plane of the others is fitted again from where the others put it: on
+        small blurred squares cornerSubPix lands up to 1.5 px off (a camera-like image at 4.5 m /
+        60 deg, tests/test_checkerboard_outliers.py), further than the fit may move a corner;
+        the plane comes from the corners whose fit succeeded."""
         out = pts.astype(np.float64)
-        if self.model_fit:
-            out, _ = refine_xjunctions(gray, out, self._corners)
+        if not self.model_fit:
+            return out
+        out, fitted = refine_xjunctions(gray, out, self._corners)
+        res, pred = plane_fit(out, self._corners, self.intr, trusted=fitted)
+        bad = ~fitted | (np.isfinite(res) & (res > outlier_bound(res[fitted] if fitted.sum() >= 6 else res)))
+        if np.any(bad) and np.all(np.isfinite(pred[bad])):
+            again, ok = refine_xjunctions(gray, np.where(bad[:, None], pred, out), self._corners)
+            take = bad & ok
+            out[take] = again[take]
         return out
 
     def _track(self, gray: NDArray[np.uint8], last: NDArray[np.float32],
@@ -155,7 +292,10 @@ class BoardDetector:
             self._slow_misses = 0 if found else self._slow_misses + 1
         if not found or corners is None:
             return None
-        pts = corners.reshape(-1, 2).astype(np.float32)
+        return self._refined(gray, corners.reshape(-1, 2).astype(np.float32))
+
+    def _refined(self, gray: NDArray[np.uint8], pts: NDArray[np.float32]) -> Detection:
+        """A full board's corners (x fastest) through cornerSubPix (when subpix)."""
         if self.subpix:
             half = self._half_window(pts)
             refined = cv2.cornerSubPix(gray, pts.reshape(-1, 1, 2), (half, half), (-1, -1),
@@ -172,6 +312,15 @@ class BoardDetector:
             return None
         idx = np.asarray(ids, dtype=np.int64).reshape(-1)
         pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+        # ChArUco corners come fresh from the markers each frame (OpenCV's own refinement): one
+        # off the plane of the others is dropped, the rest kept
+        bad = corner_outliers(pts, self._corners[idx], self.intr)
+        if np.any(bad):
+            idx, pts = idx[~bad], pts[~bad]
+            if len(idx) < 6:
+                self.rejection = (f"{int(bad.sum())} ChArUco corners lie off the plane of the others; "
+                                  f"{len(idx)} left")
+                return None
         return Detection(pts, self._corners[idx], idx, markers)
 
     def other_pattern_matches(self, color: NDArray[np.uint8]) -> bool:

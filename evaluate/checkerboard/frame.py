@@ -87,7 +87,7 @@ class FrameEvaluator:
         self.max_reprojection_px = max_reprojection_px
         self.min_pixels = min_pixels
         self.source = source
-        self.detector = BoardDetector(board)
+        self.detector = BoardDetector(board, intr=self.color_intr)
         self.depth_to_color = (np.eye(4) if info.depth_aligned_to_color
                                else info.depth_to_color.matrix)
         # plain boards with an even side are not symmetric under a half turn: check every frame
@@ -161,7 +161,7 @@ class FrameEvaluator:
                        + " ChArUco pattern, the board description the other one: set "
                        f"first_square_black = {str(legacy).lower()}")
                 raise BoardMismatchError(self.source, msg)
-            res.status = "board not found"
+            res.status = self.detector.rejection or "board not found"
             return res, None
         pose = solve_board_pose(det.object_points, det.image_points, self.color_intr, self.refine)
         if pose is None:
