@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 
 from depthstation.core.run_warnings import collecting
-from depthstation.evaluate.explain.attribute import attribute, frame_blocks
+from depthstation.evaluate.explain.attribute import attribute
 from depthstation.evaluate.explain.basis import module_candidates
 from depthstation.evaluate.explain.locate import compare_groups, default_groups, holm, locate
 from depthstation.evaluate.explain.run import warn_unpaired
 from depthstation.evaluate.explain.samples import Samples, concat
+from depthstation.evaluate.explain.tables import frame_blocks
 
 W, H, FX, B = 160, 90, 124.8, 0.095
 PPX, PPY = (W - 1) / 2, (H - 1) / 2

@@ -32,20 +32,16 @@ from depthstation.evaluate.explain.attribute import (
     WALD_P,
     Attribution,
     CandidateFit,
-    Table,
-    _cluster_cov,
     _fit_record,
     _params,
     _usable,
-    bic,
-    gls,
-    heldout_rmse,
     negative_variances,
     rank,
-    wald_p,
 )
 from depthstation.evaluate.explain.basis import Candidate
+from depthstation.evaluate.explain.mixed_model import bic, cluster_cov, gls, heldout_rmse, wald_p
 from depthstation.evaluate.explain.samples import Samples
+from depthstation.evaluate.explain.tables import Table
 
 
 @dataclass
@@ -314,7 +310,7 @@ def _final(t: Table, selected: list[str], by_name: dict[str, Candidate], terms: 
     """Coefficients of everything selected on this table from one joint fit."""
     fit = gls(t, selected)
     # standard errors as the Wald test sees them: cluster-robust on the plain tables
-    full_cov = _cluster_cov(t, selected, fit.beta)[0] if t.Z is None else fit.cov
+    full_cov = cluster_cov(t, selected, fit.beta)[0] if t.Z is None else fit.cov
     start = 0
     by_term = {x.candidate.name: x for x in terms}
     for name in selected:

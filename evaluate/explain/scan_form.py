@@ -29,13 +29,15 @@ from depthstation.core.frames import FrameSet, FrameSource
 from depthstation.core.grid import Grid
 from depthstation.core.results import write_json, write_result_info
 from depthstation.core.run_warnings import warn
-from depthstation.evaluate.explain.attribute import CandidateFit, Table, gls
+from depthstation.evaluate.explain.attribute import CandidateFit
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
 from depthstation.evaluate.explain.discover import Discovery, select_table
 from depthstation.evaluate.explain.figures import residual_grid_figure
 from depthstation.evaluate.explain.library import library
+from depthstation.evaluate.explain.mixed_model import gls
 from depthstation.evaluate.explain.run import check_model_camera, known_baseline, present_effects
 from depthstation.evaluate.explain.samples import FloatArray, Samples
+from depthstation.evaluate.explain.tables import Table
 from depthstation.evaluate.scan.chunks import chunk_ranges, new_renderer
 from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER
 from depthstation.evaluate.scan.run import ScanOptions, prepare_scan
