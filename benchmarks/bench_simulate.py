@@ -1,6 +1,7 @@
 """Benchmark: one standpoint of 150 frames of 1280x720 depth + colour (target <= 10 s on 2 cores).
 
 Run: .venv/bin/python benchmarks/bench_simulate.py [--frames 150] [--standpoint standpoint_07]
+     [--model d455|d455-ideal] [--render-only]
 Prints the time of each stage, the frame rate, and the ratio to the 10 s budget, for
 (a) rendering the frames only and (b) the whole `simulate_checkerboard` call writing the MCAP.
 
@@ -17,6 +18,7 @@ import argparse
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 BUDGET_S = 10.0
 
@@ -26,6 +28,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--standpoint", default="standpoint_07")  # 3.4 m, frontal
     ap.add_argument("--compression", default="lz4")
+    ap.add_argument("--model", default="d455", help="d455 (the paper's unit, with its colour camera) or "
+                                                     "d455-ideal (the clean camera, the model before it)")
+    ap.add_argument("--render-only", action="store_true", help="(a) only: no MCAP written")
     ap.add_argument("--scan", action="store_true", help="simulate scan of the walk instead")
     ap.add_argument("--baseline-frames", type=int, default=200, help="--scan: frames written with lz4")
     args = ap.parse_args()
@@ -49,7 +54,7 @@ def main() -> None:
 
     t_import = time.perf_counter() - t0
     proto = load_protocol("checkerboard-d455")
-    model = load_model("d455")
+    model = load_model(args.model)
     sp = next(s for s in proto.plan.standpoints() if s.name == args.standpoint)
     info = stream_info_for(proto, model)
     di = info.depth_intrinsics
@@ -76,6 +81,8 @@ def main() -> None:
     cpu_a = time.process_time() - cpu0
     print(f"scene + ray-casting scene    {t_setup:7.2f} s")
     print(f"geometry + colour (once)     {t_pose:7.2f} s")
+    print(f"model {model.name}: {', '.join(e.name for e in model.effects)}")
+    colour_cost(renderer, args.frames)
     print(f"{n} frames (effects, noise)  {t_frames:7.2f} s  ({n / t_frames:.1f} fps, "
           f"{t_frames / n * 1e3:.1f} ms/frame)")
     print(f"   CPU time of the frames    {cpu_frames:7.2f} s  "
@@ -83,6 +90,8 @@ def main() -> None:
     print(f"(a) render only              {total:7.2f} s  = {total / BUDGET_S:.2f} x budget; "
           f"CPU {cpu_a:.2f} s")
 
+    if args.render_only:
+        return
     with tempfile.TemporaryDirectory() as tmp:
         t = time.perf_counter()
         cpu1 = time.process_time()
@@ -98,6 +107,46 @@ def main() -> None:
           f"fully serial: (a) {cpu_a:.2f} s, (b) {cpu_b:.2f} s")
     print(f"machine load average (1 min): {__import__('os').getloadavg()[0]:.1f} on "
           f"{__import__('os').cpu_count()} cores (other work slows every figure)")
+
+
+def colour_cost(renderer: Any, frames: int) -> None:
+    """What the colour image costs: per pose (develop) and per frame (its noise), CPU time, one thread."""
+    import numpy as np
+
+    if renderer.color_base is None:
+        return
+    rng = np.random.default_rng(1)
+    n = max(20, frames // 3)
+    c = time.process_time()
+    for _ in range(n):
+        renderer.frame(0, 0, rng=rng)
+    per_frame = (time.process_time() - c) / n
+    cam = getattr(renderer, "color_camera", None)
+    if cam is not None:
+        from depthstation.simulate.color_pipeline import develop
+        from depthstation.simulate.scene_render import render_color_linear
+
+        info = renderer.info
+        pose = renderer._pose @ np.linalg.inv(info.depth_to_color.matrix)
+        c = time.process_time()
+        lin = render_color_linear(renderer.scene, info.color_intrinsics, pose, renderer.rc,
+                                  psf_sigma_px=cam.params["psf_sigma_px"])
+        t_lin = time.process_time() - c
+        c = time.process_time()
+        develop(lin, cam)
+        t_dev = time.process_time() - c
+        c = time.process_time()
+        for _ in range(n):
+            renderer._camera_noise.apply(renderer.color_base, renderer._color_scale, rng)
+        t_noise = (time.process_time() - c) / n
+        print(f"colour camera: per pose render {t_lin * 1e3:.0f} ms + develop (vignetting, AE, Bayer, "
+              f"noise map) {t_dev * 1e3:.0f} ms; per frame noise {t_noise * 1e3:.1f} ms CPU")
+    else:
+        c = time.process_time()
+        for _ in range(n):
+            renderer._color_noise.apply(renderer.color_base, rng)
+        print(f"colour (ideal): per frame noise {(time.process_time() - c) / n * 1e3:.1f} ms CPU")
+    print(f"one frame (depth + colour) on one thread: {per_frame * 1e3:.1f} ms CPU")
 
 
 def scan(frames: int, baseline_frames: int) -> None:

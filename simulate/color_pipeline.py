@@ -9,7 +9,6 @@ phase is kept), scaled by the pose's map, in one compiled pass.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import cv2
@@ -62,8 +61,9 @@ def vignetting_map(h: int, w: int, corner: float) -> F32:
     return np.asarray(1.0 / (1.0 + a * rho2) ** 2, dtype=np.float32)
 
 
-def develop(linear: F32, cam: ColorCamera) -> tuple[NDArray[np.uint8], F32]:
-    """The noiseless 8-bit image of a pose and each pixel's noise RMS per bank unit (counts / 16)."""
+def develop(linear: F32, cam: ColorCamera) -> tuple[NDArray[np.uint8], NDArray[np.int16]]:
+    """The noiseless 8-bit image of a pose and each pixel's noise RMS per bank unit (counts / 16, in
+    1/256 counts: `fixed_scale`)."""
     p = cam.params
     h, w = linear.shape[:2]
     sig = linear * vignetting_map(h, w, p["vignetting"])[..., None]
@@ -77,11 +77,11 @@ def develop(linear: F32, cam: ColorCamera) -> tuple[NDArray[np.uint8], F32]:
     base = encode_srgb(sig)
     k = p["full_well_e"]
     if k <= 0:
-        return base, np.zeros_like(sig)
+        return base, np.zeros(sig.shape, np.int16)
     sigma_lin = np.sqrt(sig * np.float32(k) + np.float32(p["read_noise_e"] ** 2)) / np.float32(k)
     slope = np.float32(255.0 * _GAMMA) * np.maximum(sig, np.float32(1e-3)) ** np.float32(_GAMMA - 1.0)
     scale = np.minimum(slope * sigma_lin, np.float32(60.0)) / np.float32(FIELD_SCALE)
-    return base, np.asarray(scale, dtype=np.float32)
+    return base, fixed_scale(np.asarray(scale, dtype=np.float32))
 
 
 class ColorNoise:
@@ -100,21 +100,33 @@ class ColorNoise:
                 f = rng.standard_normal((h + pad, w + pad, 3), dtype=np.float32)
             self.fields.append(np.clip(np.rint(f * FIELD_SCALE), -127, 127).astype(np.int8))
 
-    def apply(self, base: NDArray[np.uint8], scale: F32, rng: np.random.Generator) -> NDArray[np.uint8]:
+    def apply(self, base: NDArray[np.uint8], scale: NDArray[np.int16],
+              rng: np.random.Generator) -> NDArray[np.uint8]:
+        """One noisy frame: `scale` is `develop`'s map in fixed point (`fixed_scale`)."""
         f = self.fields[int(rng.integers(len(self.fields)))]
         r = 2 * int(rng.integers(self.pad // 2))
         c = 2 * int(rng.integers(self.pad // 2))
+        h, w, ch = base.shape
         out = np.empty_like(base)
-        _add_noise(base, f, r, c, scale, out)
+        _add_noise(base.reshape(h, w * ch), f.reshape(f.shape[0], -1), r, c * ch, scale.reshape(h, w * ch),
+                   out.reshape(h, w * ch))
         return out
+
+
+def fixed_scale(scale: F32) -> NDArray[np.int16]:
+    """The noise map in 1/256 of a count per bank unit (integer arithmetic in the per-frame pass)."""
+    return np.asarray(np.clip(np.rint(scale * 256.0), 0, 32767), dtype=np.int16)
 
 
 @njit(cache=True, nogil=True)
 def _add_noise(base: Any, field: Any, r: int, c: int, scale: Any, out: Any) -> None:  # pragma: no cover
-    """out = clip(round(base + field[r:, c:] x scale), 0, 255), one pass."""
-    h, w, ch = base.shape
+    """out = clip(base + floor((field[r:, c:] x scale + 128) / 256), 0, 255), rows of interleaved RGB."""
+    h, n = base.shape
     for y in range(h):
-        for x in range(w):
-            for k in range(ch):
-                v = math.floor(base[y, x, k] + field[y + r, x + c, k] * scale[y, x, k] + 0.5)
-                out[y, x, k] = 0 if v < 0 else (255 if v > 255 else v)
+        b = base[y]
+        f = field[y + r, c:c + n]
+        s = scale[y]
+        o = out[y]
+        for i in range(n):
+            v = np.int32(b[i]) + ((np.int32(f[i]) * np.int32(s[i]) + 128) >> 8)
+            o[i] = 0 if v < 0 else (255 if v > 255 else v)

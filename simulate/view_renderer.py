@@ -81,7 +81,7 @@ class ViewRenderer:
         # (color_pipeline); without one, the ideal camera: box-filtered pixels, gamma, Gaussian noise
         cam = model.effect("color_camera")
         self.color_camera = cam if isinstance(cam, ColorCamera) else None
-        self._color_scale: NDArray[np.float32] | None = None
+        self._color_scale: NDArray[np.int16] | None = None
         self._camera_noise = (ColorNoise((ci.height, ci.width, 3), bool(self.color_camera.params["demosaic"]),
                                          self.rng)
                               if self.want_color and ci is not None and self.color_camera is not None
