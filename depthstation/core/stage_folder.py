@@ -1,5 +1,5 @@
 """The stage folders (`acquire/`, `evaluate/`, `simulate/`) sit at the repository's top level but are
-installed only as `depthstation.<stage>`.
+installed only as `depthstation.<stage>` (pyproject's `package-dir` mapping).
 
 Why this module: from the repository root, Python finds those folders as top-level packages
 (`import evaluate`), which would shadow unrelated PyPI packages of the same name (`evaluate` is
