@@ -3,6 +3,7 @@ after the refit, for both forms (checkerboard sessions and reference-scan sequen
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +13,13 @@ from depthstation.core.heatmaps import SIGNED, colormap, robust_limits
 
 # (label, distance edges m, inclination edges deg, real - sim per cell in metres, NaN = untested)
 ResidualPanel = tuple[str, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
+
+
+def wrapped(title: str, width_in: float, fontsize: float) -> str:
+    """A title broken into lines that fit `width_in` inches at `fontsize` points (a discovered term's
+    expression runs to 150 characters: on one line it was cut at the figure's edges)."""
+    chars = max(20, int(width_in * 72 / (0.6 * fontsize)))
+    return "\n".join(textwrap.wrap(title, chars, break_on_hyphens=False)) or title
 
 
 def residual_grid_figure(path: Path, panels: list[ResidualPanel], what: str = "bias") -> Path:
@@ -83,7 +91,7 @@ def term_residual_figure(path: Path, title: str, xlabel: str, ylabel: str,
     ax.axhline(0, color="k", lw=0.5)
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    ax.set_title(title, fontsize=9)
+    ax.set_title(wrapped(title, 6.3, 9), fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -109,7 +117,7 @@ def term_field_figure(path: Path, title: str, unit: str, xe: NDArray[np.float64]
         ax.set_ylabel("y = (v - ppy) / fx")
         ax.set_title(label, fontsize=9)
         fig.colorbar(im, ax=ax, label=unit)
-    fig.suptitle(title, fontsize=9)
+    fig.suptitle(wrapped(title, 4.2 * len(panels) - 0.3, 9), fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from itertools import pairwise
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -46,6 +47,49 @@ def reference_lookalikes(selected: list[Any]) -> list[dict[str, Any]]:
     return out
 
 
+MAX_REGIONS = 20
+"""Regions listed in report.md's table (all of them are in explain.json)."""
+
+NO_TIME_STAMPS = ("the inputs carry no time stamps of their own (a PNG folder's frames are numbered at "
+                  "its nominal fps, every standpoint from 0): nothing is shown along time")
+
+
+def session_clock(clocks: dict[str, Any]) -> bool:
+    """Whether the frames' time stamps are a clock of the session: standpoints recorded one after
+    another never share an instant, and a camera's clock never reads exactly 0 (a PNG folder's
+    nominal stamps k / fps start at 0 in every standpoint)."""
+    spans = sorted((min(c.timestamp_ns), max(c.timestamp_ns)) for c in clocks.values() if c.timestamp_ns)
+    if not spans or any(lo == 0 for lo, _ in spans):
+        return False
+    return all(b[0] > a[1] for a, b in pairwise(spans))
+
+
+def in_domain(candidate: dict[str, Any]) -> dict[str, Any]:
+    """A candidate of explain.json with its noise widths (sigmas, windows: >= 0) in their domain.
+
+    A variance candidate's fit gives sigma^2 (or its change); where that is negative (the real
+    noise below the model's along this signature) its square root was reported signed, as a
+    "-0.10 px" sigma. Such a value is clamped at 0 and the fit kept beside it, said in `domain`.
+    """
+    if candidate.get("kind") != "variance":
+        return candidate
+    params = {}
+    for name, p in candidate["params"].items():
+        v = p.get("value")
+        if v is not None and np.isfinite(v) and v < 0:
+            p = {**p, "value": 0.0, "fitted_signed": float(v),
+                 "domain": f"clamped at 0: a width is >= 0, and the fitted variance is negative "
+                           f"(-{v * v:.3g}{_unit(p.get('unit'))}{'^2' if _unit(p.get('unit')) else ''}: "
+                           "the real noise along this signature is below what the model has)"}
+        params[name] = p
+    return {**candidate, "params": params}
+
+
+def _unit(unit: str | None) -> str:
+    """A unit after a number: none for a ratio (unit "1" or empty)."""
+    return "" if unit in (None, "", "1") else f" {unit}"
+
+
 def explain_dict(ex: Explanation) -> dict[str, Any]:
     """The content of explain.json (its keys are the users' contract: docs/results.md, docs/explain.md)."""
     before = ex.before.summary()
@@ -60,7 +104,8 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
     return {
         "mismatch": before,
         "mismatch_after": after,
-        "candidates": [{"rank": i + 1, **c.to_dict()} for i, c in enumerate(ex.attribution.candidates)],
+        "candidates": [in_domain({"rank": i + 1, **c.to_dict()})
+                       for i, c in enumerate(ex.attribution.candidates)],
         "selected": [c.effect for c in ex.attribution.selected],
         "missing_physics": [c.effect for c in ex.attribution.selected if c.role == "missing_physics"],
         "calibrated": calibrated,
@@ -77,6 +122,7 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
         "discovery": ex.discovery.summary() if ex.discovery is not None else None,
         "remaining_after": ex.remaining,
         "tests": [t.to_dict() for t in ex.before.tests],
+        "time_stamps": session_clock(ex.real.clocks),
     }
 
 
@@ -104,13 +150,18 @@ def figures(ex: Explanation, out: Path) -> list[str]:
               if (g := residual_grid(loc)) is not None]
     residual_grid_figure(out / "residual_grid.png", panels)
     names.append("residual_grid.png")
-    for fam, xlabel, fname in (("column", "image column u (px)", "residual_columns.png"),
-                               ("albedo", "square colour", "residual_albedo.png"),
-                               ("time", "time since session start (s)", "residual_time.png"),
-                               ("temperature", "device temperature (degC)", "residual_temperature.png")):
-        if not ex.before.family(fam):
+    clock = session_clock(ex.real.clocks)
+    for fam, xlabel, fname, title in (
+            ("column", "image column u (px)", "residual_columns.png", "mean error along the image columns"),
+            ("albedo", "square colour", "residual_albedo.png", "mean error on black and white squares"),
+            ("time", "time since session start (s)", "residual_time.png",
+             "mean error over the session's time"),
+            ("temperature", "device temperature (degC)", "residual_temperature.png",
+             "mean error over the device temperature")):
+        if not ex.before.family(fam) or (fam == "time" and not clock):  # no time axis made up
             continue
         fig, ax = plt.subplots(figsize=(6, 4))
+        ax.set_title(f"{title}: real - sim", fontsize=10)
         for label, loc in sides:
             ts = loc.family(fam)
             x = np.array([ALBEDO_GROUPS.index(t.label) for t in ts]) if fam == "albedo" else np.array(
@@ -227,8 +278,9 @@ def _term_figure(term: DiscoveredTerm, sides: list[tuple[str, Samples, Samples]]
     band = 2 * np.sqrt(np.clip(np.einsum("ni,ij,nj->n", phi, cov, phi), 0, None))
     sym = ("*".join(AXIS_INFO[a][0] for a in spec.axes) if spec.basis == "product"
            else AXIS_INFO[spec.axes[0]][0])
-    units = "*".join(AXIS_INFO[a][1] for a in spec.axes if AXIS_INFO[a][1] != "1") or "1"
-    return term_residual_figure(path, title, f"{sym} ({units})", f"{what} real - sim ({unit})", rows,
+    units = "*".join(AXIS_INFO[a][1] for a in spec.axes if AXIS_INFO[a][1] != "1")
+    return term_residual_figure(path, title, f"{sym} ({units})" if units else sym,
+                                f"{what} real - sim{f' ({unit})' if _unit(unit) else ''}", rows,
                                 (xg, phi @ coef, band))
 
 
@@ -250,11 +302,17 @@ def discovered_figures(ex: Explanation, out: Path) -> list[str]:
 def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
     """A human summary: what differs, what explains it, what changed in the model."""
     m = data["mismatch"]
+    regions = m["regions"]
+    timeless = [r for r in regions if r["family"] == "time"] if not data.get("time_stamps", True) else []
+    corr = [r for r in regions if r["family"].startswith("correlation_")]
+    plain = [r for r in regions if r not in corr and r not in timeless]
     lines = ["# Explain: simulation versus real", ""]
     if m["significant"]:
-        lines.append(f"**The simulation differs from the real data** ({len(m['regions'])} regions, "
-                     f"standpoints: {', '.join(m['standpoints']) or 'none alone'}; Holm-corrected, "
-                     f"alpha {m['alpha']}).")
+        kinds = [f"{len(plain)} of bias or noise"] + ([f"{len(corr)} of noise correlation"] if corr else []) \
+            + ([f"{len(timeless)} along frame time without time stamps"] if timeless else [])
+        lines.append(f"**The simulation differs from the real data** ({len(regions)} regions: "
+                     f"{', '.join(kinds)}; standpoints: {', '.join(m['standpoints']) or 'none alone'}; "
+                     f"Holm-corrected, alpha {m['alpha']}).")
     else:
         lines.append("No significant difference between simulation and real data (Holm, alpha "
                      f"{m['alpha']}).")
@@ -266,17 +324,12 @@ def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
     if left:
         lines += ["", f"**Not compared:** {'; '.join(dict.fromkeys(left))}. No test covers these "
                   "standpoints."]
-    lines += ["", "## Where it differs", "", "| family | quantity | group | real - sim | SE | p (Holm) |",
-              "|---|---|---|---|---|---|"]
-    for r in m["regions"][:20]:
-        unit, scale = ("mm", 1e3) if r["kind"] == "bias" else ("mm^2", 1e6)
-        lines.append(f"| {r['family']} | {r['kind']} | {r['label']} | {r['diff'] * scale:.3g} {unit} | "
-                     f"{r['se'] * scale:.2g} | {r['p_adj']:.2g} |")
+    lines += _regions_md(plain, corr, timeless, data.get("time_stamps", True))
     lines += ["", "## Candidates (ranked)", "",
               "| rank | effect | role | selected | parameters | delta BIC | held-out RMSE before -> after |",
               "|---|---|---|---|---|---|---|"]
     for c in data["candidates"]:
-        ps = ", ".join(f"{k} = {v['value']:.4g} {v['unit']}" for k, v in c["params"].items())
+        ps = ", ".join(_param_md(k, v) for k, v in c["params"].items())
         lines.append(f"| {c['rank']} | {c['effect']} | {c['role'].replace('_', ' ')} | "
                      f"{'yes' if c['selected'] else 'no'} | {ps} | {c['delta_bic']:.1f} | "
                      f"{c['heldout_rmse_before_m'] * 1e3:.3g} -> {c['heldout_rmse_after_m'] * 1e3:.3g} mm |")
@@ -285,7 +338,7 @@ def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
     lines.append(f"- Missing physics: {', '.join(mp) if mp else 'none'}.")
     cal = data["calibrated"]
     lines.append("- Calibration (parameters the model already had): " + (
-        "; ".join(f"{c['effect']}: " + ", ".join(f"{k} {v['old']} -> {v['new']:.4g} {v['unit']}"
+        "; ".join(f"{c['effect']}: " + ", ".join(f"{k} {v['old']} -> {v['new']:.4g}{_unit(v['unit'])}"
                                                  for k, v in c["params"].items()) for c in cal)
         if cal else "none") + ".")
     for t in data.get("near_ties", []):
@@ -306,6 +359,44 @@ def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _regions_md(plain: list[dict[str, Any]], corr: list[dict[str, Any]], timeless: list[dict[str, Any]],
+                clock: bool) -> list[str]:
+    """The section "Where it differs": bias (mm) and noise (mm^2) regions, the smallest p first (at most
+    MAX_REGIONS, said so), then the noise correlation of neighbouring pixels, which has no unit."""
+    lines = ["", "## Where it differs", ""]
+    if not clock:
+        lines += [f"Time: {NO_TIME_STAMPS} (the frame family tests the frames' order)"
+                  + (f"; {len(timeless)} region(s) along it are left out." if timeless else "."), ""]
+    if plain:
+        shown = plain[:MAX_REGIONS]
+        lines += [f"Top {len(shown)} of {len(plain)} regions of bias or noise, smallest p first (all in "
+                  "explain.json):" if len(shown) < len(plain) else
+                  f"{len(plain)} region(s) of bias or noise, smallest p first:", "",
+                  "| family | quantity | group | real - sim | SE | p (Holm) |", "|---|---|---|---|---|---|"]
+        for r in shown:
+            unit, scale = ("mm", 1e3) if r["kind"] == "bias" else ("mm^2", 1e6)
+            lines.append(f"| {r['family']} | {r['kind']} | {r['label']} | {r['diff'] * scale:.3g} {unit} | "
+                         f"{r['se'] * scale:.2g} {unit} | {r['p_adj']:.2g} |")
+    if corr:
+        lines += ["", f"{len(corr)} region(s) of noise correlation: the correlation coefficient of "
+                  "neighbouring pixels' within-frame noise (no unit; 0 = independent pixels):", "",
+                  "| family | group | real - sim | SE | p (Holm) |", "|---|---|---|---|---|"]
+        for r in corr[:MAX_REGIONS]:
+            lines.append(f"| {r['family']} | {r['label']} | {r['diff']:+.3f} | {r['se']:.2g} | "
+                         f"{r['p_adj']:.2g} |")
+    return lines
+
+
+def _param_md(name: str, p: dict[str, Any]) -> str:
+    """`name = value unit` of a candidate; a clamped width says what the fit gave."""
+    text = f"{name} = {p['value']:.4g}{_unit(p.get('unit'))}"
+    if "fitted_signed" in p:
+        unit = _unit(p.get("unit"))
+        text += f" (clamped at 0: the fitted variance is negative, -{p['fitted_signed'] ** 2:.3g}" \
+                f"{unit}{'^2' if unit else ''})"
+    return text
+
+
 def _discovered_md(data: dict[str, Any], figs: list[str]) -> list[str]:
     """The section "Missing physics outside the catalogue" and what remains after the refit."""
     lines = ["", "## Missing physics outside the catalogue", ""]
@@ -319,7 +410,7 @@ def _discovered_md(data: dict[str, Any], figs: list[str]) -> list[str]:
                   "pooled fit alone. Confirm it on another session before trusting it.", ""]
     for k, d in enumerate(found):
         det = disc["terms"][k] if k < len(disc.get("terms", [])) else {}
-        coefs = ", ".join(f"{n} = {c['value']:.4g} +- {c['stderr']:.2g} {c['unit']}"
+        coefs = ", ".join(f"{n} = {c['value']:.4g} +- {c['stderr']:.2g}{_unit(c['unit'])}"
                           for n, c in d["coefficients"].items())
         lines += [f"### {k + 1}. {d['quantity']} along {', '.join(d['axes'])}", "",
                   f"- Term (written into model.toml as `[effects.{det.get('term', '?')}]`): "
