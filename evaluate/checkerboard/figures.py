@@ -25,8 +25,23 @@ def _plt() -> Any:
 
 
 def _save(fig: Any, path: Path) -> Path:
-    """Lay out, write (120 dpi) and release a figure; its path."""
+    """Lay out (tight, unless the figure has its own layout engine), write (120 dpi) and release a
+    figure; its path."""
+    if fig.get_layout_engine() is None:
+        fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    _plt().close(fig)
+    return path
+
+
+def _save_labelled(fig: Any, path: Path, labels: list[tuple[Any, np.ndarray, np.ndarray, list[str], float]]
+                   ) -> Path:
+    """`_save` for a figure with labelled markers: laid out first, then the labels placed where the
+    axes end up (`place_labels`), measured at the dpi the figure is saved with."""
+    fig.set_dpi(120)
     fig.tight_layout()
+    for ax, xs, ys, texts, marker_pt in labels:
+        place_labels(fig, ax, xs, ys, texts, marker_pt)
     fig.savefig(path, dpi=120)
     _plt().close(fig)
     return path
@@ -42,30 +57,101 @@ def fig1_poses(path: Path, results: list[StandpointResult], board: Board, captio
     plt = _plt()
     fig = plt.figure(figsize=(8, 7))
     ax = fig.add_subplot(projection="3d")
-    pts = board.corner_points()
+    poses = [(r.name, r.camera_in_board) for r in results if r.camera_in_board is not None]
+    turn = board_turn(np.array([m[:3, 3] for _, m in poses]).reshape(-1, 3))
+    pts = board.corner_points() @ turn.T
     ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c="grey", s=6, label="board corners")
     all_pts = [pts]
-    for r in results:
-        if r.camera_in_board is None:
-            continue
-        c = r.camera_in_board[:3, 3]
+    for name, m in poses:
+        c = turn @ m[:3, 3]
         for i, col in enumerate(("r", "g", "b")):
-            e = c + 0.2 * r.camera_in_board[:3, i]
+            e = c + 0.2 * (turn @ m[:3, i])
             ax.plot([c[0], e[0]], [c[1], e[1]], [c[2], e[2]], color=col, lw=1.5)
-        ax.text(c[0], c[1], c[2], f" {r.name}", fontsize=7)
+        ax.text(c[0], c[1], c[2], f" {name}", fontsize=7)
         all_pts.append(c[None, :])
     p = np.concatenate(all_pts)
     mid, span = (p.max(0) + p.min(0)) / 2, float(np.max(p.max(0) - p.min(0))) / 2 + 0.2
     ax.set_xlim(mid[0] - span, mid[0] + span)
     ax.set_ylim(mid[1] - span, mid[1] + span)
     ax.set_zlim(mid[2] - span, mid[2] + span)
+    flipped = turn[2, 2] < 0
     ax.set_xlabel("board x (m)")
-    ax.set_ylabel("board y (m)")
-    ax.set_zlabel("board z (m)")
-    ax.invert_zaxis()
-    ax.set_title("Fig. 1: averaged camera poses in the board frame (axis length 20 cm)"
-                 + (f"\n{caption}" if caption else ""), fontsize=10)
+    ax.set_ylabel("board -y (m)" if flipped else "board y (m)")
+    ax.set_zlabel("board -z (m), towards the cameras" if flipped else "board z (m), towards the cameras")
+    ax.set_title("Fig. 1: averaged camera poses in the board frame, cameras above the board (+z; axis "
+                 "length 20 cm)" + (f"\n{caption}" if caption else ""), fontsize=10)
     return _save(fig, path)
+
+
+def board_turn(cameras: np.ndarray) -> np.ndarray:
+    """The rotation that puts the cameras on the board's +z side: identity, or half a turn about x
+    (x, -y, -z) where the board frame's z points away from the cameras (a chessboard's pose from
+    OpenCV, whose z goes into the board, against a ChArUco board's), so that Fig. 1 reads the same
+    for both kinds of board."""
+    z = cameras[:, 2] if cameras.size else np.zeros(0)
+    return np.diag([1.0, -1.0, -1.0]) if z.size and float(np.median(z)) < 0 else np.eye(3)
+
+
+def place_labels(fig: Any, ax: Any, xs: np.ndarray, ys: np.ndarray, texts: list[str],
+                 marker_pt: float, fontsize: float = 7) -> list[Any]:
+    """Value labels beside scatter markers that overlap neither each other nor a marker and stay
+    inside the axes: for each point (left to right) the first free spot of eight directions at
+    growing distance, else the spot that overlaps least; a label away from its marker gets a line
+    to it."""
+    renderer = fig.canvas.get_renderer()
+    frame = ax.get_window_extent(renderer)
+    to_px = fig.dpi / 72.0
+    centres = ax.transData.transform(np.column_stack([xs, ys]))
+    r_px = 0.5 * marker_pt * to_px + 1.0
+    markers = [(cx - r_px, cy - r_px, cx + r_px, cy + r_px) if np.isfinite([cx, cy]).all() else (0, 0, 0, 0)
+               for cx, cy in centres]
+    placed: list[tuple[float, float, float, float]] = []
+    labels: list[Any] = [None] * len(texts)
+    directions = ((1, 1), (-1, 1), (1, -1), (-1, -1), (0, 1.2), (0, -1.2), (1.3, 0), (-1.3, 0))
+
+    def overlap(a: tuple[float, float, float, float], b: tuple[float, float, float, float]) -> float:
+        w = min(a[2], b[2]) - max(a[0], b[0])
+        h = min(a[3], b[3]) - max(a[1], b[1])
+        return max(w, 0.0) * max(h, 0.0)
+
+    rings = [0.5 * marker_pt + d for d in (1.0, 8.0, 18.0, 30.0)]
+    for k in np.argsort(xs, kind="stable"):
+        if not (np.isfinite(xs[k]) and np.isfinite(ys[k]) and np.isfinite(centres[k]).all()):
+            continue  # not drawn (no value, or none on a log axis)
+        best: tuple[float, Any, tuple[float, float, float, float], float] | None = None
+        for dist in rings:
+            for dx, dy in directions:
+                ann = ax.annotate(texts[k], (xs[k], ys[k]), xytext=(dx * dist, dy * dist),
+                                  textcoords="offset points", fontsize=fontsize,
+                                  ha="left" if dx > 0 else "right" if dx < 0 else "center",
+                                  va="bottom" if dy > 0 else "top" if dy < 0 else "center")
+                e = ann.get_window_extent(renderer)
+                box = (e.x0 - 2, e.y0 - 2, e.x1 + 2, e.y1 + 2)
+                outside = (max(frame.x0 - box[0], 0) + max(box[2] - frame.x1, 0)
+                           + max(frame.y0 - box[1], 0) + max(box[3] - frame.y1, 0)) * 100
+                cost = outside + sum(overlap(box, o) for o in placed) + sum(
+                    overlap(box, m) for j, m in enumerate(markers) if j != k) + 0.01 * dist
+                if best is None or cost < best[0]:
+                    if best is not None:
+                        best[1].remove()
+                    best = (cost, ann, box, dist)
+                else:
+                    ann.remove()
+                if cost < 1.0:
+                    break
+            if best is not None and best[0] < 1.0:
+                break
+        assert best is not None
+        cost, ann, box, dist = best
+        if dist > rings[0]:  # away from its point (or nowhere free): tied to it by a line
+            ann.remove()
+            ann = ax.annotate(texts[k], (xs[k], ys[k]), xytext=ann.xyann, textcoords="offset points",
+                              fontsize=fontsize, ha=ann.get_ha(), va=ann.get_va(),
+                              arrowprops={"arrowstyle": "-", "lw": 0.5, "color": "0.4", "shrinkA": 0,
+                                          "shrinkB": 0.5 * marker_pt})
+        placed.append(box)
+        labels[k] = ann
+    return labels
 
 
 def _usable(results: list[StandpointResult]) -> list[StandpointResult]:
@@ -86,8 +172,7 @@ def fig4_reference_std(path: Path, results: list[StandpointResult], caption: str
     inc = np.array([r.figures["inclination_deg"] for r in rs])
     std = np.array([r.figures.get("reference_distance_std_m", np.nan) for r in rs]) * 1000
     sc = ax.scatter(d, std, c=inc, cmap="viridis", s=40, vmin=0, vmax=90)
-    for r, x, y in zip(rs, d, std, strict=True):
-        ax.annotate(r.name, (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    names = [r.name for r in rs]
     fig.colorbar(sc, ax=ax, label="inclination (deg)")
     ax.set_xlabel("distance (m)")
     ax.set_ylabel("std of reference distance over frames (mm)")
@@ -102,8 +187,6 @@ def fig4_reference_std(path: Path, results: list[StandpointResult], caption: str
     ax2.scatter(d, measured, marker="x", s=50, label="1 frame, measured (std over frames)",
                 **{k: v for k, v in kw.items() if k != "edgecolors"})
     ax2.scatter(d, mean_pose, marker="s", s=30, label="averaged pose, predicted", **kw)
-    for r, x, y in zip(rs, d, one_frame, strict=True):
-        ax2.annotate(r.name, (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
     fig.colorbar(sc2, ax=ax2, label="inclination (deg)")
     if np.any(np.isfinite(one_frame) & (one_frame > 0)) or np.any(np.isfinite(measured) & (measured > 0)):
         ax2.set_yscale("log")
@@ -114,7 +197,8 @@ def fig4_reference_std(path: Path, results: list[StandpointResult], caption: str
     ax2.grid(alpha=0.3, which="both")
     fig.suptitle("Fig. 4: uncertainty of the reference pose per standpoint"
                  + (f" ({caption})" if caption else ""))
-    return _save(fig, path)
+    return _save_labelled(fig, path, [(ax, d, std, names, float(np.sqrt(40))),
+                                      (ax2, d, one_frame, names, float(np.sqrt(50)))])
 
 
 def fig5_pixels(path: Path, r: StandpointResult, caption: str = "") -> Path | None:
@@ -123,7 +207,7 @@ def fig5_pixels(path: Path, r: StandpointResult, caption: str = "") -> Path | No
         return None
     plt = _plt()
     ex = r.example
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5), layout="constrained")  # equal aspect: tight cut labels
     h, w = ex.noise_map_m.shape
     extent = (ex.u0 - 0.5, ex.u0 + w - 0.5, ex.v0 + h - 0.5, ex.v0 - 0.5)
     for ax, img, title in ((axes[0], ex.noise_map_m, "noise: distance to fitted plane"),
@@ -149,6 +233,7 @@ def fig_over_grid(path: Path, results: list[StandpointResult], key: str, label: 
     d = np.array([r.figures["distance_m"] for r in rs])
     inc = np.array([r.figures["inclination_deg"] for r in rs])
     fig, axes = plt.subplots(1, 2, figsize=(13, 5))
+    texts: list[tuple[Any, list[str]]] = []
     for ax, suffix, what in ((axes[0], "_m", "mean"), (axes[1], "_std_m", "std over frames")):
         vals = np.array([r.figures.get(key + suffix, np.nan) for r in rs]) * 1000
         u95 = np.array([r.figures.get(key + "_m_u95", np.nan) for r in rs]) * 1000
@@ -158,12 +243,6 @@ def fig_over_grid(path: Path, results: list[StandpointResult], key: str, label: 
             lo = min(lo, 0.0)
         sc = ax.scatter(d, inc, c=vals, cmap=colormap(SIGNED if signed else POSITIVE), s=120,
                         edgecolors="k", vmin=lo, vmax=hi)
-        mid = 0.5 * (np.nanmin(d) + np.nanmax(d)) if len(d) else 0.0
-        for x, y, v, u in zip(d, inc, vals, u95, strict=True):
-            text = f"{v:.2f}" + (f" ± {u:.2f}" if what == "mean" and np.isfinite(u) else "")
-            right = x > mid  # labels point inwards, so the outermost ones stay inside the axes
-            ax.annotate(text, (x, y), fontsize=7, xytext=(-6 if right else 6, 6), textcoords="offset points",
-                        ha="right" if right else "left")
         fig.colorbar(sc, ax=ax, label=f"{label} {what} (mm)" + (" ± U95" if what == "mean" else ""),
                      extend="both" if signed else "max")
         ax.set_xlabel("distance (m)")
@@ -171,9 +250,11 @@ def fig_over_grid(path: Path, results: list[StandpointResult], key: str, label: 
         ax.set_ylim(-3, 93)
         ax.grid(alpha=0.3)
         ax.set_title(f"{label}: {what}")
+        texts.append((ax, [f"{v:.2f}" + (f" ± {u:.2f}" if what == "mean" and np.isfinite(u) else "")
+                           for v, u in zip(vals, u95, strict=True)]))
     fig.suptitle(f"Fig. {number}: {label} per standpoint over distance x inclination"
                  + (f" ({caption})" if caption else ""))
-    return _save(fig, path)
+    return _save_labelled(fig, path, [(ax, d, inc, labels, float(np.sqrt(120))) for ax, labels in texts])
 
 
 def fig_colours(path: Path, results: list[StandpointResult], caption: str = "") -> Path:
@@ -190,6 +271,7 @@ def fig_colours(path: Path, results: list[StandpointResult], caption: str = "") 
         ax.set_xticks(x, [r.name for r in rs], rotation=60, fontsize=7)
         ax.set_ylabel(f"{key} (mm), mean ± std over frames")
         ax.set_xlabel("standpoint")
+        ax.set_title(f"{key}: black against white squares per standpoint")
         ax.legend()
         ax.grid(alpha=0.3)
     fig.suptitle("Black vs white squares (p-values in standpoints.csv)"
