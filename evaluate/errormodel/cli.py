@@ -8,11 +8,10 @@ from pathlib import Path
 from typing import Any
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from depthstation.core.errors import InputError
-from depthstation.core.progress import progress
+from depthstation.core.progress import progress, stdout_console
 from depthstation.core.results import _jsonable, disk_error
 from depthstation.evaluate.errormodel.build import fit_model
 from depthstation.evaluate.errormodel.correct import correct_recording
@@ -51,7 +50,7 @@ def write_model(model: ErrorModel, path: Path) -> Path:
 
 
 def _say(model: ErrorModel) -> None:
-    con = Console()
+    con = stdout_console  # full width in a log, so no table cell is cut
     t = Table(title="depth error model (z in m, theta in deg)")
     for col in ("part", "term", "formula", "coefficient", "std. error"):
         t.add_column(col)
