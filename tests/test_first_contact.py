@@ -370,3 +370,15 @@ def test_a_discovered_terms_long_title_is_not_cut(tmp_path: Path, monkeypatch: p
     term_field_figure(tmp_path / "b.png", title, "px", xe, ye,
                       [("residual before (px)", m), ("fitted term (px)", m), ("2 SE (px)", m)])
     assert [fig["problems"] for fig in saved] == [[], []]
+
+
+def test_every_console_is_built_in_one_place() -> None:
+    """A rich Console made elsewhere falls back to 80 columns in a log and cuts tables again."""
+    repo = Path(__file__).resolve().parents[1]
+    own = repo / "depthstation" / "core" / "progress.py"
+    stages = ("depthstation", "acquire", "evaluate", "simulate")
+    files = [p for stage in stages for p in (repo / stage).rglob("*.py")]
+    assert any(p.parent.name == "errormodel" for p in files)  # the stage folders are searched
+    found = [f"{p.relative_to(repo)}:{k + 1}" for p in sorted(files) if p.resolve() != own
+             for k, line in enumerate(p.read_text().splitlines()) if "Console(" in line.split("#")[0]]
+    assert found == []
