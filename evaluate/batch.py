@@ -62,9 +62,11 @@ from depthstation.evaluate.scan.chunks import (
     scan_chunk,
     unpack_scan_result,
 )
+from depthstation.evaluate.scan.reference import check_reference_file
 from depthstation.evaluate.scan.report import write_scan
 from depthstation.evaluate.scan.run import ScanOptions, prepare_scan
 from depthstation.evaluate.scan.study import ChunkResult
+from depthstation.evaluate.scan.trajectory import read_tum
 
 DONE_MARKER = ".done"
 COMBINED_DIR = "combined"
@@ -712,6 +714,12 @@ def _check_scan(item: BatchItem) -> ItemCheck:
     options.check()
     if options.frames is not None and options.frames < 1:
         raise InputError(None, f"option frames must be at least 1, not {options.frames}")
+    # what can be read cheaply is read now: a broken pose file or an empty reference ran the items
+    # before it and failed with exit 1 (the sequence is opened by the item; a reference is not meshed)
+    if Path(item.inputs["poses"]).exists():  # (a missing one is said with the other missing inputs)
+        read_tum(Path(item.inputs["poses"]), options.pose_convention)
+    if Path(item.inputs["reference"]).exists():
+        check_reference_file(Path(item.inputs["reference"]))
     return ItemCheck((Path(item.inputs["sequence"]),),
                      (options.distance_bin_m, options.inclination_bin_deg, options.distance_max_m))
 

@@ -300,3 +300,57 @@ def test_image_data_shorter_than_the_image_names_topic_message_and_sizes(
                           "38400 bytes", "holds 19200")
     assert "reshape" not in line
     assert not (tmp_path / "imp").exists()
+
+
+# -- a protocol given as --board is validated whole -------------------------------------------------
+@pytest.mark.parametrize(("old", "new", "key"), [
+    ("frames_per_standpoint = 10\n", 'frames_per_standpoint = "ten"\n', "plan.frames_per_standpoint"),
+    ("frames_per_standpoint = 10\n", "frames_per_standpoint = 0\n", "plan.frames_per_standpoint"),
+    ("step_m = ", "step_m = -", "plan.step_m"),
+    ("start_distance_m = ", "start_distance_m = -", "plan.start_distance_m"),
+])
+def test_evaluate_board_protocol_is_validated_whole(small_session: Path, tmp_path: Path, old: str, new: str,
+                                                    key: str, capsys: pytest.CaptureFixture[str]) -> None:
+    text = (small_session.parent / "p.toml").read_text()
+    assert old in text
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text.replace(old, new, 1))
+    code, _, err = run_console(["evaluate", "checkerboard", str(small_session), "--board", str(bad),
+                                "--out", str(tmp_path / "o"), "--frames", "3"], capsys)
+    one_line_error(code, err, str(bad), key)
+    assert not (tmp_path / "o").exists()
+
+
+# -- evaluate batch checks every scan item's poses and reference before any runs ---------------------
+TRIANGLE_PLY = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+                "0 0 1\n1 0 1\n0 1 1\n3 0 1 2\n")
+EMPTY_PLY = ("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\n"
+             "end_header\n")
+
+
+@pytest.mark.parametrize(("poses", "reference", "file", "words"), [
+    ("0.0 1 2 three 0 0 0 1\n", TRIANGLE_PLY, "bad_poses.txt", ("line 1", "not a number")),
+    (None, "", "bad.ply", ("empty",)),
+    (None, EMPTY_PLY, "bad.ply", ("neither triangles nor points",)),
+])
+def test_batch_refuses_a_bad_scan_item_before_running_any(tiny_walk: tuple[Path, Path], tmp_path: Path,
+                                                          poses: str | None, reference: str, file: str,
+                                                          words: tuple[str, ...],
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    seq, good_poses = tiny_walk
+    (tmp_path / "room.ply").write_text(TRIANGLE_PLY)
+    (tmp_path / "bad.ply").write_text(reference)
+    bad_poses = tmp_path / "bad_poses.txt"
+    bad_poses.write_text(poses or good_poses.read_text())
+    (tmp_path / "other.mcap").write_bytes(seq.read_bytes())  # two recordings: neither counts twice
+    manifest = tmp_path / "m.toml"
+    manifest.write_text(
+        'out = "res"\n'
+        f'[[items]]\nkind = "scan"\nname = "first"\n'
+        f'inputs = {{ sequence = "{seq}", poses = "{good_poses}", reference = "room.ply" }}\n'
+        f'[[items]]\nkind = "scan"\nname = "second"\n'
+        f'inputs = {{ sequence = "other.mcap", poses = "{bad_poses}", reference = "bad.ply" }}\n')
+    code, _, err = run_console(["evaluate", "batch", str(manifest), "--quiet"], capsys)
+    one_line_error(code, err, str(manifest), "items[1] (second)", file, *words)
+    assert not (tmp_path / "res").exists()  # nothing ran

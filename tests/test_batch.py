@@ -331,10 +331,16 @@ def cb_item(name: str, options: str = "", inputs: str = '["sess"]', board: str =
 
 def real_kinds_manifest(root: Path, text: str) -> Path:
     """A manifest of scan and checkerboard items on placeholder files: loading checks them
-    without opening any recording."""
-    for name in ("s1.mcap", "s1.txt", "s2.mcap", "s2.txt", "room.ply", "sess/standpoint_01.mcap"):
+    without opening any recording (poses and references are read: small valid ones)."""
+    for name in ("s1.mcap", "s2.mcap", "sess/standpoint_01.mcap"):
         (root / name).parent.mkdir(parents=True, exist_ok=True)
         (root / name).touch()
+    for name in ("s1.txt", "s2.txt"):  # poses and the reference are read at the check: well-formed ones
+        (root / name).write_text("0.0 0 0 0 0 0 0 1\n")
+    (root / "room.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\n"
+                                   "property float y\nproperty float z\nelement face 1\n"
+                                   "property list uchar int vertex_indices\nend_header\n"
+                                   "0 0 1\n1 0 1\n0 1 1\n3 0 1 2\n")
     path = root / "m.toml"
     path.write_text('out = "res"\n' + text)
     return path

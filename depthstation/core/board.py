@@ -158,11 +158,16 @@ def load_board(path: str | Path) -> Board:
         raise InputError(p, "board file not found")
     if p.suffix.lower() == ".toml":  # a capture protocol: its [board] table
         try:
-            table = tomllib.loads(read_text(p, "protocol TOML")).get("board")
+            data = tomllib.loads(read_text(p, "protocol TOML"))
+            table = data.get("board")
         except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise InputError(p, f"not valid TOML ({exc})") from exc
         if not isinstance(table, dict):
             raise InputError(p, "has no [board] table")
+        if set(data) - {"board"}:  # a whole protocol: all of it valid, or a typo in its plan passes unseen
+            from depthstation.core.protocol import protocol_from_dict  # (protocol imports this module)
+
+            return protocol_from_dict(data, p).board
         return Board.from_dict(table, p)
     try:
         data = json.loads(read_text(p, "board JSON"))

@@ -28,7 +28,7 @@ from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.lazy_open3d import open3d
 from depthstation.core.mesh_checks import check_mesh, check_mesh_file
 from depthstation.core.run_warnings import warn
-from depthstation.evaluate.scan.tls import Scans, read_e57, read_las
+from depthstation.evaluate.scan.tls import Scans, check_las, open_e57, read_e57, read_las
 from depthstation.evaluate.scan.trajectory import LOCAL_SHIFT_ABOVE_M, local_shift
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
@@ -129,6 +129,39 @@ def load_reference(path: Path) -> tuple[str, Any]:
     if len(cloud.points) == 0:
         raise InputError(path, "reference holds neither triangles nor points")
     return "cloud", drop_nonfinite_points(path, cloud)
+
+
+def check_reference_file(path: Path) -> None:
+    """What can be told of a reference without reading its points (a batch checks every item before
+    any runs): a known format, not empty, a PLY's header and its vertex count, a LAS/LAZ's header
+    and units, an E57's scans. Bad input naming the file (exit 2)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "reference not found")
+    suffix = path.suffix.lower()
+    if suffix not in CLOUD_SUFFIXES + MESH_SUFFIXES + (".e57", ".las", ".laz"):
+        raise InputError(path, f"unknown reference format {suffix!r} (PLY, PCD, XYZ, OBJ, STL, E57, LAS)")
+    if path.stat().st_size == 0:
+        raise InputError(path, "reference is empty (0 bytes)")
+    if suffix in (".las", ".laz"):
+        check_las(path)
+    elif suffix == ".e57":
+        open_e57(path)
+    elif suffix == ".ply":
+        check_mesh_file(path)
+        with path.open("rb") as f:
+            head = f.read(1 << 16)
+        end = head.find(b"end_header")
+        if end < 0:
+            raise InputError(path, "broken PLY header (no end_header in its first 64 kB)")
+        counts = {}
+        for line in head[:end].decode("ascii", "replace").splitlines():
+            words = line.split()
+            if len(words) == 3 and words[0] == "element" and words[2].isdigit():
+                counts[words[1]] = int(words[2])
+        if counts.get("vertex", 0) == 0:
+            raise InputError(path, "reference holds neither triangles nor points (its PLY header lists "
+                                   "no vertex)")
 
 
 def drop_nonfinite_points(path: Path, cloud: Any) -> Any:

@@ -152,13 +152,19 @@ def _laz_backend_missing(laspy: Any) -> bool:
         return False
 
 
-def read_las(path: Path) -> TlsCloud:
-    """A LAS/LAZ in float64 metres (its declared unit converted), intensity and RGB."""
+def _laspy(path: Path) -> Any:
     try:
         import laspy
     except ImportError as exc:
         raise InputError(path, f"LAS/LAZ needs the optional package 'laspy' ({TLS_EXTRA}), "
                                "or convert the cloud to PLY") from exc
+    return laspy
+
+
+def check_las(path: Path) -> tuple[Any, int, bool, Unit, Unit, dict[str, Any]]:
+    """A LAS/LAZ's header checked without reading its points: (header, points, compressed, units,
+    the summary's words). No points, a cut uncompressed file or a unit not understood: refused."""
+    laspy = _laspy(path)
     try:
         with laspy.open(str(path)) as reader:
             header = reader.header
@@ -176,6 +182,13 @@ def read_las(path: Path) -> TlsCloud:
         raise InputError(path, f"cut short: its header announces {n} points ({needed} bytes with the "
                                f"header), the file holds {size} bytes")
     h, v, info = las_units(path, header.vlrs)
+    return header, n, compressed, h, v, info
+
+
+def read_las(path: Path) -> TlsCloud:
+    """A LAS/LAZ in float64 metres (its declared unit converted), intensity and RGB."""
+    laspy = _laspy(path)
+    header, n, compressed, h, v, info = check_las(path)
     try:
         las = laspy.read(str(path))
     except Exception as exc:
@@ -231,8 +244,8 @@ def _e57_metadata(root: Any) -> dict[str, Any]:
     return info
 
 
-def read_e57(path: Path) -> TlsCloud:
-    """An E57's scans in float64 (each scan's pose applied), intensity or RGB, station origins."""
+def open_e57(path: Path) -> Any:
+    """An E57 opened, with at least one scan of points (its headers only), else refused in one line."""
     try:
         import pye57
     except ImportError as exc:
@@ -252,6 +265,19 @@ def read_e57(path: Path) -> TlsCloud:
     if e57.scan_count == 0:
         raise InputError(path, "holds no scan (its writer may have stopped before writing one): no points to "
                                "mesh a reference from")
+    try:
+        points = sum(int(e57.get_header(i).point_count) for i in range(e57.scan_count))
+    except Exception as exc:
+        raise InputError(path, f"cannot read E57 ({type(exc).__name__}: {_first_line(exc)})") from exc
+    if points == 0:
+        raise InputError(path, f"holds no points ({e57.scan_count} empty scan(s)): nothing to mesh a "
+                               "reference from")
+    return e57
+
+
+def read_e57(path: Path) -> TlsCloud:
+    """An E57's scans in float64 (each scan's pose applied), intensity or RGB, station origins."""
+    e57 = open_e57(path)
     parts, colours, intens = [], [], []
     stations: list[tuple[int, int, np.ndarray | None]] = []
     try:
