@@ -142,10 +142,14 @@ class SimulatedCamera:
 
     # -- model of this unit ---------------------------------------------------------------------
     def effective_model(self) -> SensorModel:
-        """The base model plus this unit's calibration errors and its thermal drift."""
+        """The base model plus this unit's calibration errors and its thermal drift. The errors add to
+        what the model already carries (the default d455's residual offset and scale after calibration
+        stay under what the camera's own calibration routines reduce)."""
         m = self.base_model
         for name, params in self.errors.items():
-            m = m.with_effect(name, **params)
+            own = self.base_model.effect(name)
+            m = m.with_effect(name, **{k: v + (own.params.get(k, 0.0) if own is not None else 0.0)
+                                       for k, v in params.items()})
         if self.thermal_coeff and m.effect("thermal_drift") is None:
             m = m.with_effect("thermal_drift", coeff_px_per_c=self.thermal_coeff,
                               reference_c=self.steady_asic_c)

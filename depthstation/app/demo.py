@@ -165,6 +165,19 @@ def print_report(ctx: DemoContext, outcomes: dict[str, StepOutcome], steps: list
                              soft_wrap=True)
 
 
+def model_facts(name: str) -> dict[str, Any] | None:
+    """What demo.json records of the demo's camera model: every effect with its parameters, units,
+    meaning and source (None in a build without the simulator)."""
+    try:
+        from depthstation.simulate.model import load_model   # an optional stage of the build
+    except ImportError:
+        return None
+    mdl = load_model(name)
+    return {"name": mdl.name, "preset": mdl.camera.name,
+            "effects": {e.name: {"params": dict(e.params), "units": dict(e.units), "meaning": e.meaning,
+                                 "source": e.source} for e in mdl.effects}}
+
+
 def run_demo(out: Path, *, rrd: bool = True, spawn: bool = False, serve: bool = False,
              skip: set[str] | None = None, steps: list[Step]) -> dict[str, StepOutcome]:
     """Run `steps` (the demo's are `demo_steps.DEMO_STEPS`) into a fresh folder; returns each step's
@@ -187,6 +200,7 @@ def run_demo(out: Path, *, rrd: bool = True, spawn: bool = False, serve: bool = 
     total = time.perf_counter() - t0
     write_json(target / "demo.json", {
         "total_s": total,
+        "model": model_facts(DEMO_MODEL),
         "steps": {n: {"status": o.status, "seconds": o.seconds, "summary": o.summary,
                       "result": str(o.result) if o.result else None} for n, o in outcomes.items()},
         "facts": ctx.facts,

@@ -22,7 +22,7 @@ from depthstation.evaluate.checkerboard.run import run_checkerboard
 from depthstation.evaluate.explain.run import run_explain
 from depthstation.evaluate.scan.run import ScanOptions, run_scan
 from depthstation.simulate.checkerboard_session import simulate_checkerboard
-from depthstation.simulate.model import load_model, model_from_toml
+from depthstation.simulate.model import load_model
 from depthstation.simulate.poses import walk_around, write_tum
 from depthstation.simulate.scan_sequence import simulate_scan
 from depthstation.simulate.scene import load_scene
@@ -54,7 +54,36 @@ def _checkerboard_step(ctx: DemoContext) -> tuple[Path, str]:
         text += " of a directly simulated session (the guided session did not finish)"
     if noise:
         text += f", noise {1e3 * min(noise):.2f} to {1e3 * max(noise):.2f} mm"
+    paper = paper_relations(rows)
+    ctx.facts["paper_relations"] = paper
+    if paper["accuracy_over_noise_median"] == paper["accuracy_over_noise_median"]:
+        text += (f"; |accuracy| {paper['accuracy_over_noise_median']:.1f}x the noise (paper: 3-4x), "
+                 f"{paper['accuracy_steep_over_frontal_median']:.2f}x larger at "
+                 f"{paper['steep_inclination_deg']:.0f} deg than head-on")
     return out, text
+
+
+def paper_relations(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """The paper's Section 5.1 relations on the demo's standpoints: median |accuracy| / noise (R3),
+    and |accuracy| at the steepest inclination over head-on at the same target distance (R6)."""
+    def num(r: dict[str, Any], k: str) -> float:
+        try:
+            return float(r.get(k, "nan"))
+        except (TypeError, ValueError):
+            return float("nan")
+
+    ok = [r for r in rows if num(r, "noise_m") > 0 and np.isfinite(num(r, "accuracy_m"))]
+    ratio = [abs(num(r, "accuracy_m")) / num(r, "noise_m") for r in ok]
+    by_target: dict[float, dict[float, float]] = {}
+    for r in ok:
+        d, inc = round(num(r, "distance_m"), 1), 5.0 * round(num(r, "inclination_deg") / 5.0)
+        by_target.setdefault(d, {})[inc] = abs(num(r, "accuracy_m"))
+    steep = max((inc for v in by_target.values() for inc in v), default=float("nan"))
+    grow = [v[steep] / v[0.0] for v in by_target.values()
+            if 0.0 in v and steep in v and v[0.0] > 0 and steep > 0]
+    return {"accuracy_over_noise_median": float(np.median(ratio)) if ratio else float("nan"),
+            "steep_inclination_deg": float(steep),
+            "accuracy_steep_over_frontal_median": float(np.median(grow)) if grow else float("nan")}
 
 
 CHECKERBOARD = Step("checkerboard", "checkerboard study of the session", (), _checkerboard_step)
@@ -209,8 +238,12 @@ def _explain_step(ctx: DemoContext) -> tuple[Path, str]:
 
     protocol = load_protocol(DEMO_PROTOCOL)
     base = load_model(DEMO_MODEL)
-    extra = f"\n[effects.{HIDDEN_EFFECT}]\noffset_px = {HIDDEN_OFFSET_PX}\n"
-    hidden = model_from_toml(base.to_toml() + extra, f"{DEMO_MODEL}-concealed")
+    # concealed on top of the unit's own offset (the default D455 carries one): explain, given the
+    # plain model, must find the difference
+    own = base.effect(HIDDEN_EFFECT)
+    hidden = base.with_effect(HIDDEN_EFFECT, offset_px=(own.params["offset_px"] if own else 0.0)
+                              + HIDDEN_OFFSET_PX)
+    hidden.name = f"{DEMO_MODEL}-concealed"
     capture = simulate_checkerboard(protocol, hidden, ctx.out / "explain-capture", seed=5,
                                     frames=EXPLAIN_FRAMES, progress=True)
     out = ctx.out / "explain"

@@ -19,6 +19,7 @@ from depthstation.simulate.effects.quantization import Quantization
 from depthstation.simulate.effects.reference_pose_noise import ReferencePoseNoise
 from depthstation.simulate.effects.slant_bias import SlantBias
 from depthstation.simulate.effects.slant_noise import SlantNoise
+from depthstation.simulate.effects.slant_scale import SlantScale
 from depthstation.simulate.effects.static_pattern import StaticPattern
 from depthstation.simulate.effects.thermal_drift import ThermalDrift
 from depthstation.simulate.effects.window_noise import WindowNoise
@@ -26,7 +27,7 @@ from depthstation.simulate.effects.window_noise import WindowNoise
 EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (
     DisparityNoise, Quantization, Dropout, DisparityOffset, DepthScale, LrFocalMismatch,
     DistortionResidual, PixelLocking, ThermalDrift, SlantNoise, SlantBias, AlbedoBias, AlbedoNoise,
-    FlyingPixels, ReferencePoseNoise, WindowNoise, IncidenceNoise, StaticPattern, ColorCamera,
+    FlyingPixels, ReferencePoseNoise, WindowNoise, IncidenceNoise, StaticPattern, ColorCamera, SlantScale,
 )}
 
 __all__ = ["EFFECTS", "Effect", "PixelContext"]
