@@ -6,6 +6,7 @@ left behind that reads as complete."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -354,3 +355,39 @@ def test_batch_refuses_a_bad_scan_item_before_running_any(tiny_walk: tuple[Path,
     code, _, err = run_console(["evaluate", "batch", str(manifest), "--quiet"], capsys)
     one_line_error(code, err, str(manifest), "items[1] (second)", file, *words)
     assert not (tmp_path / "res").exists()  # nothing ran
+
+
+# -- view --rrd into a folder that cannot be written --------------------------------------------------
+@pytest.fixture()
+def read_only_folder(tmp_path: Path) -> Any:
+    """A folder nobody may write into: chmod 555 for a user; for root (whom modes do not stop) a
+    read-only tmpfs mounted there, else skipped."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    mounted = False
+    if os.geteuid() == 0:
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=64k", "tmpfs", str(folder)],
+                           capture_output=True, timeout=30)
+        if r.returncode != 0:
+            pytest.skip("running as root without mount: no folder root cannot write")
+        mounted = True
+    else:
+        folder.chmod(0o555)
+    try:
+        yield folder
+    finally:
+        if mounted:
+            subprocess.run(["umount", str(folder)], capture_output=True, timeout=30)
+        else:
+            folder.chmod(0o755)
+
+
+def test_view_rrd_into_a_read_only_folder_says_so(tmp_path: Path, read_only_folder: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    from test_station_compare import write_checkerboard
+
+    result = write_checkerboard(tmp_path / "cb", 0.095)
+    code, _, err = run_console(["view", str(result), "--rrd", str(read_only_folder / "x.rrd")], capsys)
+    line = one_line_error(code, err, str(read_only_folder), "not writable")
+    assert ".partial" not in line
+    assert not any(p.name.endswith(".rrd") for p in result.iterdir())

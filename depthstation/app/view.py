@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -132,6 +133,21 @@ def open_rrd(rrd: Path, *, spawn: bool, serve: bool) -> None:
         stderr_console.print(f"opened {rrd} in the rerun viewer")
 
 
+def check_writable(folder: Path, in_result: bool) -> None:
+    """A folder the recording cannot be written into, said before any work (rerun's own error named
+    a temporary file, as an internal error). Probed by creating a file: permissions alone do not
+    tell a read-only file system, nor what root may do."""
+    if not folder.is_dir():
+        return  # made by new_file; a failure there names the path
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        advice = "give --rrd a path in a folder you can write" if in_result else "choose another folder"
+        raise InputError(folder, f"is not writable ({exc.strerror or exc}): no recording can be written "
+                                 f"there; {advice}") from exc
+
+
 def view_path(path: Path, *, spawn: bool = True, serve: bool = False, rrd: Path | None = None,
               force: bool = False) -> Path:
     """Open a result folder or an `.rrd`; returns the `.rrd` shown.
@@ -154,6 +170,7 @@ def view_path(path: Path, *, spawn: bool = True, serve: bool = False, rrd: Path 
             if stale:  # the folder changed since (a batch rerun updated combined/): rebuilt, not shown stale
                 stderr_console.print(f"{target} is older than the result it shows; rebuilding it")
                 force = True
+            check_writable(target.parent, rrd is None)
             tmp = new_file(target, force=force)
             folder_to_rrd(path, tmp)
             finish_file(tmp, target)
