@@ -88,10 +88,10 @@ def test_noise_grows_with_distance_not_with_inclination(paper_rows: list[dict[st
 
 
 def test_accuracy_worsens_with_distance_and_inclination(paper_rows: list[dict[str, Any]]) -> None:
-    """R6: |accuracy| grows with distance at each inclination, and is larger at 60 deg than head-on
-    beyond 1 m (at 1 m the unit's depth scale, cos-foreshortened, still leads)."""
+    """R6: |accuracy| grows with distance at each inclination, and at every distance it is larger
+    at 60 deg than head-on (the model says 1.6-2.0x; more than 1.2x asked)."""
     for inc in INCLINATIONS:
         a = [_at(paper_rows, d, inc)["acc"] for d in DISTANCES]
         assert a[0] < a[1] < a[2], (inc, a)
-    for d in DISTANCES[1:]:
-        assert _at(paper_rows, d, 60.0)["acc"] > _at(paper_rows, d, 0.0)["acc"], d
+    for d in DISTANCES:
+        assert _at(paper_rows, d, 60.0)["acc"] > 1.2 * _at(paper_rows, d, 0.0)["acc"], d
