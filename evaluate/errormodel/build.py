@@ -40,7 +40,7 @@ def fit_model(results: Sequence[Path], *, distance_bin_m: float = 0.1, inclinati
         sigma = fit_part(sigma_rows, name="sigma")
     except ValueError as exc:
         raise InputError(fields[0].path, str(exc)) from exc
-    boxes = np.concatenate([np.stack([f.z_lo, f.z_hi, f.theta_lo, f.theta_hi], axis=-1) for f in fields])
+    boxes = np.concatenate([f.domain_boxes() for f in fields])
     rows: list[dict[str, Any]] = [r for f in fields for r in f.rows()]
     measured = {"columns": {"distance_m": "cell centre or standpoint distance (z-depth, m)",
                             "distance_lo_m / distance_hi_m":

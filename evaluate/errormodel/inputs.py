@@ -55,6 +55,12 @@ class Field:
     labels: list[str]
     camera: dict[str, Any] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    domain: F64 | None = None      # K x 4 boxes where the input measured; None: its rows' own boxes
+
+    def domain_boxes(self) -> F64:
+        if self.domain is not None:
+            return self.domain
+        return np.stack([self.z_lo, self.z_hi, self.theta_lo, self.theta_hi], axis=-1)
 
     def rows(self) -> list[dict[str, Any]]:
         out = []
@@ -223,8 +229,9 @@ def read_checkerboard(path: Path, info: dict[str, Any]) -> Field:
     # and the model's bias is a z-depth error (the board centre's angle off the axis neglected:
     # under 3 % within 14 deg of the optical axis)
     along = 1.0 / np.cos(np.radians(ta))
-    # a standpoint's board spans distances and inclinations around its centre's: the domain is the
-    # span of the standpoints widened by 5 % in distance and 5 deg in inclination
+    # a standpoint's board spans distances and inclinations around its centre's (its row's box: 5 %,
+    # 5 deg); the domain is the span of the standpoints, so widened (a model fitted to standpoints
+    # is a smooth surface between them, which held-out standpoints test)
     summ_path = path / SUMMARY_FILE
     first = None
     if summ_path.is_file():
@@ -234,6 +241,8 @@ def read_checkerboard(path: Path, info: dict[str, Any]) -> Field:
         except (OSError, json.JSONDecodeError, KeyError, TypeError):
             first = None
     cam = _source_camera(first, dict(info.get("device") or {}))
+    span = (np.asarray([[za.min() * 0.95, za.max() * 1.05, max(ta.min() - 5.0, 0.0),
+                         min(ta.max() + 5.0, 90.0)]]) if len(za) else None)
     return Field(path, "checkerboard", za, ta, za * 0.95, za * 1.05, np.maximum(ta - 5.0, 0.0),
                  np.minimum(ta + 5.0, 90.0), np.asarray(cnt, dtype=np.int64), np.asarray(mean) * along,
                  np.asarray(std) * along, np.asarray(se) * along, np.asarray(sse) * along,
@@ -241,7 +250,7 @@ def read_checkerboard(path: Path, info: dict[str, Any]) -> Field:
                  np.arange(len(za), dtype=np.int64), labels, cam,
                  ["standpoints: accuracy_m as the bias, noise_m as sigma, both orthogonal to the board and "
                   "taken along the ray (/ cos inclination) as z-depth errors; U95 / t(0.975, frames - 1) as "
-                  "their standard errors"])
+                  "their standard errors"], span)
 
 
 def read_result(path: Path, distance_bin_m: float, inclination_bin_deg: float, min_count: int) -> Field:
