@@ -391,3 +391,25 @@ def test_view_rrd_into_a_read_only_folder_says_so(tmp_path: Path, read_only_fold
     line = one_line_error(code, err, str(read_only_folder), "not writable")
     assert ".partial" not in line
     assert not any(p.name.endswith(".rrd") for p in result.iterdir())
+
+
+# -- a damaged grid.npz --------------------------------------------------------------------------
+@pytest.mark.parametrize("damage", ["head", "object"])
+def test_a_damaged_grid_is_said_damaged_not_pickle_advice(tmp_path: Path, damage: str,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    from test_station_compare import write_scan
+
+    result = write_scan(tmp_path / "scan", 0.004)
+    grid = result / "grid.npz"
+    if damage == "head":  # its first bytes overwritten (a disk error, another program's write)
+        with grid.open("r+b") as f:
+            f.write(b"\0" * 64)
+    else:  # an archive whose count array holds Python objects, written by numpy itself
+        with np.load(grid) as z:
+            data = {k: z[k] for k in z.files}
+        data["count"] = np.array([None] * data["count"].size, dtype=object)
+        grid.unlink()
+        np.savez(grid, **data)
+    code, _, err = run_console(["view", str(result), "--rrd", str(tmp_path / "v.rrd")], capsys)
+    line = one_line_error(code, err, str(grid), "damaged")
+    assert "allow_pickle" not in line and "pickle=True" not in line

@@ -447,7 +447,16 @@ class Grid:
             with np.load(path) as z:
                 data = {k: z[k] for k in z.files}
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:  # cut short, not npz
-            raise InputError(path, f"not a readable grid file ({type(exc).__name__}: {exc})") from exc
+            if "Object arrays" in str(exc):
+                raise InputError(path, "is damaged: an array in it holds Python objects, which no grid "
+                                       "file does (never loaded with pickle); rerun the study that wrote "
+                                       "it") from exc
+            if "pickle" in str(exc):  # numpy takes what is neither zip nor .npy for a pickle: never load one
+                raise InputError(path, "is damaged: neither an .npz archive nor an .npy array (its "
+                                       "beginning is overwritten, or it is another file); rerun the study "
+                                       "that wrote it") from exc
+            raise InputError(path, f"is damaged: not a readable grid file ({type(exc).__name__}: {exc}); "
+                                   "rerun the study that wrote it") from exc
         need = ("distance_edges_m", "inclination_edges_deg", "count", "mean_m", "var_m2")
         missing = [k for k in need if k not in data]
         if missing:
