@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -413,3 +414,45 @@ def test_a_damaged_grid_is_said_damaged_not_pickle_advice(tmp_path: Path, damage
     code, _, err = run_console(["view", str(result), "--rrd", str(tmp_path / "v.rrd")], capsys)
     line = one_line_error(code, err, str(grid), "damaged")
     assert "allow_pickle" not in line and "pickle=True" not in line
+
+
+# -- a killed simulate leaves no hidden folder for ever --------------------------------------------
+def test_a_killed_runs_partial_folder_is_removed_by_the_next_run(tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    proto = tmp_path / "p.toml"
+    proto.write_text((Path(__file__).parents[1] / "protocols" / "demo-d455.toml").read_text()
+                     .replace("width = 1280", "width = 640").replace("height = 720", "height = 360"))
+    out = tmp_path / "sim"
+    args = ["simulate", "checkerboard", "--protocol", str(proto), "--out", str(out), "--frames", "12",
+            "--standpoint", "standpoint_01"]
+    exe = str(Path(sys.executable).with_name("depthstation"))
+    proc = subprocess.Popen([exe, *args], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    partial = tmp_path / f".sim.partial-{proc.pid}"
+    deadline = time.monotonic() + 120
+    while not partial.is_dir() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.kill()
+    proc.wait(timeout=30)
+    assert partial.is_dir(), "the run ended before its folder appeared"
+    assert not out.exists()
+    code, _, err = run_console(args, capsys)
+    assert code == 0, err
+    assert not partial.exists()
+    assert f"removed {partial}" in err and f"pid {proc.pid}" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.toml", "sim"]
+
+
+def test_a_running_runs_partial_folder_is_left_alone(tmp_path: Path) -> None:
+    from depthstation.core.results import remove_stale_partials
+
+    alive = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        theirs = tmp_path / f".sim.partial-{alive.pid}"
+        theirs.mkdir()
+        (theirs / "half.mcap").write_bytes(b"x")
+        assert remove_stale_partials(tmp_path / "sim") == []
+        assert (theirs / "half.mcap").is_file()
+    finally:
+        alive.kill()
+        alive.wait(timeout=30)
+    assert remove_stale_partials(tmp_path / "sim") == [theirs]  # once its owner is gone

@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import errno
 import fcntl
+import glob
 import hashlib
 import json
 import os
@@ -275,6 +276,32 @@ def check_out_path(out: Path, what: str = "") -> None:
         raise InputError(out, f"cannot be made: {blocking} is a file, not a folder")
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process: alive
+        return True
+    return True
+
+
+def remove_stale_partials(out: Path) -> list[Path]:
+    """Remove the hidden `.<name>.partial-PID` folders an earlier run on `out` left when it was
+    killed (its pid no longer runs); said on stderr. Called with `out`'s lock held, so no live run is
+    writing them. Why: a killed run's partial folder stayed forever, unnamed, beside the result."""
+    removed = []
+    for p in out.parent.glob(f".{glob.escape(out.name)}.partial-*"):
+        pid = p.name.rsplit("-", 1)[-1]
+        if not pid.isdigit() or int(pid) == os.getpid() or _pid_alive(int(pid)) or not p.is_dir():
+            continue
+        shutil.rmtree(p, ignore_errors=True)
+        removed.append(p)
+        typer.echo(f"depthstation: removed {p}, the unfinished folder of an earlier run on {out} "
+                   f"(pid {pid}, no longer running: killed before it finished)", err=True)
+    return removed
+
+
 @contextmanager
 def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path] = (),
                   kind: str | None = None) -> Iterator[Path]:
@@ -304,6 +331,7 @@ def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path
     lock = _FolderLock(out)
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     try:
+        remove_stale_partials(out)
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir()
         with ensure_collecting():
