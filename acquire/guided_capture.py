@@ -179,13 +179,13 @@ class GuidedCapture:
         state.message = ("camera stalled (no frames while connected): resetting it" if stalled
                          else "camera disconnected: reconnect it (waiting)")
         self._emit(state)
-        with contextlib.suppress(CameraError):
+        with contextlib.suppress(CameraError, RuntimeError):
             self.camera.stop()
         reset = getattr(self.camera, "hardware_reset", None)
         if stalled and callable(reset):
             try:
                 reset()
-            except CameraError as exc:
+            except (CameraError, RuntimeError) as exc:  # a device call that threw while it re-enumerates
                 state.message = f"{exc} (waiting)"
                 self._emit(state)
         self._camera_events(state.standpoint.name)
@@ -199,7 +199,9 @@ class GuidedCapture:
                                     "time_ns": time.time_ns()})
                 self._save_log()
                 return
-            except CameraError as exc:
+            except (CameraError, RuntimeError) as exc:
+                # RuntimeError: a device call the camera did not wrap (a device still enumerating
+                # throws from its creation and option calls): retried like any other
                 if isinstance(exc, CameraUnsuitable) and str(exc) != said:
                     said = state.message = str(exc)
                     self._emit(state)

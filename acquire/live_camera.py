@@ -207,10 +207,17 @@ class LiveCamera:
                         self._removed.set()
                         self._table_on_device = False
                         self._log("removed")
-            for dev in info.get_new_devices():
+            try:
+                new = info.get_new_devices()
+                count = len(new)
+            except RuntimeError:
+                return
+            for i in range(count):
                 try:
-                    serial = dev.get_info(rs.camera_info.serial_number)
-                except RuntimeError:
+                    serial = new[i].get_info(rs.camera_info.serial_number)
+                except (RuntimeError, IndexError):
+                    # made while its interfaces enumerate: it arrived, which one is told later
+                    self._arrived.set()
                     continue
                 if self.serial is None or serial == self.serial:
                     self._arrived.set()
@@ -226,19 +233,49 @@ class LiveCamera:
         return out
 
     def _find(self) -> Any:
+        """Our device, made from the context's list. Making each device opens it over USB, which
+        throws while its interfaces enumerate (pyrealsense2's `device_list.__getitem__` calls
+        `rs2_create_device`, wrappers/python/pyrs_device.cpp; src/device_hub.cpp catches the same
+        throw and tries again): a device that cannot be made now is one not listed yet."""
         import pyrealsense2 as rs
 
-        devices = []
-        for d in self._context().query_devices():
+        devices, busy = [], 0
+        try:
+            listed = self._context().query_devices()
+            count = len(listed)
+        except RuntimeError as exc:
+            raise CameraError(f"cannot list the RealSense devices now ({exc}): one may be re-enumerating") \
+                from exc
+        serials = []
+        for i in range(count):
             try:
-                if self.serial is None or d.get_info(rs.camera_info.serial_number) == self.serial:
-                    devices.append(d)
-            except RuntimeError:
-                continue  # a device leaving while we look
+                d = listed[i]
+                serial = str(d.get_info(rs.camera_info.serial_number))
+            except (RuntimeError, IndexError):
+                busy += 1
+                continue  # a device leaving, or one still enumerating, while we look
+            serials.append(serial)
+            if self.serial is None or serial == self.serial:
+                devices.append(d)
         if not devices:
             which = "" if self.serial is None else f" with serial {self.serial}"
-            raise CameraError(f"no RealSense device{which} attached")
+            why = f" ({busy} still enumerating)" if busy else ""
+            raise CameraError(f"no RealSense device{which} attached{why}")
+        if self.serial is None and len(devices) > 1:
+            raise CameraUnsuitable(f"{len(devices)} RealSense devices are attached (serials "
+                                   f"{', '.join(serials)}): name one with --camera live:SERIAL")
         return devices[0]
+
+    @contextlib.contextmanager
+    def _answering(self, what: str) -> Iterator[None]:
+        """A device call that throws (the device re-enumerating or gone) as a CameraError, which
+        the capture's reconnect retries; a RuntimeError must not leave the station as an internal
+        error."""
+        try:
+            yield
+        except RuntimeError as exc:
+            raise CameraError(f"{self._label()} did not answer {what} ({exc}): it may be re-enumerating; "
+                              "re-plug it if this persists") from exc
 
     def _listed(self) -> bool:
         try:
@@ -366,6 +403,14 @@ class LiveCamera:
                 and self._info is not None and not self._removed.is_set()):
             return self._info
         self.stop()
+        try:
+            with self._answering("while starting"):
+                return self._start_protocol(streams)
+        except CameraError:
+            self.stop()
+            raise
+
+    def _start_protocol(self, streams: Streams) -> StreamInfo:
         dev = self._find()
         self._check_device(dev)
         preset = streams.preset.strip().lower() != "default"
@@ -612,7 +657,8 @@ class LiveCamera:
 
     def calibration_table(self) -> bytes:
         """The table in flash (what a reset brings back)."""
-        return bytes(self._acd().get_calibration_table())
+        with self._answering("reading its calibration table"):
+            return bytes(self._acd().get_calibration_table())
 
     def active_calibration_table(self) -> bytes:
         """The table the device uses: the session's table held in RAM, else the one in flash."""
@@ -629,15 +675,16 @@ class LiveCamera:
     def _calibration_mode(self, kind: str) -> Iterator[None]:
         """Depth only, 256x144 Z16 at 90 fps, emitter on, first frame awaited; afterwards the
         protocol's streams run again if they ran before."""
-        import pyrealsense2 as rs
-
         was = self._streams if self._mode == "protocol" else None
         self.stop()
-        dev = self._find()
-        self._check_device(dev)
-        if kind == "tare":
-            dev = self._ensure_advanced_mode(dev, "tare calibration (it runs with the High Accuracy preset)")
-        if CALIBRATION_PROFILE not in self._offered(dev):
+        with self._answering(f"before the {kind} calibration"):
+            dev = self._find()
+            self._check_device(dev)
+            if kind == "tare":
+                dev = self._ensure_advanced_mode(dev, "tare calibration (it runs with the High Accuracy "
+                                                        "preset)")
+            offered = self._offered(dev)
+        if CALIBRATION_PROFILE not in offered:
             usb = self._identity.get("usb_type_descriptor", "?")
             msg = (f"{self._label()} on USB {usb} offers no depth 256x144 at 90 fps, the mode Intel's "
                    f"self-calibration runs in: {kind} calibration skipped (connect it to a USB 3 port to "
@@ -646,26 +693,32 @@ class LiveCamera:
                 self.start(was)
             raise CalibrationUnavailable(msg)
         try:
-            self._start_pipeline(dev, [CALIBRATION_PROFILE], "the calibration mode (depth 256x144 at 90 fps)")
-            self._mode = "calibration"
-            ds = self._depth_sensor
-            manual = ds.supports(rs.option.enable_auto_exposure) and \
-                ds.get_option(rs.option.enable_auto_exposure) == 0
-            if manual and ds.get_option(rs.option.exposure) > MAX_CALIBRATION_EXPOSURE_US:
-                msg = (f"manual exposure {ds.get_option(rs.option.exposure):g} us is above "
-                       f"{MAX_CALIBRATION_EXPOSURE_US:g} us, too long for 90 fps: turn auto exposure on")
-                raise CameraError(msg)
-            if ds.supports(rs.option.emitter_enabled):
-                ds.set_option(rs.option.emitter_enabled, 1.0)
-            self._apply_held_table()
-            ok, _ = self._pipe.try_wait_for_frames(int(self.first_frame_timeout_s * 1000))
-            if not ok:
-                raise CameraError(f"no frame within {self.first_frame_timeout_s:g} s in the calibration mode")
+            with self._answering("in the calibration mode"):
+                self._enter_calibration_mode(dev)
             yield
         finally:
             self.stop()
             if was is not None:
                 self.start(was)
+
+    def _enter_calibration_mode(self, dev: Any) -> None:
+        import pyrealsense2 as rs
+
+        self._start_pipeline(dev, [CALIBRATION_PROFILE], "the calibration mode (depth 256x144 at 90 fps)")
+        self._mode = "calibration"
+        ds = self._depth_sensor
+        manual = ds.supports(rs.option.enable_auto_exposure) and \
+            ds.get_option(rs.option.enable_auto_exposure) == 0
+        if manual and ds.get_option(rs.option.exposure) > MAX_CALIBRATION_EXPOSURE_US:
+            msg = (f"manual exposure {ds.get_option(rs.option.exposure):g} us is above "
+                   f"{MAX_CALIBRATION_EXPOSURE_US:g} us, too long for 90 fps: turn auto exposure on")
+            raise CameraError(msg)
+        if ds.supports(rs.option.emitter_enabled):
+            ds.set_option(rs.option.emitter_enabled, 1.0)
+        self._apply_held_table()
+        ok, _ = self._pipe.try_wait_for_frames(int(self.first_frame_timeout_s * 1000))
+        if not ok:
+            raise CameraError(f"no frame within {self.first_frame_timeout_s:g} s in the calibration mode")
 
     def run_on_chip_calibration(self, timeout_s: float = 30.0) -> CalibrationResult:
         with self._calibration_mode("on-chip"):

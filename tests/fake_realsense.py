@@ -147,13 +147,21 @@ class FakeUnit:
                  hfov_deg: float = 87.0, temperature: Callable[[float], float] = default_temperature,
                  projector_offset_c: float = 3.0, depth_origin_mm: float = 4.55,
                  glass_to_target_mm: float = 1000.0, depth_bias: float = 0.006, on_chip_health: float = 0.42,
-                 reset_delays_s: tuple[float, float] = (0.05, 0.3)) -> None:
+                 reset_delays_s: tuple[float, float] = (0.05, 0.3), enumerate_s: float = 0.0,
+                 flaps: int = 0) -> None:
         self.serial, self.name, self.product_id, self.product_line = serial, name, product_id, product_line
         self.usb, self.firmware, self.advanced, self.metadata = usb, firmware, advanced_mode, metadata
         self.scene, self.hfov_deg = scene, hfov_deg
         self.temperature, self.projector_offset_c = temperature, projector_offset_c
         self.depth_origin_mm, self.glass_to_target_mm = depth_origin_mm, glass_to_target_mm
         self.reset_delays_s = reset_delays_s
+        # re-enumeration: for `enumerate_s` after it is listed again the unit's interfaces are
+        # still coming up: making a device from the list and option calls throw; `flaps` extra
+        # remove/add pairs fire meanwhile (a D4xx re-enumerates its UVC and HID interfaces one by
+        # one: src/device_hub.cpp tries again on "Could not open device"; the uvc backend throws
+        # "failed to set power state", src/uvc/uvc-device.cpp)
+        self.enumerate_s, self.flaps = enumerate_s, flaps
+        self.enumerated_at = -math.inf
         self.flash = encode_table(depth_bias, on_chip_health, serial)
         self.ram: list[int] | None = None
         self.last_set: list[int] | None = None
@@ -195,6 +203,9 @@ class FakeUnit:
         if self.power_on is None:
             self.power_on = self.world.clock()
         return self.temperature(self.world.clock() - self.power_on)
+
+    def enumerating(self) -> bool:
+        return time.monotonic() < self.enumerated_at + self.enumerate_s
 
     def streaming(self) -> bool:
         return self.pipeline is not None and self.pipeline.started and self.listed
@@ -259,13 +270,32 @@ class FakeRealSense:
             self.log("removed", serial=unit.serial)
         self._fire([gone], [])
 
-    def _add(self, unit: FakeUnit, usb: str | None = None) -> None:
+    def _add(self, unit: FakeUnit, usb: str | None = None, flaps: int | None = None) -> None:
         with self.lock:
             if usb is not None:
                 unit.usb = usb
             unit.listed = True
+            unit.enumerated_at = time.monotonic()
             self.log("added", serial=unit.serial, usb=unit.usb)
         self._fire([], [(unit, unit.generation)])
+        left = unit.flaps if flaps is None else flaps
+        if left > 0 and unit.enumerate_s > 0:
+            # the interfaces come and go once more while enumerating: removed, then added again
+            step = unit.enumerate_s / (2 * left + 1)
+            threading.Timer(step, self._flap, args=(unit, left, step)).start()
+
+    def _flap(self, unit: FakeUnit, left: int, step: float) -> None:
+        with self.lock:
+            if not unit.listed:
+                return  # unplugged meanwhile
+            gone = (unit, unit.generation)
+            unit.listed = False
+            unit.generation += 1
+            if unit.pipeline is not None:
+                unit.pipeline = None
+            self.log("removed", serial=unit.serial, flap=True)
+        self._fire([gone], [])
+        threading.Timer(step, self._add, args=(unit, None, left - 1)).start()
 
     def reset(self, unit: FakeUnit) -> None:
         """Asynchronous, as `hardware_reset` is: gone after a moment, back after a few (scaled)."""
@@ -385,6 +415,8 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
         def _check(self) -> FakeUnit:
             if self.generation != self.unit.generation or not self.unit.listed:
                 raise RuntimeError("Device is not connected (the handle outlived a reset or replug)")
+            if self.unit.enumerating():
+                raise RuntimeError("xioctl(VIDIOC_QUERYCAP) failed")  # src/linux/backend-v4l2.cpp
             return self.unit
 
         def supports(self, info: Member) -> bool:
@@ -482,17 +514,24 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
             return self.dev._check().options["depth_units"]
 
     class device_list:
-        def __init__(self, devices: list[device]) -> None:
+        """Devices are made when taken from the list (`__getitem__` calls `rs2_create_device`,
+        wrappers/python/pyrs_device.cpp): that opens the device and throws while it enumerates."""
+
+        def __init__(self, devices: list[tuple[FakeUnit, int]]) -> None:
             self.devices = devices
 
         def __len__(self) -> int:
             return len(self.devices)
 
         def __getitem__(self, i: int) -> device:
-            return self.devices[i]  # IndexError when empty, as pyrealsense2
+            u, g = self.devices[i]  # IndexError when empty, as pyrealsense2
+            if u.enumerating():
+                world.log("create_device_failed", serial=u.serial)
+                raise RuntimeError("failed to set power state")
+            return device(u, g)
 
         def __iter__(self) -> Any:
-            return iter(self.devices)
+            return (self[i] for i in range(len(self.devices)))
 
         def size(self) -> int:
             return len(self.devices)
@@ -508,12 +547,12 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
             return (dev.unit, dev.generation) in self.added
 
         def get_new_devices(self) -> device_list:
-            return device_list([device(u, g) for u, g in self.added])
+            return device_list(list(self.added))
 
     class context:
         def query_devices(self) -> device_list:
             with world.lock:
-                return device_list([device(u, u.generation) for u in world.units if u.listed])
+                return device_list([(u, u.generation) for u in world.units if u.listed])
 
         @property
         def devices(self) -> device_list:
@@ -594,6 +633,8 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
                 if not units:
                     raise RuntimeError("No device connected")
                 u = units[0]
+                if u.enumerating():
+                    raise RuntimeError("failed to set power state")  # src/uvc/uvc-device.cpp
                 offered = set(profile_table(u.usb))
                 if any(req not in offered for req in cfg.requests):
                     raise RuntimeError("Couldn't resolve requests")
