@@ -461,6 +461,34 @@ def kept_after_disk_error(session_dir: Path, exc: OSError) -> str:
             "the standpoints not complete")
 
 
+def say_device_drop(session: Session, events: list[dict[str, Any]], state: LiveState,
+                    lost: list[str]) -> None:
+    """A line on stderr when the camera drops (and what became of the take it cut) and one when it
+    is back, panel or not: the panel's red line vanished with the next frame, and without a
+    terminal nothing was said at all. `lost` holds the message said last while reconnecting."""
+    name = state.standpoint.name
+    if state.phase == "reconnecting":
+        if lost and lost[-1] == state.message:
+            return
+        first = not lost
+        lost.append(state.message)
+        if not first:  # a later message of the same wait (a camera back on USB 2, a reset)
+            say(f"{name}: {state.message}")
+            return
+        drop = next((e for e in reversed(events) if e.get("event") in ("disconnected", "stalled")), None)
+        kept = ""
+        if drop is not None and drop.get("during") == "recording":
+            aside = [e for e in session.standpoints
+                     if e.get("name") == name and e.get("status") == "discarded"]
+            where = f" kept aside as {session.dir / aside[-1]['file']}" if aside else ""
+            kept = f"; the take it cut ({drop.get('frames_recorded', 0)} frames){where}"
+        what = drop.get("event", "disconnected") if drop is not None else "disconnected"
+        say(f"{name}: the camera {what}{kept}; {state.message}")
+    elif lost:
+        lost.clear()
+        say(f"{name}: the camera is back; the standpoint starts again")
+
+
 def do_capture(st: Station, target: RerunTarget | Any,
                max_guidance_s: float | None) -> list[StandpointOutcome]:
     """The guided loop with the panel and rerun; a recording's end stops it cleanly."""
@@ -472,6 +500,7 @@ def do_capture(st: Station, target: RerunTarget | Any,
         if panel is not None:
             views.append(panel)
         rerun_view: list[RerunView] = []
+        lost: list[str] = []  # the reconnecting message said last (a drop and its wait, on stderr)
 
         def on_state(state: LiveState) -> None:
             if rec is not None and cap.info is not None:
@@ -480,6 +509,7 @@ def do_capture(st: Station, target: RerunTarget | Any,
                 rerun_view[0](state)
             for v in views:
                 v(state)
+            say_device_drop(st.session, cap.events, state, lost)
             if panel is None and state.phase == "done":
                 say(f"{state.standpoint.name}: recorded {state.recorded} frames")
             if panel is None and state.message == MOVED_MESSAGE:

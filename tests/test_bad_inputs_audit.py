@@ -456,3 +456,52 @@ def test_a_running_runs_partial_folder_is_left_alone(tmp_path: Path) -> None:
         alive.kill()
         alive.wait(timeout=30)
     assert remove_stale_partials(tmp_path / "sim") == [theirs]  # once its owner is gone
+
+
+# -- a USB drop while recording is said on stderr ------------------------------------------------------
+def test_a_usb_drop_while_recording_is_said_with_what_was_kept(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    import fake_realsense as frs
+    from test_acquire_live import board_scene
+
+    from depthstation.acquire import station
+    from depthstation.acquire.guided_capture import GuidedCapture, LiveState
+    from depthstation.core.board import Board
+    from depthstation.core.rerun_bridge import RerunTarget
+
+    unit = frs.FakeUnit()
+    world = frs.FakeRealSense(unit)
+    monkeypatch.setitem(sys.modules, "pyrealsense2", world.module)
+    unit.scene = board_scene(Board(), 1.0)
+    armed = [False]
+
+    class Unplugged(GuidedCapture):  # the operator's cable comes out after 3 recorded frames
+        def _emit(self, state: LiveState) -> None:
+            if state.phase == "recording" and state.recorded == 3 and not armed[0]:
+                armed[0] = True
+                unit.unplug(0.05)
+            super()._emit(state)
+
+    monkeypatch.setattr(station, "GuidedCapture", Unplugged)
+    proto = tmp_path / "p.toml"
+    proto.write_text('name = "p"\n[board]\ntype = "checkerboard"\nsquares_x = 7\nsquares_y = 5\n'
+                     'square_length_m = 0.095\n[streams]\nwidth = 640\nheight = 360\nfps = 30\n'
+                     '[plan]\nframes_per_standpoint = 8\n'
+                     'start_distance_m = 1.0\nstep_m = 0.2\nmax_distance_m = 1.0\ninclinations_deg = [0.0]\n'
+                     '[tolerances]\nstill_seconds = 0.2\n[device]\nmodel = "D455"\n')
+    st = station.Station("live", str(proto), tmp_path / "s", False, 0, False)
+    capsys.readouterr()
+    try:
+        station.do_capture(st, RerunTarget(None, False, False), 20.0)
+    finally:
+        st.close()
+    err = capsys.readouterr().err
+    assert armed[0]
+    lines = err.splitlines()
+    drop = [x for x in lines if "the camera disconnected" in x]
+    back = [x for x in lines if "the camera is back" in x]
+    assert len(drop) == 1 and len(back) == 1, err
+    assert "standpoint_01" in drop[0] and "3 frames" in drop[0]
+    assert "standpoint_01.discarded-1.mcap" in drop[0]
+    assert (tmp_path / "s" / "standpoint_01.discarded-1.mcap").is_file()  # what the line says was kept
+    assert lines.index(drop[0]) < lines.index(back[0])
