@@ -14,8 +14,9 @@ from depthstation.core.errors import InputError
 from depthstation.core.run_warnings import collecting
 
 laspy = pytest.importorskip("laspy")
-from depthstation.evaluate.scan.reference import load_reference  # noqa: E402
 from laspy.vlrs.known import GeoKeyDirectoryVlr, GeoKeyEntryStruct, WktCoordinateSystemVlr  # noqa: E402
+
+from depthstation.evaluate.scan.reference import load_reference  # noqa: E402
 
 US_FOOT_M = 1200 / 3937
 POINTS = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0], [7.5, -2.25, 0.5]])
@@ -118,8 +119,9 @@ def test_e57_coordinate_metadata_is_reported(tmp_path: Path, monkeypatch: pytest
     pye57 = pytest.importorskip("pye57")
     import uuid
 
-    from depthstation.evaluate.scan.tls import read_e57
     from pye57 import libe57
+
+    from depthstation.evaluate.scan.tls import read_e57
 
     cloud = read_e57(_e57(tmp_path / "plain.e57"))
     np.testing.assert_allclose(cloud.xyz, POINTS, atol=1e-6)
@@ -144,3 +146,24 @@ def test_e57_coordinate_metadata_is_reported(tmp_path: Path, monkeypatch: pytest
     monkeypatch.setattr(pye57.E57, "write_default_header", header_with_crs)
     cloud = read_e57(_e57(tmp_path / "utm.e57"))
     assert cloud.coordinates["coordinateMetadata"] == crs
+
+
+def test_the_mesh_of_a_cloud_in_feet_is_in_metres_and_the_summary_says_so(tmp_path: Path) -> None:
+    """Through reference_mesh (what the study calls): the mesh is made from metres, its info (the
+    summary's reference_mesh) carries the units, and the warning comes again from the cached mesh."""
+    from depthstation.evaluate.scan.reference import PoissonParams, reference_mesh
+
+    rng = np.random.default_rng(4)
+    d = rng.normal(size=(6000, 3))
+    sphere_ft = 2.0 / US_FOOT_M * d / np.linalg.norm(d, axis=1, keepdims=True)  # radius 2 m, in US feet
+    path = write_las(tmp_path / "ball.laz", sphere_ft, geokeys={1024: 1, 3076: 9003, 4099: 9003})
+    for cached in (False, True):
+        with collecting() as found:
+            mesh, _, info = reference_mesh(path, tmp_path / "cache", PoissonParams(depth=5),
+                                           viewpoints=np.zeros((1, 3)))
+        assert info["cached"] is cached
+        assert info["coordinates"]["horizontal_unit"] == "US survey foot"
+        assert info["coordinates"]["converted_to_metres"] is True
+        radius = np.linalg.norm(np.asarray(mesh.vertices), axis=1)
+        assert abs(float(np.median(radius)) - 2.0) < 0.05  # metres, not 6.56 (feet read as metres)
+        assert [w.code for w in found] .count("reference-units") == 1
