@@ -88,6 +88,9 @@ class FrameAccounting:
 
     counter: str = "index"  # 'device' (firmware frame counter), 'host' (no gaps visible) or 'index'
     lost: dict[str, int] = field(default_factory=lambda: {"depth": 0, "color": 0})
+    # frames that reached the host and were replaced before the capture took them (a slow
+    # consumer); None where the camera cannot tell them from the device's losses
+    host_dropped: dict[str, int] | None = None
     skipped: dict[str, int] = field(default_factory=lambda: {"repeated": 0, "stale_color": 0})
     duplicates: int = 0
     last_index: int | None = None
@@ -105,6 +108,11 @@ class FrameAccounting:
                     self.lost[k] = self.lost.get(k, 0) + int(v)
                 for k, v in (meta.get("framesets_skipped_before") or {}).items():
                     self.skipped[k] = self.skipped.get(k, 0) + int(v)
+                dropped = meta.get("host_frames_dropped_before")
+                if dropped is not None:
+                    self.host_dropped = self.host_dropped or {"depth": 0, "color": 0}
+                    for k, v in dropped.items():
+                        self.host_dropped[k] = self.host_dropped.get(k, 0) + int(v)
         elif not first and self.last_index is not None and fs.index > self.last_index + 1:
             self.lost["depth"] += fs.index - self.last_index - 1
         self.last_index = fs.index
@@ -115,6 +123,7 @@ class FrameAccounting:
         come from a host counter and cannot show them), framesets skipped as repeats."""
         return {"frame_counter": self.counter,
                 "device_frames_lost": None if self.counter == "host" else dict(self.lost),
+                "host_frames_dropped": None if self.host_dropped is None else dict(self.host_dropped),
                 "framesets_skipped": {**self.skipped, "duplicate_index": self.duplicates}}
 
 

@@ -137,12 +137,132 @@ def stream_requests(streams: Streams) -> list[tuple[str, int, int, str, int]]:
     return out
 
 
+def frame_time_ns(fs: Any, ref: Any) -> tuple[int, str]:
+    """The frameset's host-epoch time (ns) and how it was had, by its timestamp domain
+    (include/librealsense2/h/rs_frame.h): `global_time` and `system_time` are host-epoch ms
+    already; `hardware_clock` counts from the device's boot, so the frame's arrival at the host
+    (`time_of_arrival` metadata, host ms) stands in, else the time it was read here."""
+    import pyrealsense2 as rs
+
+    domain = _enum_name(fs.get_frame_timestamp_domain())
+    if domain in ("global_time", "system_time"):
+        return round(float(fs.get_timestamp()) * 1e6), domain
+    toa = rs.frame_metadata_value.time_of_arrival
+    with contextlib.suppress(RuntimeError):
+        if ref.supports_frame_metadata(toa):
+            return round(float(ref.get_frame_metadata(toa)) * 1e6), f"{domain} (time_of_arrival)"
+    return time.time_ns(), f"{domain} (read time)"
+
+
 def _describe(req: tuple[str, int, int, str, int]) -> str:
     return f"{req[0]} {req[1]}x{req[2]} {req[3]} at {req[4]} fps"
 
 
 def _enum_name(v: Any) -> str:
     return str(getattr(v, "name", v)).split(".")[-1]
+
+
+class _Assembled:
+    """The newest frame of each stream, taken together: what `pipeline.try_wait_for_frames` hands
+    out, for the frames a callback received."""
+
+    def __init__(self, frames: dict[str, Any]) -> None:
+        self.frames = frames
+
+    def get_depth_frame(self) -> Any:
+        return self.frames.get("depth")
+
+    def get_color_frame(self) -> Any:
+        return self.frames.get("color")
+
+    def get_infrared_frame(self, index: int = 0) -> Any:
+        return self.frames.get("infrared")
+
+    def first_or_default(self, stream: Any) -> Any:
+        return self.frames.get(_enum_name(stream))
+
+    def _ref(self) -> Any:
+        return self.frames.get("depth") or next(iter(self.frames.values()))
+
+    def get_timestamp(self) -> float:
+        return float(self._ref().get_timestamp())
+
+    def get_frame_timestamp_domain(self) -> Any:
+        return self._ref().get_frame_timestamp_domain()
+
+
+class FrameFeed:
+    """The frames the SDK hands a pipeline callback, counted as they arrive.
+
+    Why not `wait_for_frames`: the pipeline's aggregator keeps one frameset (a
+    `single_consumer_frame_queue` of capacity 1 that drops the oldest, src/pipeline/aggregator.cpp
+    and rsutils concurrency.h): a frameset the host does not fetch in time is overwritten, and the
+    gap it leaves in the frame numbers looks like a frame the device lost. With a callback
+    (src/pipeline/pipeline.cpp, `start(config, callback)`: the synchronised frames only, no repeats)
+    every frame that reaches the host is seen: a gap in the firmware counter at arrival is a frame
+    the device (or the link) lost; a frame replaced here before the capture took it is a host drop.
+    """
+
+    def __init__(self, wanted: set[str]) -> None:
+        self.wanted = wanted
+        self.cv = threading.Condition()
+        self.latest: dict[str, Any] = {}
+        self.fresh: set[str] = set()
+        self.arrived: dict[str, int] = {}
+        self.device_lost: dict[str, int] = {k: 0 for k in wanted}
+        self.host_dropped: dict[str, int] = {k: 0 for k in wanted}
+        self.counter = True
+
+    def __call__(self, frame: Any) -> None:
+        """The SDK's thread: one frame or a frameset."""
+        import pyrealsense2 as rs
+
+        try:
+            frames = list(frame.as_frameset()) if frame.is_frameset() else [frame]
+            with self.cv:
+                for f in frames:
+                    prof = f.get_profile()
+                    kind = _enum_name(prof.stream_type())
+                    if kind not in self.wanted or (kind == "infrared" and int(prof.stream_index()) != 1):
+                        continue
+                    n = int(f.get_frame_number())
+                    counter = bool(f.supports_frame_metadata(rs.frame_metadata_value.frame_counter))
+                    self.counter = self.counter and counter
+                    last = self.arrived.get(kind)
+                    if last is not None and n == last:
+                        continue  # the same frame again: not new
+                    if last is not None and n > last + 1 and counter:
+                        self.device_lost[kind] += n - last - 1
+                    self.arrived[kind] = n
+                    if kind in self.fresh:
+                        self.host_dropped[kind] += 1  # the one before was never taken
+                    keep = getattr(f, "keep", None)
+                    if callable(keep):
+                        keep()  # held past the callback (librealsense frames return to a pool)
+                    self.latest[kind] = f
+                    self.fresh.add(kind)
+                if self.fresh >= self.wanted:
+                    self.cv.notify_all()
+        except RuntimeError:
+            return  # a frame of a device going away
+
+    def take(self, timeout_s: float, stop: Callable[[], bool]) -> tuple[_Assembled | None, dict[str, Any]]:
+        """The next set with a new frame on every stream (None after `timeout_s` or when `stop()`),
+        and the device losses and host drops counted since the last take."""
+        t_end = time.monotonic() + timeout_s
+        with self.cv:
+            while not self.fresh >= self.wanted:
+                left = t_end - time.monotonic()
+                if left <= 0 or stop():
+                    return None, {}
+                self.cv.wait(min(left, 0.05))
+            out = _Assembled({k: self.latest[k] for k in self.wanted})
+            counts = {"device_lost": dict(self.device_lost), "host_dropped": dict(self.host_dropped),
+                      "counter": self.counter}
+            self.fresh.clear()
+            self.device_lost = dict.fromkeys(self.wanted, 0)
+            self.host_dropped = dict.fromkeys(self.wanted, 0)
+            return out, counts
 
 
 class LiveCamera:
@@ -177,6 +297,7 @@ class LiveCamera:
         self._mode: str | None = None  # 'protocol' or 'calibration' while streaming
         self._identity: dict[str, str] = {}
         self._preset: str | None = None
+        self._feed: FrameFeed | None = None
         self._held: bytes | None = None  # the session's table, set in RAM: re-applied after a reset
         self._table_on_device = False
         self._lock = threading.Lock()
@@ -373,9 +494,11 @@ class LiveCamera:
     def _reset_tracking(self) -> None:
         self._last_number: dict[str, int] = {}
         self._lost: dict[str, int] = {"depth": 0, "color": 0}
+        self._dropped: dict[str, int] = {"depth": 0, "color": 0}
         self._skipped: dict[str, int] = {"repeated": 0, "stale_color": 0}
 
-    def _start_pipeline(self, dev: Any, wanted: list[tuple[str, int, int, str, int]], what: str) -> None:
+    def _start_pipeline(self, dev: Any, wanted: list[tuple[str, int, int, str, int]], what: str,
+                        feed: bool = False) -> None:
         import pyrealsense2 as rs
 
         cfg = rs.config()
@@ -386,9 +509,11 @@ class LiveCamera:
             else:
                 cfg.enable_stream(getattr(rs.stream, stream), w, h, getattr(rs.format, fmt), fps)
         pipe = rs.pipeline(self._context())
+        self._feed = FrameFeed({r[0] for r in wanted if r[0] in ("depth", "color")}) if feed else None
         try:
-            profile = pipe.start(cfg)
+            profile = pipe.start(cfg) if self._feed is None else pipe.start(cfg, self._feed)
         except RuntimeError as exc:
+            self._feed = None
             raise CameraError(f"cannot start {what} on {self._label()}: {exc}") from exc
         with self._lock:
             self._pipe, self._profile = pipe, profile
@@ -420,7 +545,7 @@ class LiveCamera:
             dev = self._ensure_advanced_mode(dev, " and ".join(reasons))
         wanted = stream_requests(streams)
         self._check_profiles(dev, wanted)
-        self._start_pipeline(dev, wanted, ", ".join(_describe(r) for r in wanted))
+        self._start_pipeline(dev, wanted, ", ".join(_describe(r) for r in wanted), feed=True)
         try:
             self._configure(streams)
         except (RuntimeError, CameraError) as exc:
@@ -502,7 +627,11 @@ class LiveCamera:
                 raise CameraDisconnected(f"{self._label()} was unplugged or reset (device-change event)")
             left = t_end - time.monotonic()
             ok, fs = False, None
-            if left > 0:
+            counts: dict[str, Any] = {}
+            if left > 0 and self._feed is not None:
+                fs, counts = self._feed.take(left, self._removed.is_set)
+                ok = fs is not None
+            elif left > 0:
                 ok, fs = self._pipe.try_wait_for_frames(max(1, int(left * 1000)))
             if not ok or fs is None:
                 if self._removed.is_set() or not self._listed():
@@ -524,8 +653,11 @@ class LiveCamera:
                     self._table_on_device = False
                     raise CameraDisconnected(f"{self._label()}: the {k} frame counter went back from {last} "
                                              f"to {n}: the camera was reset or re-plugged")
-                if last is not None and n > last + 1 and counter:
-                    self._lost[k] += n - last - 1
+                if counts:  # counted as they arrived: the device's losses apart from the host's drops
+                    self._lost[k] += int(counts["device_lost"].get(k, 0))
+                    self._dropped[k] += int(counts["host_dropped"].get(k, 0))
+                elif last is not None and n > last + 1 and counter:
+                    self._lost[k] += n - last - 1  # no callback: the host's drops cannot be told apart
                 self._last_number[k] = n
             if "depth" in repeated:
                 self._skipped["repeated"] += 1
@@ -545,12 +677,13 @@ class LiveCamera:
             "color_frame_number": numbers.get("color"),
             "frame_counter": "device" if counter else "host",
             "frames_lost_before": dict(self._lost) if counter else None,
+            "host_frames_dropped_before": dict(self._dropped) if self._feed is not None else None,
             "framesets_skipped_before": dict(self._skipped),
         })
         self._lost = {"depth": 0, "color": 0}
+        self._dropped = {"depth": 0, "color": 0}
         self._skipped = {"repeated": 0, "stale_color": 0}
-        ts_ns = round(fs.get_timestamp() * 1e6) if fs.get_frame_timestamp_domain() == \
-            rs.timestamp_domain.global_time else time.time_ns()
+        ts_ns, meta["timestamp_domain"] = frame_time_ns(fs, ref)
         return FrameSet(
             index=int(ref.get_frame_number()),
             timestamp_ns=ts_ns,

@@ -32,6 +32,7 @@ RuntimeError (IndexError for an empty device list), with the SDK's texts where i
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import threading
@@ -148,7 +149,7 @@ class FakeUnit:
                  projector_offset_c: float = 3.0, depth_origin_mm: float = 4.55,
                  glass_to_target_mm: float = 1000.0, depth_bias: float = 0.006, on_chip_health: float = 0.42,
                  reset_delays_s: tuple[float, float] = (0.05, 0.3), enumerate_s: float = 0.0,
-                 flaps: int = 0) -> None:
+                 flaps: int = 0, real_time: bool = False, speed: float = 1.0) -> None:
         self.serial, self.name, self.product_id, self.product_line = serial, name, product_id, product_line
         self.usb, self.firmware, self.advanced, self.metadata = usb, firmware, advanced_mode, metadata
         self.scene, self.hfov_deg = scene, hfov_deg
@@ -162,6 +163,11 @@ class FakeUnit:
         # "failed to set power state", src/uvc/uvc-device.cpp)
         self.enumerate_s, self.flaps = enumerate_s, flaps
         self.enumerated_at = -math.inf
+        # frames: `real_time` (and always with a callback) a producer thread makes a frameset every
+        # 1 / (fps * speed) s whether or not anyone fetches it (the UVC streaming thread); else
+        # the older on-demand mode, one frameset per fetch (kept for tests that place a fault on
+        # an exact frameset)
+        self.real_time, self.speed = real_time, speed
         self.flash = encode_table(depth_bias, on_chip_health, serial)
         self.ram: list[int] | None = None
         self.last_set: list[int] | None = None
@@ -306,8 +312,8 @@ class FakeRealSense:
 
 class FakeFrame:
     def __init__(self, unit: FakeUnit, kind: str, index: int, number: int, host_number: int, ts_ms: float,
-                 data: Any, profile: Any) -> None:
-        self.unit, self.kind, self.index = unit, kind, index
+                 data: Any, profile: Any, fresh: bool = True) -> None:
+        self.unit, self.kind, self.index, self.fresh = unit, kind, index, fresh
         self.number, self.host_number, self.ts_ms = number, host_number, ts_ms
         self.data, self.profile = data, profile
 
@@ -331,6 +337,12 @@ class FakeFrame:
 
     def get_data(self) -> Any:
         return self.data
+
+    def keep(self) -> None:
+        """rs2_keep_frame: the frame stays valid past the callback (a no-op here)."""
+
+    def is_frameset(self) -> bool:
+        return False
 
     def get_timestamp(self) -> float:
         return self.ts_ms
@@ -594,6 +606,18 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
         def __init__(self, frames: list[FakeFrame]) -> None:
             self.frames = frames
 
+        def is_frameset(self) -> bool:
+            return True
+
+        def as_frameset(self) -> composite_frame:
+            return self
+
+        def __iter__(self) -> Any:
+            return iter(self.frames)
+
+        def keep(self) -> None:
+            pass
+
         def __bool__(self) -> bool:
             return bool(self.frames)
 
@@ -627,7 +651,7 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
             self.streams: list[tuple[str, int, int, str, int, int]] = []
             self.delivered = 0
 
-        def start(self, cfg: config) -> pipeline_profile:
+        def start(self, cfg: config, callback: Callable[[Any], None] | None = None) -> pipeline_profile:
             with world.lock:
                 units = [u for u in world.units if u.listed and cfg.serial in (None, u.serial)]
                 if not units:
@@ -642,9 +666,45 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
                     raise RuntimeError("Device or resource busy")
                 self.unit, self.generation, self.streams = u, u.generation, list(cfg.requests)
                 self.started, self.delivered = True, 0
+                self.callback = callback
+                self.slot: list[composite_frame] = []  # the aggregator's 1-frameset queue
+                self.overwritten = 0
+                self.cv = threading.Condition(world.lock)
                 u.pipeline = self
-                world.log("pipeline.start", serial=u.serial, streams=list(self.streams), usb=u.usb)
+                world.log("pipeline.start", serial=u.serial, streams=list(self.streams), usb=u.usb,
+                          callback=callback is not None)
+                if callback is not None or u.real_time:
+                    threading.Thread(target=self._producer, name="fake-uvc", daemon=True).start()
                 return pipeline_profile(device(u, u.generation), self.streams)
+
+        def _producer(self) -> None:
+            """Frames at the stream's rate, into the callback (the synchronised frames only, no
+            repeats: `async_set`) or into a queue of one frameset that drops the older
+            (`single_consumer_frame_queue(1)`, src/pipeline/aggregator.cpp)."""
+            u = self.unit
+            assert u is not None
+            period = 1.0 / (max(k[4] for k in self.streams) * u.speed)
+            t_next = time.monotonic()
+            while self.started:
+                t_next += period
+                time.sleep(max(0.0, t_next - time.monotonic()))
+                if not self.started:
+                    return
+                with world.lock:
+                    if not self._alive():
+                        t_next = time.monotonic()
+                        continue
+                    fs = self._produce()
+                    if self.callback is None:
+                        if self.slot:
+                            self.overwritten += 1
+                        self.slot[:] = [fs]
+                        self.cv.notify_all()
+                if self.callback is not None:
+                    fresh = [f for f in fs.frames if getattr(f, "fresh", True)]
+                    if fresh:
+                        with contextlib.suppress(Exception):
+                            self.callback(composite_frame(fresh))
 
         def stop(self) -> None:
             if not self.started:
@@ -659,6 +719,10 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
                     u.pipeline = None
                 world.log("pipeline.stop", serial=u.serial, streams=list(self.streams))
 
+        @property
+        def threaded(self) -> bool:
+            return self.callback is not None or (self.unit is not None and self.unit.real_time)
+
         def _alive(self) -> bool:
             u = self.unit
             return (u is not None and self.started and u.listed and not u.stalled and u.pipeline is self
@@ -667,7 +731,17 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
         def try_wait_for_frames(self, timeout_ms: int = 5000) -> tuple[bool, composite_frame]:
             if not self.started:
                 raise RuntimeError("wait_for_frames cannot be called before start()")
+            if self.callback is not None:
+                raise RuntimeError("try_wait_for_frames cannot be called if a callback was provided")
             t_end = time.monotonic() + timeout_ms / 1000.0
+            if self.threaded:
+                with self.cv:
+                    while not self.slot:
+                        left = t_end - time.monotonic()
+                        if left <= 0:
+                            return False, composite_frame([])
+                        self.cv.wait(left)
+                    return True, self.slot.pop()
             while not self._alive():
                 if time.monotonic() >= t_end:
                     return False, composite_frame([])
@@ -692,7 +766,9 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
             for key in self.streams:
                 kind, w, h, _fmt, fps, index = key
                 if fault.get("repeat") == kind and kind in u.last_frames:
-                    frames.append(u.last_frames[kind])
+                    old = u.last_frames[kind]
+                    frames.append(FakeFrame(u, kind, old.index, old.number, old.host_number, old.ts_ms,
+                                            old.data, old.profile, fresh=False))
                     continue
                 u.counters[kind] += 1 + int(fault.get("drop", {}).get(kind, 0))
                 u.host_counters[kind] += 1

@@ -88,3 +88,30 @@ def test_several_cameras_without_a_serial_are_listed(monkeypatch: pytest.MonkeyP
     cam.start(PROTO_STREAMS)
     assert b.streaming() and not a.streaming()
     cam.stop()
+
+
+def test_a_slow_consumer_drops_frames_on_the_host_counted_apart_from_the_devices(fake: Any,
+                                                                                  tmp_path: Path) -> None:
+    """Frames arrive in real time; a capture that takes ~3 frame periods per frame (board detection
+    at 1280x720 costs about one) has the newer frames replace the ones it did not take. Those are
+    host drops; the 3 frames the firmware counter skipped are the device's. Booked together, the
+    device seemed to lose every frame the host was late for."""
+    world, unit = fake()
+    armed = [False]
+
+    def slow(st: LiveState) -> None:
+        if st.phase == "recording":
+            if st.recorded == 2 and not armed[0]:
+                armed[0] = True
+                unit.inject(drop={"depth": 3})
+            time.sleep(0.1)
+
+    s, _, _ = run_take(world, unit, tmp_path, slow, frames=8)
+    rec = s.recordings()[0]
+    numbers = [f.index for f in rec.frames()]
+    frames = rec.metadata["standpoint"]["frames"]
+    assert frames["device_frames_lost"]["depth"] == 3
+    host = frames["host_frames_dropped"]["depth"]
+    assert host >= 8  # 7 gaps of ~2 frames each at 0.1 s per frame and 30 fps
+    # every missing number is either the device's or the host's
+    assert numbers[-1] - numbers[0] + 1 - len(numbers) == 3 + host
