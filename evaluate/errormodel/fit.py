@@ -61,8 +61,9 @@ def _cluster_cov(x: F64, y: F64, w: F64, beta: F64, inv: F64, cluster: NDArray[n
 
 
 def _bic(chi2: float, n: int, k: int) -> float:
-    """BIC of a Gaussian fit with the weights known up to one common scale: n ln(chi2 / n) + k ln n."""
-    return n * math.log(max(chi2, 1e-300) / n) + k * math.log(n)
+    """BIC of a Gaussian fit whose weights are the rows' own standard errors: chi2 + k ln n (the
+    errors are taken as given, not rescaled, so a term must lower chi2 by ln n to enter)."""
+    return chi2 + k * math.log(n)
 
 
 def _candidates(allowed: tuple[str, ...], need_theta: bool) -> list[tuple[str, ...]]:
@@ -80,7 +81,10 @@ def fit_part(d: Data, allowed: tuple[str, ...] = TERMS, *, name: str) -> Part:
     n = len(d.y)
     w = 1.0 / d.se ** 2
     theta_spread = float(np.ptp(d.theta)) if n else 0.0
-    cands = [c for c in _candidates(allowed, theta_spread >= 5.0) if len(c) < n]
+    # at most a third as many terms as rows: every held-out refit still has rows to spare, and five
+    # standpoints cannot carry four terms whatever their chi2 says
+    kmax = max(1, n // 3)
+    cands = [c for c in _candidates(allowed, theta_spread >= 5.0) if len(c) <= kmax]
     if not cands:
         raise ValueError(f"{name}: {n} rows are too few to fit any term")
     table: list[dict[str, Any]] = []
@@ -106,7 +110,8 @@ def fit_part(d: Data, allowed: tuple[str, ...] = TERMS, *, name: str) -> Part:
                                else "(X'WX)^-1 scaled by max(1, reduced chi^2)"),
                 "weights": "1 / se^2 of each row (frames as clusters within a cell)",
                 "weighted_rms_residual_m": float(math.sqrt(np.sum(w * (d.y - x @ beta) ** 2) / np.sum(w)))},
-        "selection": {"criterion": "BIC = n ln(chi2 / n) + k ln n over every subset of the candidate terms"
+        "selection": {"criterion": f"BIC = chi2 + k ln n over every subset of at most {kmax} of the "
+                                   "candidate terms (n / 3)"
                                    + ("" if theta_spread >= 5.0 else
                                       " (inclination terms left out: the rows span under 5 deg)"),
                       "chosen": list(best), "candidates": table[:8]},

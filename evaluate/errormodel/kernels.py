@@ -43,7 +43,8 @@ def smooth_for(stride: int) -> int:
     return max(SMOOTH_MIN_PX, 2 * (stride // 2) + 1)
 
 
-def smoothed_depth(depth: NDArray[np.uint16], units_m: float, size: int = SMOOTH_MIN_PX) -> NDArray[np.float32]:
+def smoothed_depth(depth: NDArray[np.uint16], units_m: float,
+                   size: int = SMOOTH_MIN_PX) -> NDArray[np.float32]:
     """Box mean of the valid depths around each pixel (metres, 0 where none is valid)."""
     d = depth.astype(np.float32) * np.float32(units_m)
     valid = (depth > 0).astype(np.float32)
