@@ -28,8 +28,35 @@ from depthstation.core.device import (
     depth_origin_offset_m,
     device_model,
 )
-from depthstation.core.errors import InputError
+from depthstation.core.errors import CameraError, InputError
 from depthstation.core.protocol import Calibration
+
+
+class CalibrationFailed(CameraError):
+    """The device ran a self-calibration and gave no table ("low fill factor", "failed to
+    converge", "edges too close", a time-out): the scene or the aim, not the camera, is at fault."""
+
+
+class CalibrationAborted(CameraError):
+    """The operator ended the session at a failed calibration; `--resume` runs it again."""
+
+
+UNATTENDED_RETRIES = 2  # --yes: a failed run is tried again this often, then skipped (recorded)
+RETRY, SKIP, ABORT = "retry", "skip", "abort"
+# what an operator can do about each verdict the firmware gives (d400-auto-calibration.cpp texts)
+FAILURE_HINTS = (
+    ("fill factor", "too few depth pixels: aim at a textured flat surface that fills the view, emitter on"),
+    ("edges too close", "the target's edges are too close: fill the view with the flat target"),
+    ("converge", "no solution: hold still and check the distance (tare: measure it again)"),
+    ("time", "it ran out of time: hold still, better light, then retry"),
+)
+
+
+def failure_hint(message: str) -> str:
+    """What to do about a failed self-calibration, from the firmware's words."""
+    low = message.lower()
+    return next((hint for key, hint in FAILURE_HINTS if key in low),
+                "re-aim at the target and hold still, then retry")
 
 GOOD, IMPROVABLE, REQUIRED = "good", "can be improved", "requires calibration"
 TARE_SMALL, TARE_OFF, TARE_NOT_IMPROVED = "within tolerance", "off", "not improved"
@@ -148,21 +175,56 @@ def tare_ground_truth(camera: Any, distance_from_glass_m: float) -> tuple[float,
                 "ground_truth_m": gt}
 
 
+def _failed_step(kind: str, failures: list[str]) -> dict[str, Any]:
+    """A run skipped after failing: nothing applied, each failure kept."""
+    return {"kind": kind, "skipped": True, "applied": False, "written": False,
+            "reason": f"failed {len(failures)} time(s), skipped: {failures[-1]}", "failures": failures}
+
+
 def _skipped(reason: str, steps: list[dict[str, Any]]) -> dict[str, Any]:
     return {"skipped": True, "reason": reason, "steps": steps}
+
+
+def attempt(kind: str, run: Callable[[], CalibrationResult], say: Callable[[str], None],
+            choose: Callable[[str], str] | None, retries: int = UNATTENDED_RETRIES
+            ) -> tuple[CalibrationResult | None, list[str]]:
+    """Run one self-calibration; on a failure the operator retries (after re-aiming), skips or
+    aborts (`choose(question)` -> 'retry' | 'skip' | 'abort'); without `choose` (--yes) it is
+    retried `retries` times, then skipped. The result (None when skipped) and every failure."""
+    failures: list[str] = []
+    while True:
+        try:
+            return run(), failures
+        except CalibrationFailed as exc:
+            failures.append(str(exc))
+            hint = failure_hint(str(exc))
+            say(f"{kind} calibration failed ({exc}): {hint}")
+            if choose is None:
+                answer = RETRY if len(failures) <= retries else SKIP
+                say(f"{kind}: {answer} (--yes: {retries} retries, then skip)")
+            else:
+                answer = choose(f"{kind} calibration failed: retry (re-aim first), skip it, or abort the "
+                                "session?")
+            if answer == ABORT:
+                raise CalibrationAborted(f"{kind} calibration failed ({exc}) and the session was stopped: "
+                                         f"{hint}; --resume runs the calibration again") from exc
+            if answer == SKIP:
+                return None, failures
 
 
 def run_calibration(camera: Any, cal: Calibration, *, confirm: Callable[[str], bool],
                     say: Callable[[str], None] = print, write: bool = False, timeout_s: float = 30.0,
                     ask_distance: Callable[[str, float], float] | None = None,
-                    unattended: bool = False) -> dict[str, Any]:
+                    unattended: bool = False, choose: Callable[[str], str] | None = None) -> dict[str, Any]:
     """The protocol's calibration steps in order (on-chip, then tare); the record for session.json.
 
     Cameras that cannot self-calibrate (playback, simulation without the feature) and cameras that
     cannot enter the calibration mode (USB 2) are recorded as skipped with the reason, so a session
     says what state its camera was in. `ask_distance(question, default)` lets the operator enter the
     tare target's measured distance from the front glass (default: the protocol's). `unattended`
-    (--yes): only recommended tables are applied (`calibration_step`).
+    (--yes): only recommended tables are applied (`calibration_step`). A run that fails is retried,
+    skipped or aborted (`attempt`; `choose` asks the operator, else --yes's policy); a skipped run
+    is recorded with every failure.
     """
     if not isinstance(camera, CalibratableCamera):
         say("this camera cannot self-calibrate (recording or simulation): calibration skipped")
@@ -178,9 +240,12 @@ def run_calibration(camera: Any, cal: Calibration, *, confirm: Callable[[str], b
         if cal.on_chip:
             say("on-chip calibration: point the camera at a textured flat surface about 0.5-1 m away "
                 "and hold still")
-            res = camera.run_on_chip_calibration(timeout_s)
-            step, active = calibration_step(camera, res, cal, confirm, say, write, active, unattended)
-            steps.append(step)
+            got, failed = attempt("on-chip", lambda: camera.run_on_chip_calibration(timeout_s), say, choose)
+            if got is None:
+                steps.append(_failed_step("on_chip", failed))
+            else:
+                step, active = calibration_step(camera, got, cal, confirm, say, write, active, unattended)
+                steps.append({**step, "failures": failed} if failed else step)
         if cal.tare:
             assert cal.tare_distance_m is not None
             glass = cal.tare_distance_m
@@ -194,10 +259,13 @@ def run_calibration(camera: Any, cal: Calibration, *, confirm: Callable[[str], b
                     f"{1000 * gt:.2f} mm from the depth origin ({offset:g} mm behind the glass on a "
                     f"{where['model']})" if offset is not None else
                     f"{1000 * gt:.2f} mm (no depth-origin offset known for this model)"))
-            res = camera.run_tare_calibration(gt, timeout_s)
-            res = CalibrationResult(res.kind, res.table, res.health, {**res.details, **where})
-            step, active = calibration_step(camera, res, cal, confirm, say, write, active, unattended)
-            steps.append(step)
+            got, failed = attempt("tare", lambda: camera.run_tare_calibration(gt, timeout_s), say, choose)
+            if got is None:
+                steps.append({**_failed_step("tare", failed), "details": where})
+            else:
+                res = CalibrationResult(got.kind, got.table, got.health, {**got.details, **where})
+                step, active = calibration_step(camera, res, cal, confirm, say, write, active, unattended)
+                steps.append({**step, "failures": failed} if failed else step)
     except CalibrationUnavailable as exc:
         say(str(exc))
         return {**_skipped(str(exc), steps), "table_before_b64": _b64(before),

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+import click
 import typer
 
 from depthstation.acquire.station import (
@@ -43,6 +44,12 @@ RealTimeOpt = typer.Option(False, "--real-time",
 
 def _ask(question: str) -> bool:
     return typer.confirm(question, default=False, err=True)
+
+
+def _choose(question: str) -> str:
+    """retry / skip / abort after a failed self-calibration."""
+    return str(typer.prompt(question, default="retry", type=click.Choice(["retry", "skip", "abort"]),
+                            err=True))
 
 
 def _ask_distance(question: str, default: float) -> float:
@@ -92,7 +99,7 @@ def calibrate(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: Pat
     """On-chip and tare calibration; shows the health values, applies a table only when confirmed."""
     st = Station(camera, protocol, session, resume, seed, real_time, confirm=_consent(yes))
     try:
-        do_calibrate(st, yes, write, ask=_ask, ask_distance=_ask_distance)
+        do_calibrate(st, yes, write, ask=_ask, ask_distance=_ask_distance, choose=_choose)
     finally:
         st.close()
 
@@ -142,7 +149,7 @@ def session_cmd(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: P
                 else:
                     do_warmup(st, interval, accelerate, rec)
             if st.session.data.get("calibration") is None:
-                do_calibrate(st, yes, write=write, ask=_ask, ask_distance=_ask_distance)
+                do_calibrate(st, yes, write=write, ask=_ask, ask_distance=_ask_distance, choose=_choose)
             do_capture(st, rec, max_guidance)
     finally:
         st.close()

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from depthstation.acquire.calibrate import CalibrationFailed
 from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
 from depthstation.core.device import (
     PRODUCT_IDS,
@@ -858,7 +859,7 @@ class LiveCamera:
             try:
                 table, health = self._acd().run_on_chip_calibration(ON_CHIP_JSON, int(timeout_s * 1000))
             except RuntimeError as exc:
-                raise CameraError(f"on-chip calibration failed: {exc}") from exc
+                raise CalibrationFailed(f"on-chip calibration failed: {' '.join(str(exc).split())}") from exc
         # pyrealsense2 returns (health, 0.0): the second value is a placeholder, not a health
         return CalibrationResult("on_chip", bytes(table), (float(health[0]),),
                                  {"json": ON_CHIP_JSON, "mode": _describe(CALIBRATION_PROFILE),
@@ -874,7 +875,7 @@ class LiveCamera:
             try:
                 table, health = self._acd().run_tare_calibration(gt_mm, TARE_JSON, int(timeout_s * 1000))
             except RuntimeError as exc:
-                raise CameraError(f"tare calibration failed: {exc}") from exc
+                raise CalibrationFailed(f"tare calibration failed: {' '.join(str(exc).split())}") from exc
         details = {"json": TARE_JSON, "ground_truth_mm": gt_mm, "mode": _describe(CALIBRATION_PROFILE),
                    "timeout_ms": int(timeout_s * 1000)}
         return CalibrationResult("tare", bytes(table), (float(health[0]), float(health[1])), details)

@@ -376,12 +376,15 @@ def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTa
 
 
 def do_calibrate(st: Station, yes: bool, write: bool, ask: Callable[[str], bool] | None = None,
-                 ask_distance: Callable[[str, float], float] | None = None) -> dict[str, Any]:
+                 ask_distance: Callable[[str, float], float] | None = None,
+                 choose: Callable[[str], str] | None = None) -> dict[str, Any]:
     """On-chip / tare as the protocol asks; a new table is applied only when the operator agrees
     (`yes`: when recommended, for scripts; else `ask(question)`; without `ask`, never). `ask_distance` lets
     the operator enter the tare target's measured distance from the front glass (not with `yes`).
     The camera streams the protocol's profile before and after (a live one switches to the
-    calibration mode for each run)."""
+    calibration mode for each run). A run that fails is retried (re-aimed), skipped or aborted:
+    `choose(question)` asks; with `yes` (or no `choose`) it is retried a set number of times, then
+    skipped and the failures recorded."""
 
     def confirm(question: str) -> bool:
         if yes:
@@ -393,7 +396,8 @@ def do_calibrate(st: Station, yes: bool, write: bool, ask: Callable[[str], bool]
         try:
             st.start()
             record = run_calibration(st.camera, st.protocol.calibration, confirm=confirm, say=say,
-                                     write=write, ask_distance=None if yes else ask_distance, unattended=yes)
+                                     write=write, ask_distance=None if yes else ask_distance, unattended=yes,
+                                     choose=None if yes else choose)
         except BaseException:
             st.close()
             raise

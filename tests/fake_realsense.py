@@ -133,6 +133,16 @@ def decode_table(table: list[int]) -> dict[str, Any]:
     return out
 
 
+# the firmware's verdicts on a failed self-calibration (src/ds/d400/d400-auto-calibration.cpp,
+# `handle_calibration_error`); "timeout": the SDK's own wait running out
+CALIBRATION_FAILURES = {
+    "edges": "Calibration didn't converge! - edges too close\nPlease retry in different lighting conditions",
+    "fill": "Not enough depth pixels! - low fill factor)\nPlease retry in different lighting conditions",
+    "converge": "Calibration failed to converge\nPlease retry in different lighting conditions",
+    "timeout": "Operation timed out!",
+}
+
+
 def default_temperature(t_s: float) -> float:
     """ASIC: first-order warm-up from 25 to 42 degrees C with a 12-min time constant."""
     return 42.0 - 17.0 * math.exp(-t_s / 720.0)
@@ -168,6 +178,8 @@ class FakeUnit:
         # the older on-demand mode, one frameset per fetch (kept for tests that place a fault on
         # an exact frameset)
         self.real_time, self.speed = real_time, speed
+        # the next self-calibrations' outcomes: 'ok' or a CALIBRATION_FAILURES key
+        self.verdicts: list[str] = []
         self.flash = encode_table(depth_bias, on_chip_health, serial)
         self.ram: list[int] | None = None
         self.last_set: list[int] | None = None
@@ -823,6 +835,7 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
         def run_on_chip_calibration(self, json_content: str,
                                     *args: Any) -> tuple[list[int], tuple[float, float]]:
             u = self._mode_check("run_on_chip_calibration")
+            _verdict(u, "run_on_chip_calibration")
             timeout_ms = args[-1]
             params = _checked_json(json_content, {
                 "calib type": (0, 2), "speed": (0, 4), "scan parameter": (0, 1), "data sampling": (0, 1),
@@ -837,6 +850,7 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
         def run_tare_calibration(self, ground_truth_mm: float, json_content: str,
                                  *args: Any) -> tuple[list[int], tuple[float, float]]:
             u = self._mode_check("run_tare_calibration")
+            _verdict(u, "run_tare_calibration")
             timeout_ms = args[-1]
             params = _checked_json(json_content, {
                 "average step count": (1, 30), "step count": (5, 30), "accuracy": (0, 3),
@@ -875,6 +889,15 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
         if isinstance(obj, type):
             setattr(mod, name, obj)
     return mod
+
+
+def _verdict(u: FakeUnit, what: str) -> None:
+    """The next injected verdict: a failure throws as the SDK does."""
+    v = u.verdicts.pop(0) if u.verdicts else "ok"
+    if v != "ok":
+        assert u.world is not None
+        u.world.log(what + "_failed", verdict=v)
+        raise RuntimeError(CALIBRATION_FAILURES[v])
 
 
 def _title(name: str) -> str:

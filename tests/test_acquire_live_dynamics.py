@@ -115,3 +115,50 @@ def test_a_slow_consumer_drops_frames_on_the_host_counted_apart_from_the_devices
     assert host >= 8  # 7 gaps of ~2 frames each at 0.1 s per frame and 30 fps
     # every missing number is either the device's or the host's
     assert numbers[-1] - numbers[0] + 1 - len(numbers) == 3 + host
+
+
+@pytest.mark.parametrize(("verdicts", "answers", "on_chip", "tare"), [
+    (["fill", "ok", "ok"], None, "applied", "applied"),                # --yes: retried, then applied
+    (["edges", "edges", "edges", "ok"], None, "skipped", "applied"),   # --yes: 2 retries, then skipped
+    (["converge", "ok"], ["skip"], "skipped", "applied"),              # the operator skips it
+    (["timeout", "ok", "ok"], ["retry"], "applied", "applied"),        # the operator re-aims, retries
+])
+def test_a_failed_self_calibration_is_retried_or_skipped_not_the_end(
+        fake: Any, verdicts: list[str], answers: list[str] | None, on_chip: str, tare: str) -> None:
+    """The firmware fails OCC or tare on a poor scene ("low fill factor", "edges too close", ...):
+    the operator retries after re-aiming, skips (recorded with why) or aborts; --yes retries twice,
+    then skips. One failure ended the session after an hour of warm-up."""
+    from depthstation.acquire.calibrate import run_calibration
+    from depthstation.core.protocol import Calibration
+
+    _world, unit = fake(depth_bias=0.02, on_chip_health=0.5)
+    unit.verdicts = list(verdicts)
+    cam = camera()
+    cam.start(PROTO_STREAMS)
+    said: list[str] = []
+    answer_list = list(answers or [])
+    rec = run_calibration(cam, Calibration(on_chip=True, tare=True, tare_distance_m=1.0),
+                          confirm=lambda q: True, say=said.append, unattended=answers is None,
+                          choose=None if answers is None else (lambda q: answer_list.pop(0)))
+    steps = {s["kind"]: s for s in rec["steps"]}
+    assert ("skipped" if steps["on_chip"].get("skipped") else "applied") == on_chip
+    assert steps["tare"]["applied"] and tare == "applied"
+    failures = [v for v in verdicts if v != "ok"]
+    assert len(steps["on_chip"].get("failures", [])) == len(failures)
+    assert all("\n" not in m for m in said)  # one line each
+    assert unit.streaming()  # back in the protocol's mode
+    cam.stop()
+
+
+def test_abort_at_a_failed_calibration_is_one_line_and_resumable(fake: Any) -> None:
+    from depthstation.acquire.calibrate import CalibrationAborted, run_calibration
+    from depthstation.core.protocol import Calibration
+
+    _world, unit = fake()
+    unit.verdicts = ["fill"]
+    cam = camera()
+    cam.start(PROTO_STREAMS)
+    with pytest.raises(CalibrationAborted, match=r"low fill factor.*--resume"):
+        run_calibration(cam, Calibration(on_chip=True), confirm=lambda q: True, say=lambda m: None,
+                        choose=lambda q: "abort")
+    cam.stop()
