@@ -20,6 +20,7 @@ from depthstation.acquire.station import (
     do_calibrate,
     do_capture,
     do_warmup,
+    redo_warmup_if_cooled,
     session_run_view,
 )
 from depthstation.core.rerun_bridge import RerunTarget
@@ -143,6 +144,8 @@ def session_cmd(camera: str = CameraOpt, protocol: str = ProtocolOpt, session: P
     try:
         # one rerun recording for the whole run: the warm-up and the capture go into the same .rrd
         with session_run_view(st, target) as rec:
+            if resume and not skip_warmup and st.spec.kind != "file":
+                redo_warmup_if_cooled(st)
             if st.session.data.get("warmup") is None and not skip_warmup:
                 if st.spec.kind == "file":
                     st.session.set("warmup", {"done": False, "reason": "recording: no warm-up possible"})

@@ -367,12 +367,72 @@ def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTa
     if callable(take) and (events := take()):
         summary["device_events"] = events
     st.session.set("warmup", summary)
+    note_streaming(st.session, st.camera)
     say(f"warm-up done: {summary['reason']}")
     if summary["has_temperature"] and not summary["settled"]:
         warn(f"warm-up ended without the temperature settling ({summary['reason']}; tolerance "
              f"{rule.max_slope_c_per_min:g} °C/min): depth may still drift during the capture",
              str(st.session.dir), "warmup-unsettled")
     return summary
+
+
+COOLED_DROP_C = 2.0  # a drop of two whole-degree steps since the warm-up's end: the camera cooled
+COOLED_IDLE_S = 120.0  # without a temperature: this long without frames and the camera counts as cooled
+
+
+def note_streaming(session: Session, camera: Any) -> None:
+    """When the camera last streamed (and how warm it was): a resume judges from it whether the
+    warm-up still holds."""
+    temps = {}
+    with contextlib.suppress(CameraError, RuntimeError):
+        temps = dict(camera.temperatures())
+    session.set("streaming", {"last_frame_unix_s": time.time(), "temperatures_c": temps})
+
+
+def warmup_cooled(st: Station) -> str | None:
+    """Why the session's warm-up no longer holds (the camera cooled since), or None. Judged by the
+    temperature now against the warm-up's last reading where the camera reports one, else by the
+    time without frames since the session last streamed."""
+    rec = st.session.data.get("warmup")
+    if not isinstance(rec, dict) or not rec.get("done"):
+        return None
+    last = st.session.data.get("streaming") or {}
+    then = last.get("last_frame_unix_s")
+    if then is None:
+        then = (st.session.dir / SESSION_FILE).stat().st_mtime
+    idle_s = max(0.0, time.time() - float(then))
+    curve = rec.get("curve") or []
+    end = curve[-1] if curve else {}
+    now: dict[str, float] = {}
+    with contextlib.suppress(CameraError, RuntimeError):
+        now = dict(st.camera.temperatures())
+    for key in ("projector", "asic"):
+        if f"{key}_c" in end and key in now:
+            drop = float(end[f"{key}_c"]) - float(now[key])
+            if drop >= COOLED_DROP_C:
+                return (f"the {key} temperature fell {drop:g} °C since the warm-up ended "
+                        f"({end[f'{key}_c']:g} -> {now[key]:g} °C, {idle_s / 60:.1f} min without frames)")
+            return None
+    if idle_s > COOLED_IDLE_S:
+        return (f"{idle_s / 60:.1f} min without frames since the session last streamed (no temperature to "
+                f"judge by; over {COOLED_IDLE_S / 60:g} min counts as cooled)")
+    return None
+
+
+def redo_warmup_if_cooled(st: Station) -> bool:
+    """On a resume: a camera that cooled since its warm-up is warmed up again; the earlier record
+    goes to `warmup_history` with `settled: false` and why (a cooled camera is never recorded as
+    settled). True when the warm-up must run again."""
+    why = warmup_cooled(st)
+    if why is None:
+        return False
+    rec = dict(st.session.data["warmup"])
+    history = list(st.session.data.get("warmup_history") or [])
+    history.append({**rec, "settled": False, "was_settled": bool(rec.get("settled")), "cooled": why})
+    st.session.set("warmup_history", history)
+    st.session.set("warmup", None)
+    say(f"the camera cooled since its warm-up ({why}): warming it up again")
+    return True
 
 
 def do_calibrate(st: Station, yes: bool, write: bool, ask: Callable[[str], bool] | None = None,
@@ -408,6 +468,7 @@ def do_calibrate(st: Station, yes: bool, write: bool, ask: Callable[[str], bool]
         record["device_events"] = events
     keep_replaced_calibration(st.session, record)
     st.session.set("calibration", record)
+    note_streaming(st.session, st.camera)
     return record
 
 
@@ -514,6 +575,8 @@ def do_capture(st: Station, target: RerunTarget | Any,
             for v in views:
                 v(state)
             say_device_drop(st.session, cap.events, state, lost)
+            if state.phase == "done":
+                note_streaming(st.session, st.camera)
             if panel is None and state.phase == "done":
                 say(f"{state.standpoint.name}: recorded {state.recorded} frames")
             if panel is None and state.message == MOVED_MESSAGE:

@@ -162,3 +162,44 @@ def test_abort_at_a_failed_calibration_is_one_line_and_resumable(fake: Any) -> N
         run_calibration(cam, Calibration(on_chip=True), confirm=lambda q: True, say=lambda m: None,
                         choose=lambda q: "abort")
     cam.stop()
+
+
+SESSION_TOML = ('name = "p"\n[board]\ntype = "checkerboard"\nsquares_x = 7\nsquares_y = 5\n'
+                'square_length_m = 0.095\n[streams]\nwidth = 640\nheight = 360\nfps = 30\n'
+                '[plan]\nframes_per_standpoint = 4\nstart_distance_m = 1.0\nstep_m = 0.2\n'
+                'max_distance_m = 1.0\n'
+                'inclinations_deg = [0.0]\n[tolerances]\nstill_seconds = 0.2\n'
+                '[warmup]\nmin_minutes = 0.01\nmax_minutes = 0.02\nwindow_minutes = 0.01\n'
+                '[calibration]\non_chip = true\n[device]\nmodel = "D455"\n')
+
+
+@pytest.mark.parametrize(("now_c", "cooled"), [(41.0, False), (37.0, True)])
+def test_a_resume_warms_a_cooled_camera_up_again(fake: Any, tmp_path: Path, now_c: float,
+                                                 cooled: bool) -> None:
+    """A session stopped after its warm-up and resumed later: when the camera's temperature fell two
+    whole degrees or more since the warm-up ended, the warm-up runs again and the earlier record
+    moves to warmup_history with settled false (a resume skipped the warm-up, and session.json kept
+    settled true for a cooled camera)."""
+    from depthstation.acquire.station import Station, do_warmup, redo_warmup_if_cooled
+    from depthstation.core.capture.session import Session
+    from depthstation.core.rerun_bridge import RerunTarget
+
+    temp = [41.0]
+    fake(temperature=lambda t: temp[0])
+    proto = tmp_path / "p.toml"
+    proto.write_text(SESSION_TOML)
+    st = Station("live", str(proto), tmp_path / "s", False, 0, False)
+    do_warmup(st, 0.2, 100.0, RerunTarget(None, False, False))
+    st.close()
+    assert Session.open(tmp_path / "s").data["warmup"]["done"]
+    temp[0] = now_c
+    st = Station("live", None, tmp_path / "s", True, 0, False)
+    assert redo_warmup_if_cooled(st) is cooled
+    st.close()
+    data = Session.open(tmp_path / "s").data
+    if cooled:
+        assert data["warmup"] is None  # `acquire session` runs it again
+        old = data["warmup_history"][-1]
+        assert old["settled"] is False and "fell 4 °C" in old["cooled"]
+    else:
+        assert data["warmup"]["done"] and "warmup_history" not in data
