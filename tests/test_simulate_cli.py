@@ -267,3 +267,31 @@ def test_a_model_that_renders_no_depth_is_warned(tmp_path: Path, here: Run) -> N
     r = _run("checkerboard", "--protocol", "demo-d455", "--out", str(tmp_path / "ok"), "--frames", "1",
              "--standpoint", "standpoint_01")
     assert r.returncode == 0 and "no depth" not in r.stderr
+
+
+def test_model_lists_every_effect_with_its_source_and_units_draw_others(here: Run) -> None:
+    """`simulate model d455` names each effect's meaning and source above its table; `--unit-seed N`
+    is another unit: its depth scale, disparity offset and static pattern differ from the preset's,
+    the same for the same N, within Intel's spec; an ideal model stays ideal; a negative seed is bad
+    input."""
+    from depthstation.simulate.model import load_model, model_from_toml
+    from depthstation.simulate.units import unit_spread
+
+    r = here("model", "d455")
+    assert r.returncode == 0, r.stderr
+    preset = model_from_toml(r.stdout)
+    assert r.stdout.count("# source: ") == len(preset.effects) == len(load_model("d455").effects)
+    one, again = here("model", "d455", "--unit-seed", "3"), here("model", "d455", "--unit-seed", "3")
+    assert one.returncode == 0 and one.stdout == again.stdout
+    unit = model_from_toml(one.stdout)
+    s_scale, s_offset = unit_spread(preset)
+    for name, param, sigma in (("depth_scale", "scale_error", s_scale),
+                               ("disparity_offset", "offset_px", s_offset)):
+        a, b = preset.effect(name).params[param], unit.effect(name).params[param]
+        assert a != b and abs(b) < 4 * sigma, (name, a, b)
+    seeds = [m.effect("static_pattern").params["pattern_seed"] for m in (preset, unit)]
+    assert seeds[0] != seeds[1]
+    ideal = model_from_toml(here("model", "d455-ideal", "--unit-seed", "3").stdout)
+    assert [e.name for e in ideal.effects] == [e.name for e in load_model("d455-ideal").effects]
+    bad = here("model", "d455", "--unit-seed", "-1")
+    assert bad.returncode == 2 and "--unit-seed" in bad.stderr
