@@ -22,10 +22,11 @@ import numpy as np
 
 from depthstation.acquire.board_detection import BoardPose, board_mask, board_pose, fill_rate
 from depthstation.acquire.guidance import Guidance, StillnessTracker, end_of_range, guide, points_agree
+from depthstation.acquire.recovery import reconnect
 from depthstation.core.board_pose import pose_metrics
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.capture.session import StandpointWriter, _sigint_deferred
-from depthstation.core.device import CameraStalled, CameraUnsuitable
+from depthstation.core.device import CameraStalled
 from depthstation.core.errors import CameraDisconnected, CameraError, CaptureError
 from depthstation.core.frames import FrameSet
 from depthstation.core.geometry import average_poses
@@ -181,43 +182,23 @@ class GuidedCapture:
 
     def _reconnect(self, state: LiveState, cause: CameraError | None = None) -> None:
         """Stop; after a stall, reset the device where it can; then retry starting the camera until
-        it answers or the timeout passes (a camera back in an unsuitable state, e.g. on USB 2, is
-        said on screen and waited for)."""
+        it answers or the timeout passes (`recovery.reconnect`; a camera back in an unsuitable
+        state, e.g. on USB 2, is said on screen and waited for)."""
         state.phase = "reconnecting"
-        stalled = isinstance(cause, CameraStalled)
-        state.message = ("camera stalled (no frames while connected): resetting it" if stalled
-                         else "camera disconnected: reconnect it (waiting)")
-        self._emit(state)
-        with contextlib.suppress(CameraError, RuntimeError):
-            self.camera.stop()
-        reset = getattr(self.camera, "hardware_reset", None)
-        if stalled and callable(reset):
-            try:
-                reset()
-            except (CameraError, RuntimeError) as exc:  # a device call that threw while it re-enumerates
-                state.message = f"{exc} (waiting)"
-                self._emit(state)
+
+        def say(text: str) -> None:
+            state.message = text
+            self._emit(state)
+
+        def start() -> StreamInfo:
+            self._camera_events(state.standpoint.name)
+            return self._start()
+
+        reconnect(self.camera, start, cause, timeout_s=self.reconnect_timeout_s, sleep=self.sleep, say=say)
         self._camera_events(state.standpoint.name)
-        t_end = time.monotonic() + self.reconnect_timeout_s
-        said = state.message
-        while True:
-            try:
-                self._start()
-                self._camera_events(state.standpoint.name)
-                self.events.append({"event": "reconnected", "standpoint": state.standpoint.name,
-                                    "time_ns": time.time_ns()})
-                self._save_log()
-                return
-            except (CameraError, RuntimeError) as exc:
-                # RuntimeError: a device call the camera did not wrap (a device still enumerating
-                # throws from its creation and option calls): retried like any other
-                if isinstance(exc, CameraUnsuitable) and str(exc) != said:
-                    said = state.message = str(exc)
-                    self._emit(state)
-                if time.monotonic() > t_end:
-                    raise CameraError(f"camera did not come back within {self.reconnect_timeout_s:g} s: "
-                                      f"{exc}") from exc
-                self.sleep(0.5)
+        self.events.append({"event": "reconnected", "standpoint": state.standpoint.name,
+                            "time_ns": time.time_ns()})
+        self._save_log()
 
     def _frame(self) -> FrameSet:
         fs: FrameSet = self.camera.wait_for_frames(self.frame_timeout_s)

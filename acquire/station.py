@@ -26,6 +26,7 @@ from depthstation.acquire.guided_capture import (
     LiveState,
     StandpointOutcome,
 )
+from depthstation.acquire.recovery import reconnect
 from depthstation.acquire.views import BOARD_HELP, RerunView, TerminalPanel, blueprint
 from depthstation.acquire.warmup import WarmupDecision, WarmupSample, run_warmup
 from depthstation.core.capture.session import SESSION_FILE, Session, camera_identity, identity_differences
@@ -47,6 +48,7 @@ from depthstation.simulate.model import check_seed
 from depthstation.simulate.operator import SimulatedOperator, Stance
 
 DEFAULT_PROTOCOL = "checkerboard-d455"
+RECONNECT_TIMEOUT_S = 60.0  # a warm-up waits this long for a stalled or unplugged camera
 ACQUIRE_APP_ID = "depthstation-acquire"
 GuidanceHook = Callable[[Guidance, FrameSet, float], None]
 
@@ -346,8 +348,12 @@ def do_warmup(st: Station, interval_s: float, accelerate: float, target: RerunTa
                         rec.log("warmup/centre_depth_m", rr.Scalars([s.depth_m]))
 
             try:
+                def recover(exc: BaseException) -> None:
+                    reconnect(st.camera, st.start, exc, timeout_s=RECONNECT_TIMEOUT_S, say=say)
+                    say("camera back: the warm-up goes on")
+
                 result = run_warmup(st.camera, rule, info.depth_units_m, interval_s=interval_s, clock=clock,
-                                    sleep=sleep, on_sample=on_sample)
+                                    sleep=sleep, on_sample=on_sample, recover=recover)
             except EOFError as exc:
                 raise InputError(st.spec.path, f"the recording ended before the warm-up's minimum time "
                                  f"({rule.min_minutes:g} min, warmup.min_minutes): a recording cannot warm a "

@@ -33,6 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from depthstation.core.device import CameraStalled
+from depthstation.core.errors import CameraDisconnected
 from depthstation.core.protocol import Warmup
 
 # whole-degree readings: the window spans at least this many reading steps per max slope
@@ -173,10 +175,14 @@ def warmup_decision(samples: list[WarmupSample], rule: Warmup) -> WarmupDecision
     return decide(False, f"temperature drifting: slope {slope:+.3f} °C/min > {tol:g}")
 
 
+MAX_WARMUP_FAULTS = 5  # stalls and unplugs one warm-up recovers from before it gives up
+
+
 @dataclass
 class WarmupResult:
     samples: list[WarmupSample] = field(default_factory=list)
     decision: WarmupDecision | None = None
+    faults: list[dict[str, Any]] = field(default_factory=list)  # stalls / unplugs recovered from
 
     def summary(self) -> dict[str, Any]:
         """What goes into session.json: the rule's verdict and the whole curve."""
@@ -191,6 +197,7 @@ class WarmupResult:
             "resolution_c": None if d is None else d.resolution_c,
             "window_s": None if d is None else d.window_s,
             "final_slope_bound_c_per_min": None if d is None else d.slope_bound_c_per_min,
+            "faults": list(self.faults),
             "curve": [{"t_s": s.t_s, "depth_m": s.depth_m,
                        **{f"{k}_c": v for k, v in s.temperatures_c.items()}} for s in self.samples],
         }
@@ -210,16 +217,28 @@ def region_depth_m(depth: np.ndarray[Any, Any] | None, units_m: float, size: flo
 def run_warmup(camera: Any, rule: Warmup, depth_units_m: float, *, interval_s: float = 10.0,
                clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
                on_sample: Callable[[WarmupSample, WarmupDecision], None] | None = None,
-               stop: Callable[[], bool] | None = None) -> WarmupResult:
+               stop: Callable[[], bool] | None = None,
+               recover: Callable[[CameraDisconnected], None] | None = None) -> WarmupResult:
     """Sample temperatures and the centre depth every `interval_s` until the rule says done.
 
     The camera keeps streaming (the load that heats it); `clock`/`sleep` are injectable so a
-    simulated camera tied to the same clock warms up in seconds.
+    simulated camera tied to the same clock warms up in seconds. A stall or an unplug is handed to
+    `recover` (the capture's reset-and-retry) and the warm-up goes on, its clock running (the
+    temperature rule judges the curve as it is); each is recorded in `faults`. Without `recover`,
+    or after MAX_WARMUP_FAULTS, it ends the warm-up.
     """
     result = WarmupResult()
     t0 = clock()
     while True:
-        frame = camera.wait_for_frames(5.0)
+        try:
+            frame = camera.wait_for_frames(5.0)
+        except CameraDisconnected as exc:
+            result.faults.append({"event": "stalled" if isinstance(exc, CameraStalled) else "disconnected",
+                                  "t_s": clock() - t0, "error": str(exc)})
+            if recover is None or len(result.faults) > MAX_WARMUP_FAULTS:
+                raise
+            recover(exc)
+            continue
         temps = {k: float(v) for k, v in camera.temperatures().items() if v is not None and np.isfinite(v)}
         sample = WarmupSample(clock() - t0, temps, region_depth_m(frame.depth, depth_units_m))
         result.samples.append(sample)

@@ -203,3 +203,39 @@ def test_a_resume_warms_a_cooled_camera_up_again(fake: Any, tmp_path: Path, now_
         assert old["settled"] is False and "fell 4 °C" in old["cooled"]
     else:
         assert data["warmup"]["done"] and "warmup_history" not in data
+
+
+def test_a_warmup_recovers_from_a_stall_and_an_unplug(fake: Any, tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """An hour-long warm-up meets stalls and unplugs as a capture does: the stall is reset, the
+    unplugged camera waited for, and the warm-up goes on; both are recorded in its faults (one such
+    fault ended the warm-up, and the session with it)."""
+    from depthstation.acquire.live_camera import LiveCamera
+    from depthstation.acquire.station import Station, do_warmup
+    from depthstation.core.capture.session import Session
+    from depthstation.core.rerun_bridge import RerunTarget
+
+    _world, unit = fake(enumerate_s=0.2, flaps=1)
+    proto = tmp_path / "p.toml"
+    proto.write_text(SESSION_TOML.replace("max_minutes = 0.02", "max_minutes = 0.05"))
+    real = LiveCamera.wait_for_frames
+    calls = [0]
+
+    def faulty(self: LiveCamera, timeout_s: float = 5.0) -> Any:
+        calls[0] += 1
+        if calls[0] == 2:
+            unit.stall()
+        if calls[0] == 4:
+            unit.unplug(0.1)
+        return real(self, min(timeout_s, 0.3))
+
+    monkeypatch.setattr(LiveCamera, "wait_for_frames", faulty)
+    st = Station("live", str(proto), tmp_path / "s", False, 0, False)
+    st.camera.removal_timeout_s, st.camera.enumeration_timeout_s, st.camera.quiet_s = 2.0, 3.0, 0.05
+    st.camera.stop_deadline_s = 0.2
+    summary = do_warmup(st, 0.2, 100.0, RerunTarget(None, False, False))
+    st.close()
+    assert summary["done"]
+    assert [f["event"] for f in summary["faults"]] == ["stalled", "disconnected"]
+    assert "hardware_reset" in [e["event"] for e in summary["device_events"]]
+    assert Session.open(tmp_path / "s").data["warmup"]["faults"] == summary["faults"]
