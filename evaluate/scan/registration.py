@@ -9,7 +9,10 @@
 Why `none` by default: the study measures depth error, and a scale fitted on the depth pixels
 swallows exactly the depth-scale error it exists to measure (a scale of 0.98288 absorbs a
 +1.74 % depth error: 52 mm at 3 m). A scale, wherever it comes from, is therefore reported as the
-depth-scale error it absorbs, with its 95 % band from refits on disjoint frame subsets.
+depth-scale error it absorbs, with its 95 % band from a block jackknife over the frames (each block
+of consecutive frames left out in turn and the fit redone): frames, not points, are what vary
+independently (a frame's noise is correlated over its window and its pose), so a band from point
+subsets was too narrow (+0.061 to +0.099 % round a truth of 0).
 """
 
 from __future__ import annotations
@@ -41,7 +44,10 @@ F64 = NDArray[np.float64]
 
 
 REGISTER_MODES = ("none", "rigid", "similarity", "pass-points")
-SCALE_SUBSETS = 5  # disjoint frame subsets for the band of an estimated scale
+# Blocks of consecutive frames the band's jackknife leaves out in turn (fewer with fewer frames; a
+# fit from one frame has no band). More blocks cost more refits; ten gave coverage within the
+# benchmark's resolution (benchmarks/bench_registration_coverage.py).
+BAND_BLOCKS = 10
 
 
 @dataclass
@@ -61,6 +67,8 @@ class Registration:
     median_c2m_m: float | None = None
     scale_band95: tuple[float, float] | None = None  # of an estimated scale (None: given or 1)
     local: LocalFrames | None = None
+    # the fits with each block of frames left out (local frames), from which every band comes
+    replicates: list[F64] | None = None
 
     @property
     def scale(self) -> float:
@@ -101,13 +109,33 @@ class Registration:
         """The similarity between the trajectory and reference frames as given (shifts undone)."""
         return self.local.to_given(self.matrix) if self.local is not None else self.matrix
 
+    def bands(self) -> dict[str, Any] | None:
+        """U95 of the fitted rotation (deg, about each axis of the reference frame) and translation
+        (m, each axis), frames as given, and the scale's 95 % band: block jackknife over the frames
+        (`jackknife_u95`). None when no fit was redone without a block (given, pass points, or
+        too few frames)."""
+        if not self.replicates:
+            return None
+        given = [self.local.to_given(r) if self.local is not None else r for r in self.replicates]
+        _, r0, _ = decompose_similarity(self.given_matrix)
+        parts = [decompose_similarity(g) for g in given]
+        rot = np.array([np.degrees(_rotvec(r @ r0.T)) for _, r, _ in parts])
+        out: dict[str, Any] = {
+            "method": f"block jackknife over the frames ({len(given)} blocks of consecutive frames)",
+            "blocks": len(given),
+            "rotation_u95_deg": jackknife_u95(rot).tolist(),
+            "translation_u95_m": jackknife_u95(np.array([t for _, _, t in parts])).tolist()}
+        if self.scale_band95 is not None:
+            out["scale_band95"] = list(self.scale_band95)
+        return out
+
     def to_dict(self) -> dict[str, Any]:
         m = self.given_matrix
         s, r, t = decompose_similarity(m)
         out = {"mode": self.mode, "method": self.method, "scale": s, "rotation": r.tolist(),
                "translation_m": t.tolist(), "matrix": m.tolist(), "mean_c2c_m": self.mean_c2c_m,
                "mean_c2m_m": self.mean_c2m_m, "median_c2m_m": self.median_c2m_m,
-               "absorbed": self.absorbed(), "icp": self.icp}
+               "absorbed": self.absorbed(), "band95": self.bands(), "icp": self.icp}
         if self.local is not None:
             out["local_shift"] = self.local.to_dict()
             out["local_matrix"] = self.matrix.tolist()
@@ -285,8 +313,8 @@ def icp_with_scale(points: F64, target: Any, init: F64, *,
 
 
 def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float = 0.05,
-                   iterations: int = 50, tol: float = 1e-8,
-                   with_scale: bool = True) -> tuple[F64, dict[str, Any]]:
+                   iterations: int = 50, tol: float = 1e-8, with_scale: bool = True,
+                   scene: Any | None = None) -> tuple[F64, dict[str, Any]]:
     """Point-to-plane ICP against the exact surface (Gauss-Newton on a similarity, or without
     scale on a rigid motion).
 
@@ -294,11 +322,12 @@ def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float =
     happen to lie (cm spacing). Against the mesh, residuals are the distances along the hit
     triangle's normal; the Jacobian is taken at the closest surface point, not at the noisy
     measured point, so depth noise does not shrink the scale (errors-in-variables attenuation,
-    which Umeyama on noisy points shows as ~0.1 % at D455 noise levels).
+    which Umeyama on noisy points shows as ~0.1 % at D455 noise levels). `scene`: the mesh's
+    raycasting scene when the caller refits many times.
     """
     o3d = open3d()
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    if scene is None:
+        scene = mesh_scene(mesh)
     pts = np.asarray(points, dtype=np.float64)
     m = np.asarray(init, dtype=np.float64).copy()
     used = 0
@@ -328,6 +357,14 @@ def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float =
         if max(np.abs(omega).max(), abs(eps), np.abs(tau).max()) < tol:
             break
     return m, {"mesh_refine_iterations": it + 1, "mesh_refine_points": used}
+
+
+def mesh_scene(mesh: Any) -> Any:
+    """Open3D's raycasting scene of a legacy triangle mesh (closest points, distances)."""
+    o3d = open3d()
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    return scene
 
 
 def fit_distances(points: F64, matrix: F64, target: Any,
@@ -387,43 +424,64 @@ def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any
         info["note"] = f"no posed depth in {band_m[0]:g}-{band_m[1]:g} m: cloud-to-mesh not measured"
         return Registration(m, method, None, None, info, mode, None, scale_band95=scale_band, local=local)
     points = voxel_cloud(parts)
+    replicates = None
     if mode in ("rigid", "similarity"):
         scaled = mode == "similarity"
         m, icp_info = icp_with_scale(points, target, init, with_scale=scaled)
         info.update(icp_info)
         method += "+icp"
         if mesh is not None:
-            m, refine_info = refine_on_mesh(points, mesh, m, with_scale=scaled)
+            scene = mesh_scene(mesh)
+            m, refine_info = refine_on_mesh(points, mesh, m, with_scale=scaled, scene=scene)
             info.update(refine_info)
             method += "+mesh"
-            if scaled:
-                scale_band = _subset_band(parts, mesh, m)
+            replicates = block_replicates(parts, mesh, m, scaled, scene)
+            if scaled and replicates is not None:
+                s = float(decompose_similarity(m)[0])
+                half = float(jackknife_u95(np.array([decompose_similarity(r)[0] for r in replicates])))
+                scale_band = (s - half, s + half)
     c2c, c2m, c2m_median = fit_distances(points, m, target, mesh)
-    return Registration(m, method, c2c, c2m, info, mode, c2m_median, scale_band95=scale_band, local=local)
+    return Registration(m, method, c2c, c2m, info, mode, c2m_median, scale_band95=scale_band, local=local,
+                        replicates=replicates)
 
 
-def _subset_band(parts: list[F64], mesh: Any, m: F64,
-                 k: int = SCALE_SUBSETS) -> tuple[float, float] | None:
-    """95 % band of a mesh-refined scale: refits on k disjoint subsets (of frames when there are
-    enough, else of points), t-interval of their mean."""
-    if len(parts) >= 2 * k:
-        subsets = [voxel_cloud(parts[j::k]) for j in range(k)]
-    else:
-        pts = voxel_cloud(parts)
-        order = np.random.default_rng(0).permutation(len(pts))
-        subsets = [pts[order[j::k]] for j in range(k)]
-    scales = []
-    for sub in subsets:
-        try:
-            mj, _ = refine_on_mesh(sub, mesh, m, with_scale=True)
-        except EvaluationError:
-            continue
-        scales.append(decompose_similarity(mj)[0])
-    if len(scales) < 2:
+def block_replicates(parts: list[F64], mesh: Any, m: F64, with_scale: bool, scene: Any,
+                     blocks: int = BAND_BLOCKS) -> list[F64] | None:
+    """The mesh refinement redone with each block of consecutive frames left out (min(frames,
+    `blocks`) blocks), started from the full fit `m`; None with fewer than 2 frames or when a
+    refit has nothing to start from (then no band is claimed)."""
+    g = min(len(parts), blocks)
+    if g < 2:
         return None
-    s = float(decompose_similarity(m)[0])
-    half = float(stdtrit(len(scales) - 1, 0.975)) * float(np.std(scales, ddof=1)) / np.sqrt(len(scales))
-    return s - half, s + half
+    out = []
+    for block in np.array_split(np.arange(len(parts)), g):
+        left = set(block.tolist())
+        rest = [p for j, p in enumerate(parts) if j not in left]
+        try:
+            mj, _ = refine_on_mesh(voxel_cloud(rest), mesh, m, with_scale=with_scale, scene=scene)
+        except EvaluationError:
+            return None
+        out.append(mj)
+    return out
+
+
+def jackknife_u95(values: F64) -> F64:
+    """Half width of the 95 % interval from delete-one-block jackknife replicates (rows): the
+    jackknife standard error sqrt((g - 1) / g sum (v - mean)^2) times t(0.975, g - 1)."""
+    v = np.asarray(values, dtype=np.float64)
+    g = v.shape[0]
+    se = np.sqrt((g - 1) / g * np.sum((v - v.mean(axis=0)) ** 2, axis=0))
+    return np.asarray(float(stdtrit(g - 1, 0.975)) * se, dtype=np.float64)
+
+
+def _rotvec(r: F64) -> F64:
+    """Rotation vector (rad) of a rotation matrix near the identity."""
+    w = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2.0
+    sin = float(np.linalg.norm(w))
+    if sin < 1e-15:
+        return np.zeros(3)
+    angle = float(np.arctan2(sin, (np.trace(r) - 1.0) / 2.0))
+    return np.asarray(w / sin * angle, dtype=np.float64)
 
 
 def _jackknife_band(src: F64, dst: F64) -> tuple[float, float] | None:

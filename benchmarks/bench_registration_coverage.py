@@ -1,0 +1,151 @@
+"""Do the registration's 95 % bands hold the truth 95 % of the time? (run by hand, not by pytest)
+
+    .venv/bin/python benchmarks/bench_registration_coverage.py [--walks 20] [--frames 20] [--every 2]
+        [--width 256] [--errors 0,0.01,-0.01] [--mode similarity] [--out coverage.csv]
+
+Repeated simulated walks round the room's table (the simulator's `d455-ideal` model, no flying
+pixels, with a known depth-scale error e through its `depth_scale` effect) give what RGB-D SLAM
+would estimate on that depth: the true trajectory scaled by (1 + e) and moved into its own frame
+by a random rigid offset (up to 2 deg, 10 cm). `register(mode=...)` fits it back from the identity;
+the truth is the inverse of that offset and scale. Per walk and quantity (the scale, the rotation
+about each axis, the translation along each axis) the band holds the truth or not; the table gives
+the share held, its binomial 95 % interval, and the estimates' mean error and spread against the
+band's mean half width (a bias shows as a mean error; a too narrow band as spread > half width /
+1.96). Seeds, walk radius and offsets vary per walk. Small frames and few frames per walk keep a
+walk to seconds of CPU; the runtime is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from depthstation.core.capture.registry import open_inputs
+from depthstation.core.geometry import rodrigues
+from depthstation.core.lazy_open3d import open3d
+from depthstation.evaluate.scan.reference import sample_reference_points
+from depthstation.evaluate.scan.registration import _rotvec, register
+from depthstation.evaluate.scan.trajectory import compose_similarity, decompose_similarity, read_tum
+from depthstation.simulate.model import load_model
+from depthstation.simulate.poses import walk_around
+from depthstation.simulate.poses import write_tum as write_poses
+from depthstation.simulate.scan_sequence import simulate_scan
+
+
+def one_walk(root: Path, seed: int, error: float, args: argparse.Namespace) -> dict[str, Any]:
+    """Simulate, register, and compare one walk with its truth."""
+    rng = np.random.default_rng([seed, round(error * 1e6) % 2**31])
+    model = load_model("d455-ideal").without_effect("flying_pixels").with_effect("depth_scale",
+                                                                           scale_error=error)
+    d = root / f"walk_{seed}_{error:+.4f}"
+    d.mkdir(parents=True)
+    n = args.frames
+    poses = walk_around(np.array([0.0, -0.75, 0.0]), radius_m=float(rng.uniform(1.7, 2.3)),
+                        speed_m_s=2 * np.pi * 2.0 * 30 / n, frames=n, bob_m=0.03)
+    write_poses(d / "walk.txt", np.arange(n) / 30.0, poses)
+    session = simulate_scan("room", d / "walk.txt", model, d / "session", width=args.width,
+                            height=args.width * 9 // 16, color=False, seed=seed)
+    truth = read_tum(session / "trajectory.txt")
+    axis = rng.normal(size=3)
+    turn = rodrigues(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0.0, 2.0)))
+    offset = compose_similarity(1.0 + error, turn, rng.uniform(-0.1, 0.1, 3))
+    slam = truth.transformed(offset)
+    o3d = open3d()
+    mesh = o3d.io.read_triangle_mesh(str(session / "scene.ply"))
+    reg = register(open_inputs([session])[0], slam, mesh, sample_reference_points(mesh), mode=args.mode,
+                   every=args.every)
+    want = np.linalg.inv(offset)  # slam frame -> reference frame
+    s_true, r_true, t_true = decompose_similarity(want)
+    s, r, t = decompose_similarity(reg.given_matrix)
+    bands = reg.bands()
+    row: dict[str, Any] = {"seed": seed, "error": error, "frames": reg.icp.get("frames"),
+                           "scale": s, "scale_true": s_true}
+    rot_err = np.degrees(_rotvec(r @ r_true.T))
+    tr_err = t - t_true
+    if bands is None:
+        return {**row, "band": False}
+    lo, hi = bands.get("scale_band95", (np.nan, np.nan))
+    row.update({"band": True, "scale_lo": lo, "scale_hi": hi})
+    for k, ax in enumerate("xyz"):
+        row[f"rot_{ax}_err_deg"] = rot_err[k]
+        row[f"rot_{ax}_u95_deg"] = bands["rotation_u95_deg"][k]
+        row[f"t_{ax}_err_m"] = tr_err[k]
+        row[f"t_{ax}_u95_m"] = bands["translation_u95_m"][k]
+    return row
+
+
+def _share(held: list[bool]) -> str:
+    """Share held with a Wilson 95 % interval."""
+    n = len(held)
+    if n == 0:
+        return "-"
+    p = sum(held) / n
+    z = 1.96
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return f"{100 * p:5.1f} % ({100 * (centre - half):.0f}-{100 * (centre + half):.0f} %, n={n})"
+
+
+def table(rows: list[dict[str, Any]]) -> list[str]:
+    lines = ["| truth e | quantity | band holds the truth | mean error | error spread | mean U95 |",
+             "|---|---|---|---|---|---|"]
+    for e in sorted({r["error"] for r in rows}):
+        mine = [r for r in rows if r["error"] == e and r["band"]]
+        if not mine:
+            continue
+        # the scale as the depth-scale error it stands for, in %
+        err = np.array([100 * (1 / r["scale"] - 1 / r["scale_true"]) for r in mine])
+        u95 = np.array([100 * (1 / r["scale_lo"] - 1 / r["scale_hi"]) / 2 for r in mine])
+        held = [r["scale_lo"] <= r["scale_true"] <= r["scale_hi"] for r in mine]
+        lines.append(f"| {100 * e:+.0f} % | depth-scale error (%) | {_share(held)} | {err.mean():+.4f} | "
+                     f"{err.std(ddof=1):.4f} | {u95.mean():.4f} |")
+        for name, unit, scale in (("rot", "deg", 1.0), ("t", "mm", 1e3)):
+            for ax in "xyz":
+                e_ = np.array([r[f"{name}_{ax}_err_{'deg' if name == 'rot' else 'm'}"] for r in mine]) * scale
+                u_ = np.array([r[f"{name}_{ax}_u95_{'deg' if name == 'rot' else 'm'}"] for r in mine]) * scale
+                label = f"rotation about {ax} ({unit})" if name == "rot" else f"translation {ax} ({unit})"
+                lines.append(f"| {100 * e:+.0f} % | {label} | {_share(list(np.abs(e_) <= u_))} | "
+                             f"{e_.mean():+.4f} | {e_.std(ddof=1):.4f} | {u_.mean():.4f} |")
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--walks", type=int, default=20, help="walks per truth")
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--every", type=int, default=2, help="register on every n-th frame")
+    ap.add_argument("--width", type=int, default=256, help="a 16:9 mode of the D455 (256: 256x144)")
+    ap.add_argument("--errors", default="0,0.01,-0.01")
+    ap.add_argument("--mode", default="similarity", choices=("similarity", "rigid"))
+    ap.add_argument("--seed0", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=None, help="CSV of every walk")
+    args = ap.parse_args()
+    errors = [float(x) for x in args.errors.split(",")]
+    if args.mode == "rigid":
+        errors = [0.0]
+    rows = []
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(args.walks):
+            for e in errors:
+                rows.append(one_walk(Path(tmp), args.seed0 + k, e, args))
+            print(f"{k + 1}/{args.walks} walks per truth, {time.perf_counter() - t0:.0f} s", flush=True)
+    if args.out is not None:
+        keys = sorted({key for r in rows for key in r})
+        with args.out.open("w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=keys)
+            w.writeheader()
+            w.writerows(rows)
+    print(f"{len(rows)} walks ({args.frames} frames of {args.width}x{args.width * 9 // 16}, registered on "
+          f"every {args.every}th, --register {args.mode}) in {time.perf_counter() - t0:.0f} s")
+    print("\n".join(table(rows)))
+
+
+if __name__ == "__main__":
+    main()
