@@ -145,7 +145,8 @@ def test_inclination_from_the_depth_matches_the_room(world: dict[str, Any]) -> N
     x, y = (u - intr.ppx) / intr.fx, (v - intr.ppy) / intr.fy
     corr = Corrector(load_model(world["model"]), x, y, room.UNITS, room.UNITS, threads=2)
     try:
-        _, _, theta, _ = corr(w.depth[3], False)
+        _, _, cos, _ = corr(w.depth[3], False)
+        theta = corr.degrees(cos)
     finally:
         corr.close()
     _, truth = room.cast(intr, w.poses[3])

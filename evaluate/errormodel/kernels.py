@@ -57,36 +57,34 @@ def smoothed_depth(depth: NDArray[np.uint16], units_m: float,
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST, inline="always")
+def _at(wi: Any, i: int, j: int) -> float:
+    """wi[i, j], 0 outside the image; clamped indices and a multiply instead of a branch."""
+    h, w = wi.shape
+    inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+    return wi[min(max(i, 0), h - 1), min(max(j, 0), w - 1)] * inside
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST, inline="always")
 def _slope(wi: Any, i: int, j: int, di: int, dj: int, s: int, w0: float, share: float) -> tuple[bool, float]:
     """d(1/z)/d(pixel) along (di, dj) at (i, j): central where the surface is planar across the
     pixel, else on the side that is (the smaller second difference of the inverse depth, which is
-    affine in the rays on a plane); False where neither side holds a depth that continues it."""
-    h, w = wi.shape
+    affine in the rays on a plane); False where neither side holds a depth that continues it.
+    Written without branches (selects): on noisy depth the choice is a coin toss for the branch
+    predictor, and the branchy form cost 8x the central difference."""
     lim = share * w0
-    ib, jb, i_f, jf = i - di * s, j - dj * s, i + di * s, j + dj * s
-    ibb, jbb, iff, jff = i - 2 * di * s, j - 2 * dj * s, i + 2 * di * s, j + 2 * dj * s
-    wb = wi[ib, jb] if 0 <= ib < h and 0 <= jb < w else 0.0
-    wf = wi[i_f, jf] if 0 <= i_f < h and 0 <= jf < w else 0.0
-    okb = wb > 0.0 and abs(wb - w0) < lim
-    okf = wf > 0.0 and abs(wf - w0) < lim
+    wb = _at(wi, i - di * s, j - dj * s)
+    wf = _at(wi, i + di * s, j + dj * s)
+    wbb = _at(wi, i - 2 * di * s, j - 2 * dj * s)
+    wff = _at(wi, i + 2 * di * s, j + 2 * dj * s)
+    okb = (wb > 0.0) & (abs(wb - w0) < lim)
+    okf = (wf > 0.0) & (abs(wf - w0) < lim)
     big = 1e30
-    ddf = big
-    ddb = big
-    if okf and 0 <= iff < h and 0 <= jff < w:
-        wff = wi[iff, jff]
-        if wff > 0.0 and abs(wff - wf) < lim:
-            ddf = abs(wff - 2.0 * wf + w0)
-    if okb and 0 <= ibb < h and 0 <= jbb < w:
-        wbb = wi[ibb, jbb]
-        if wbb > 0.0 and abs(wbb - wb) < lim:
-            ddb = abs(w0 - 2.0 * wb + wbb)
-    if okb and okf and abs(wf - 2.0 * w0 + wb) <= 2.0 * min(ddf, ddb):
-        return True, (wf - wb) / (2.0 * s)
-    if okf and (ddf <= ddb or not okb):
-        return True, (wf - w0) / s
-    if okb:
-        return True, (w0 - wb) / s
-    return False, 0.0
+    ddf = abs(wff - 2.0 * wf + w0) if okf & (wff > 0.0) & (abs(wff - wf) < lim) else big
+    ddb = abs(w0 - 2.0 * wb + wbb) if okb & (wbb > 0.0) & (abs(wbb - wb) < lim) else big
+    use_c = okb & okf & (abs(wf - 2.0 * w0 + wb) <= 2.0 * min(ddf, ddb))
+    use_f = (not use_c) & okf & ((ddf <= ddb) | (not okb))
+    g = (wf - wb) / (2.0 * s) if use_c else ((wf - w0) / s if use_f else (w0 - wb) / s)
+    return use_c | use_f | okb, g
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST, inline="always")
@@ -95,22 +93,58 @@ def _basis_value(c: Any, z: float, tn: float) -> float:
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def correct_kernel(depth: Any, wi: Any, x: Any, y: Any, jac: Any, units: float, s: int, cb: Any, cs: Any,
-                   dom: Any, dz_step: float, dt_step: float, theta_cap: float, iterate: int,
-                   out_depth: Any, out_sigma: Any, out_theta: Any, want_sigma: bool, counts: Any,
-                   row0: int, row1: int) -> None:
-    """Corrected depth (counts of `units`), sigma (m, NaN where unknown), inclination (deg) per pixel
+def _cos_at(wi: Any, x: Any, y: Any, jac: Any, i: int, j: int, s: int) -> float:
+    """cos(inclination) at pixel (i, j) from the inverse depth's gradient; NaN where there is none.
+    On a plane n . X = 1 with X = z (x, y, 1), 1/z = n . (x, y, 1): the gradient of 1/z over the
+    rays gives n, and cos(theta) = 1 / (|n| |X|)."""
+    w0 = wi[i, j]
+    if w0 <= 0.0:
+        return np.nan
+    xu, xv, yu, yv = jac[i, j, 0], jac[i, j, 1], jac[i, j, 2], jac[i, j, 3]
+    oku, gu = _slope(wi, i, j, 0, 1, s, w0, min(EDGE_SHARE_MAX, EDGE_SLOPE * s * abs(xu)))
+    okv, gv = _slope(wi, i, j, 1, 0, s, w0, min(EDGE_SHARE_MAX, EDGE_SLOPE * s * abs(yv)))
+    if not (oku and okv):
+        return np.nan
+    det = xu * yv - xv * yu
+    gx = (yv * gu - yu * gv) / det
+    gy = (xu * gv - xv * gu) / det
+    x0 = x[i, j]
+    y0 = y[i, j]
+    nzc = w0 - gx * x0 - gy * y0
+    nn = math.sqrt(gx * gx + gy * gy + nzc * nzc)
+    return min(w0 / (nn * math.sqrt(x0 * x0 + y0 * y0 + 1.0)), 1.0)
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def normals_kernel(wi: Any, x: Any, y: Any, jac: Any, s: int, sub: int, out_cos: Any, row0: int,
+                   row1: int) -> None:
+    """cos(inclination) at the centre pixel of every sub x sub block of rows [row0, row1) of the
+    coarse grid. Why blocks: the slopes span `s` >= 4 sub pixels of a box-smoothed depth, so the
+    normal hardly changes within a block, and one per block costs a sixteenth to a 64th of one per
+    pixel (the kernel took 8x the time of the read + write before)."""
+    h, w = wi.shape
+    for bi in range(row0, row1):
+        i = min(bi * sub + sub // 2, h - 1)
+        for bj in range(out_cos.shape[1]):
+            j = min(bj * sub + sub // 2, w - 1)
+            out_cos[bi, bj] = _cos_at(wi, x, y, jac, i, j, s)
+
+
+@numba.njit(cache=True, nogil=True, fastmath=_FAST)
+def correct_kernel(depth: Any, wi: Any, x: Any, y: Any, jac: Any, coarse: Any, sub: int, units: float,
+                   s: int, cb: Any, cs: Any, dom: Any, dz_step: float, nc: int, theta_cap: float,
+                   iterate: int, out_depth: Any, out_sigma: Any, out_cos: Any, want_sigma: bool,
+                   counts: Any, row0: int, row1: int) -> None:
+    """Corrected depth (counts of `units`), sigma (m, NaN where unknown), cos(inclination) per pixel
     of rows [row0, row1) (each row's result depends on nothing but the inputs: bands may run in
-    any order, on any thread).
+    any order, on any thread). A pixel takes its block's normal (`coarse`), or its own where the
+    block's centre has none (a hole, an edge).
 
-    `wi` is the smoothed inverse depth (1/m, 0 where none); `jac` the rays' derivatives per pixel
-    (dx/du, dx/dv, dy/du, dy/dv). On a plane n . X = 1 with X = z (x, y, 1), 1/z = n . (x, y, 1):
-    the gradient of 1/z over the rays gives n, and cos(theta) = 1 / (|n| |X|).
-
+    `dom` is the domain raster over (z / dz_step, cos(theta) * nc).
     counts per row: [0] corrected, [1] outside the domain, [2] no normal, [3] beyond 16 bits."""
     w = depth.shape[1]
-    nz, nt = dom.shape
-    tcap = math.tan(math.radians(theta_cap))
+    nz = dom.shape[0]
+    ccap = math.cos(math.radians(theta_cap))
     for i in range(row0, row1):
         c0 = 0
         c1 = 0
@@ -121,36 +155,24 @@ def correct_kernel(depth: Any, wi: Any, x: Any, y: Any, jac: Any, units: float, 
             out_depth[i, j] = raw
             if want_sigma:
                 out_sigma[i, j] = np.nan
-            out_theta[i, j] = np.nan
+            out_cos[i, j] = np.nan
             if raw == 0:
                 continue
-            w0 = wi[i, j]
-            if w0 <= 0.0:
-                w0 = 1.0 / (raw * units)
-            xu, xv, yu, yv = jac[i, j, 0], jac[i, j, 1], jac[i, j, 2], jac[i, j, 3]
-            oku, gu = _slope(wi, i, j, 0, 1, s, w0, min(EDGE_SHARE_MAX, EDGE_SLOPE * s * abs(xu)))
-            okv, gv = _slope(wi, i, j, 1, 0, s, w0, min(EDGE_SHARE_MAX, EDGE_SLOPE * s * abs(yv)))
-            if not (oku and okv):
-                c2 += 1
-                continue
-            det = xu * yv - xv * yu
-            gx = (yv * gu - yu * gv) / det
-            gy = (xu * gv - xv * gu) / det
-            x0 = x[i, j]
-            y0 = y[i, j]
-            nzc = w0 - gx * x0 - gy * y0
-            nn = math.sqrt(gx * gx + gy * gy + nzc * nzc)
-            cosv = w0 / (nn * math.sqrt(x0 * x0 + y0 * y0 + 1.0))
-            cosv = min(cosv, 1.0)
-            theta = math.degrees(math.acos(cosv))
-            out_theta[i, j] = theta
+            c = coarse[i // sub, j // sub]
+            if not c >= 0.0:
+                c = _cos_at(wi, x, y, jac, i, j, s)
+                if not c >= 0.0:
+                    c2 += 1
+                    continue
+            out_cos[i, j] = c
             zm = raw * units
             iz = int(zm / dz_step)
-            it = int(theta / dt_step)
-            if iz >= nz or it >= nt or dom[iz, it] == 0:
+            ic = min(int(c * nc), nc - 1)
+            if iz >= nz or dom[iz, ic] == 0:
                 c1 += 1
                 continue
-            tn = math.tan(math.radians(theta)) if theta < theta_cap else tcap
+            cc = max(c, ccap)
+            tn = math.sqrt(1.0 - cc * cc) / cc
             zc = zm
             for _ in range(iterate):   # z_ref = z_m - b(z_ref): a fixed point, two steps suffice
                 zc = zm - _basis_value(cb, zc, tn)
@@ -170,7 +192,11 @@ def correct_kernel(depth: Any, wi: Any, x: Any, y: Any, jac: Any, units: float, 
 
 
 def ray_jacobian(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
-    """dx/du, dx/dv, dy/du, dy/dv of the rays per pixel (H x W x 4; a pinhole's are constant)."""
+    """dx/du, dx/dv, dy/du, dy/dv of the rays per pixel (H x W x 4). A pinhole's (rays broadcast
+    from a row and a column) are one constant, broadcast: no 30 MB array to stream per frame."""
+    if x.strides[0] == 0 and y.strides[1] == 0 and x.shape[1] > 1 and y.shape[0] > 1:
+        c = np.array([x[0, 1] - x[0, 0], 0.0, 0.0, y[1, 0] - y[0, 0]])
+        return np.broadcast_to(c, (*x.shape, 4))
     xv, xu = np.gradient(np.asarray(x, dtype=np.float64))
     yv, yu = np.gradient(np.asarray(y, dtype=np.float64))
     return np.ascontiguousarray(np.stack([xu, xv, yu, yv], axis=-1))
@@ -185,18 +211,19 @@ def inverse_depth(zs: NDArray[np.float32]) -> NDArray[np.float32]:
 
 class Corrector:
     """The model made ready for one stream: coefficient vectors, the domain raster, the rays; the
-    kernel runs in row bands on `threads` threads (it releases the GIL)."""
+    kernels run in row bands on `threads` threads (they release the GIL)."""
 
     def __init__(self, model: ErrorModel, x: NDArray[np.float64], y: NDArray[np.float64], units_m: float,
                  out_units_m: float, threads: int = 2) -> None:
         self.cb = model.bias.full()
         self.cs = model.sigma.full()
-        self.dom, self.dz, self.dt = model.domain.raster()
+        self.dom, self.dz, self.nc = model.domain.cos_raster()
         self.x, self.y = x, y
         self.jac = ray_jacobian(x, y)
         self.units = float(units_m)
         self.out_units = float(out_units_m)
         self.stride = stride_for(x.shape[1])
+        self.sub = max(1, self.stride // 4)
         self.threads = max(1, threads)
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
 
@@ -204,26 +231,40 @@ class Corrector:
         if self._pool is not None:
             self._pool.shutdown()
 
+    def _bands(self, fn: Any, n: int) -> None:
+        if self._pool is None:
+            fn(0, n)
+            return
+        edges = np.linspace(0, n, 2 * self.threads + 1).astype(int)
+        list(self._pool.map(fn, edges[:-1], edges[1:]))
+
     def __call__(self, depth: NDArray[np.uint16], want_sigma: bool
                  ) -> tuple[NDArray[np.uint16], NDArray[np.float32], NDArray[np.float32], NDArray[np.int64]]:
+        """(corrected depth, sigma or a 1x1 placeholder, cos(inclination), counts)."""
         h, w = depth.shape
         wi = inverse_depth(smoothed_depth(depth, self.units, smooth_for(self.stride)))
+        sub = self.sub
+        coarse = np.empty((-(-h // sub), -(-w // sub)), np.float64)
+        self._bands(lambda r0, r1: normals_kernel(wi, self.x, self.y, self.jac, self.stride, sub, coarse,
+                                                  r0, r1), coarse.shape[0])
         out = np.empty((h, w), np.uint16)
         sig = np.empty((h, w) if want_sigma else (1, 1), np.float32)
-        theta = np.empty((h, w), np.float32)
+        cos = np.empty((h, w), np.float32)
         counts = np.zeros((h, 4), np.int64)
         src = depth
         if self.out_units != self.units:   # a coarser source: correct in the output's units
             src = np.clip(np.rint(depth.astype(np.float64) * (self.units / self.out_units)), 0, 65535
                           ).astype(np.uint16)
-        def band(r0: int, r1: int) -> None:
-            correct_kernel(src, wi, self.x, self.y, self.jac, self.out_units, self.stride, self.cb, self.cs,
-                           self.dom, self.dz, self.dt, THETA_CAP_DEG, 2, out, sig, theta, want_sigma, counts,
-                           r0, r1)
 
-        if self._pool is None:
-            band(0, h)
-        else:
-            edges = np.linspace(0, h, 2 * self.threads + 1).astype(int)
-            list(self._pool.map(band, edges[:-1], edges[1:]))
-        return out, sig, theta, counts.sum(axis=0)
+        def band(r0: int, r1: int) -> None:
+            correct_kernel(src, wi, self.x, self.y, self.jac, coarse, sub, self.out_units, self.stride,
+                           self.cb, self.cs, self.dom, self.dz, self.nc, THETA_CAP_DEG, 2, out, sig, cos,
+                           want_sigma, counts, r0, r1)
+
+        self._bands(band, h)
+        return out, sig, cos, counts.sum(axis=0)
+
+    @staticmethod
+    def degrees(cos: NDArray[np.float32]) -> NDArray[np.float32]:
+        """Inclination in degrees from the kernel's cos(inclination) image (NaN stays NaN)."""
+        return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).astype(np.float32)

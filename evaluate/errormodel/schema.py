@@ -41,6 +41,7 @@ THETA_CAP_DEG = 85.0
 # the domain raster `correct` looks pixels up in (fine enough to follow any table's cells)
 RASTER_Z_STEP_M = 0.005
 RASTER_THETA_STEP_DEG = 0.5
+RASTER_COS_STEPS = 2048          # 0.03 deg at 10 deg, 0.005 deg at 70 deg
 
 F64 = NDArray[np.float64]
 
@@ -131,6 +132,18 @@ class Domain:
         tc = (np.arange(nt) + 0.5) * RASTER_THETA_STEP_DEG
         r = self.contains(zc[:, None], tc[None, :]).astype(np.uint8)
         return r, RASTER_Z_STEP_M, RASTER_THETA_STEP_DEG
+
+    def cos_raster(self) -> tuple[NDArray[np.uint8], float, int]:
+        """The domain as a lookup raster over (z / RASTER_Z_STEP_M, cos(theta) x RASTER_COS_STEPS)
+        (`correct`'s kernel has cos(theta) per pixel: no arccos per pixel). A raster cell is inside
+        when its centre is."""
+        zmax = float(self.boxes[:, 1].max()) if len(self.boxes) else 0.0
+        nz = math.ceil(zmax / RASTER_Z_STEP_M) + 1
+        zc = (np.arange(nz) + 0.5) * RASTER_Z_STEP_M
+        cc = (np.arange(RASTER_COS_STEPS) + 0.5) / RASTER_COS_STEPS
+        tc = np.degrees(np.arccos(cc))
+        r = self.contains(zc[:, None], tc[None, :]).astype(np.uint8)
+        return r, RASTER_Z_STEP_M, RASTER_COS_STEPS
 
     @property
     def z_range_m(self) -> tuple[float, float]:
