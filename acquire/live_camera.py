@@ -578,8 +578,13 @@ class LiveCamera:
         self._apply_held_table()
 
     def _apply_held_table(self) -> None:
-        if self._held is None or self._table_on_device:
+        """The session's table, set again after every pipeline start, as the Viewer does: whether
+        a table set in RAM outlives `pipeline.stop()` is not documented, and a tare after an OCC
+        that ran on the flash table would replace the OCC result without a word. Logged
+        (`calibration_reapplied`) when the device is known to have lost it (reset, replug)."""
+        if self._held is None:
             return
+        lost = not self._table_on_device
         try:
             self._acd().set_calibration_table(list(self._held))
         except RuntimeError as exc:
@@ -587,7 +592,8 @@ class LiveCamera:
                    "the capture stops rather than record with another calibration")
             raise CameraError(msg) from exc
         self._table_on_device = True
-        self._log("calibration_reapplied")
+        if lost:
+            self._log("calibration_reapplied")
 
     def _stream_info(self, streams: Streams) -> StreamInfo:
         import pyrealsense2 as rs

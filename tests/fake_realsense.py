@@ -159,7 +159,8 @@ class FakeUnit:
                  projector_offset_c: float = 3.0, depth_origin_mm: float = 4.55,
                  glass_to_target_mm: float = 1000.0, depth_bias: float = 0.006, on_chip_health: float = 0.42,
                  reset_delays_s: tuple[float, float] = (0.05, 0.3), enumerate_s: float = 0.0,
-                 flaps: int = 0, real_time: bool = False, speed: float = 1.0) -> None:
+                 flaps: int = 0, real_time: bool = False, speed: float = 1.0,
+                 ram_on_stop: str = "kept") -> None:
         self.serial, self.name, self.product_id, self.product_line = serial, name, product_id, product_line
         self.usb, self.firmware, self.advanced, self.metadata = usb, firmware, advanced_mode, metadata
         self.scene, self.hfov_deg = scene, hfov_deg
@@ -178,6 +179,10 @@ class FakeUnit:
         # the older on-demand mode, one frameset per fetch (kept for tests that place a fault on
         # an exact frameset)
         self.real_time, self.speed = real_time, speed
+        # a table set in RAM after `pipeline.stop()`: 'kept' or 'lost'. The sources do not say
+        # (set_calibration_table sends CALIBRECALC, d400-auto-calibration.cpp; the Viewer sets the
+        # table again after each restart, common/on-chip-calib.cpp): the live path must hold either way
+        self.ram_on_stop = ram_on_stop
         # the next self-calibrations' outcomes: 'ok' or a CALIBRATION_FAILURES key
         self.verdicts: list[str] = []
         self.flash = encode_table(depth_bias, on_chip_health, serial)
@@ -729,6 +734,8 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
             with world.lock:
                 if u.pipeline is self:
                     u.pipeline = None
+                    if u.ram_on_stop == "lost":
+                        u.ram = None
                 world.log("pipeline.stop", serial=u.serial, streams=list(self.streams))
 
         @property
@@ -816,7 +823,13 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
 
         def set_calibration_table(self, table: list[int]) -> None:
             u = self.dev._check()
-            decode_table(table)
+            try:
+                decode_table(table)
+            except RuntimeError:
+                # the firmware refuses it and the SDK swallows that (LOG_ERROR "Flashing
+                # coefficients_table_id failed", d400-auto-calibration.cpp): RAM stays as it was
+                world.log("set_calibration_table_rejected")
+                return
             u.ram = list(table)
             u.last_set = list(table)
             world.log("set_calibration_table", bias=decode_table(table)["bias"], streams=u.describe_streams())

@@ -239,3 +239,28 @@ def test_a_warmup_recovers_from_a_stall_and_an_unplug(fake: Any, tmp_path: Path,
     assert [f["event"] for f in summary["faults"]] == ["stalled", "disconnected"]
     assert "hardware_reset" in [e["event"] for e in summary["device_events"]]
     assert Session.open(tmp_path / "s").data["warmup"]["faults"] == summary["faults"]
+
+
+@pytest.mark.parametrize("ram_on_stop", ["kept", "lost"])
+def test_the_tare_runs_on_the_occ_table_whether_ram_outlives_a_stop_or_not(fake: Any,
+                                                                           ram_on_stop: str) -> None:
+    """OCC then tare: the tare's switch into the calibration mode stops the pipeline. Whether a
+    RAM table survives `pipeline.stop()` is not documented; the session's table is set again after
+    every start, so the tare starts from the OCC table (its health, 0.05 in the double) and the
+    table active at the end is built on it, either way."""
+    from depthstation.acquire.calibrate import run_calibration
+    from depthstation.core.protocol import Calibration
+
+    _world, unit = fake(depth_bias=0.02, on_chip_health=0.5, ram_on_stop=ram_on_stop)
+    cam = camera()
+    cam.start(PROTO_STREAMS)
+    rec = run_calibration(cam, Calibration(on_chip=True, tare=True, tare_distance_m=1.0),
+                          confirm=lambda q: True, say=lambda m: None)
+    assert [s["applied"] for s in rec["steps"]] == [True, True]
+    active = frs.decode_table(unit.active_table())
+    assert active["health"] == pytest.approx(0.05)  # built on the OCC table, not the flash one (0.5)
+    assert abs(active["bias"]) < 0.001  # and the tare's correction is what streams now
+    cam.stop()
+    cam.start(PROTO_STREAMS)
+    assert frs.decode_table(unit.active_table()) == active  # set again after the restart
+    cam.stop()
