@@ -107,7 +107,7 @@ def correct_recording(sequence: Path, model_path: Path, out: Path, *, sigma: boo
         raise InputError(rec.path, "holds no depth frame to correct")
     check_lenses(rec, ("depth",))
     for note in check_camera(model, Path(model_path), rec):
-        warn(note, str(model_path), "model-camera")
+        warn(note, str(model_path), "error-model-camera")
     info = rec.info
     out_units = min(info.depth_units_m, 0.001)
     out_info: StreamInfo = replace(info, depth_units_m=out_units) if out_units != info.depth_units_m else info
@@ -184,5 +184,5 @@ def correct_recording(sequence: Path, model_path: Path, out: Path, *, sigma: boo
         warn(f"{100 * share:.1f} % of the depth pixels lie outside the model's domain (distance "
              f"{model.domain.z_range_m[0]:.2f}-{model.domain.z_range_m[1]:.2f} m, inclination "
              f"{model.domain.theta_range_deg[0]:.0f}-{model.domain.theta_range_deg[1]:.0f} deg, measured "
-             "cells only): they keep their raw depth", str(rec.path), "model-domain")
+             "cells only): they keep their raw depth", str(rec.path), "error-model-domain")
     return summary
