@@ -160,7 +160,7 @@ class FakeUnit:
                  glass_to_target_mm: float = 1000.0, depth_bias: float = 0.006, on_chip_health: float = 0.42,
                  reset_delays_s: tuple[float, float] = (0.05, 0.3), enumerate_s: float = 0.0,
                  flaps: int = 0, real_time: bool = False, speed: float = 1.0,
-                 ram_on_stop: str = "kept") -> None:
+                 ram_on_stop: str = "kept", global_time: bool = True) -> None:
         self.serial, self.name, self.product_id, self.product_line = serial, name, product_id, product_line
         self.usb, self.firmware, self.advanced, self.metadata = usb, firmware, advanced_mode, metadata
         self.scene, self.hfov_deg = scene, hfov_deg
@@ -183,6 +183,12 @@ class FakeUnit:
         # (set_calibration_table sends CALIBRECALC, d400-auto-calibration.cpp; the Viewer sets the
         # table again after each restart, common/on-chip-calib.cpp): the live path must hold either way
         self.ram_on_stop = ram_on_stop
+        # timestamp domain (src/ds/ds-timestamp.cpp, src/global_timestamp_reader.cpp): with frame
+        # metadata the device's clock ('hardware_clock', ms since it booted), mapped to the host's
+        # epoch when global time is on ('global_time', the default); without metadata the host's
+        # clock at arrival ('system_time')
+        self.global_time = global_time
+        self.booted = time.monotonic()
         # the next self-calibrations' outcomes: 'ok' or a CALIBRATION_FAILURES key
         self.verdicts: list[str] = []
         self.flash = encode_table(depth_bias, on_chip_health, serial)
@@ -226,6 +232,9 @@ class FakeUnit:
         if self.power_on is None:
             self.power_on = self.world.clock()
         return self.temperature(self.world.clock() - self.power_on)
+
+    def domain(self) -> str:
+        return "system_time" if not self.metadata else "global_time" if self.global_time else "hardware_clock"
 
     def enumerating(self) -> bool:
         return time.monotonic() < self.enumerated_at + self.enumerate_s
@@ -329,8 +338,9 @@ class FakeRealSense:
 
 class FakeFrame:
     def __init__(self, unit: FakeUnit, kind: str, index: int, number: int, host_number: int, ts_ms: float,
-                 data: Any, profile: Any, fresh: bool = True) -> None:
+                 data: Any, profile: Any, fresh: bool = True, arrival_ms: float | None = None) -> None:
         self.unit, self.kind, self.index, self.fresh = unit, kind, index, fresh
+        self.arrival_ms = time.time() * 1000.0 if arrival_ms is None else arrival_ms
         self.number, self.host_number, self.ts_ms = number, host_number, ts_ms
         self.data, self.profile = data, profile
 
@@ -348,7 +358,9 @@ class FakeFrame:
             raise RuntimeError(f"metadata value {v.name} is not supported")
         if v.name == "frame_counter":
             return self.number
-        if v.name in ("frame_timestamp", "sensor_timestamp", "time_of_arrival", "backend_timestamp"):
+        if v.name in ("time_of_arrival", "backend_timestamp"):
+            return int(self.arrival_ms)  # host epoch ms
+        if v.name in ("frame_timestamp", "sensor_timestamp"):
             return int(self.ts_ms * 1000)
         return 1
 
@@ -365,7 +377,7 @@ class FakeFrame:
         return self.ts_ms
 
     def get_frame_timestamp_domain(self) -> Member:
-        return timestamp_domain.global_time  # type: ignore[attr-defined,no-any-return]
+        return getattr(timestamp_domain, self.unit.domain())  # type: ignore[no-any-return]
 
     def get_profile(self) -> Any:
         return self.profile
@@ -658,7 +670,7 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
             return self.frames[0].ts_ms
 
         def get_frame_timestamp_domain(self) -> Member:
-            return timestamp_domain.global_time  # type: ignore[attr-defined,no-any-return]
+            return self.frames[0].get_frame_timestamp_domain()
 
     class pipeline:
         def __init__(self, ctx: Any = None) -> None:
@@ -792,7 +804,12 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
                 u.counters[kind] += 1 + int(fault.get("drop", {}).get(kind, 0))
                 u.host_counters[kind] += 1
                 n = u.counters[kind]
-                ts = 1.7e12 + n * 1000.0 / fps
+                if u.domain() == "hardware_clock":
+                    ts = (time.monotonic() - u.booted) * 1000.0
+                elif self.threaded or u.domain() == "system_time":
+                    ts = time.time() * 1000.0
+                else:  # on demand: frame-paced times on the host's epoch
+                    ts = 1.7e12 + n * 1000.0 / fps
                 data = _frame_data(u, kind, intrinsics_of(u, w, h))
                 f = FakeFrame(u, kind, index, n, u.host_counters[kind], ts, data,
                               video_stream_profile(u, *key))

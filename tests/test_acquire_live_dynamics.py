@@ -13,6 +13,8 @@ from typing import Any
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
+import itertools
+
 import fake_realsense as frs
 from test_acquire_live import camera, run_take
 
@@ -264,3 +266,27 @@ def test_the_tare_runs_on_the_occ_table_whether_ram_outlives_a_stop_or_not(fake:
     cam.start(PROTO_STREAMS)
     assert frs.decode_table(unit.active_table()) == active  # set again after the restart
     cam.stop()
+
+
+@pytest.mark.parametrize(("unit_kw", "domain"), [
+    ({}, "global_time"),
+    ({"global_time": False}, "hardware_clock (time_of_arrival)"),
+    ({"metadata": False}, "system_time"),
+])
+def test_each_timestamp_domain_gives_a_host_epoch_time(fake: Any, unit_kw: dict[str, Any],
+                                                      domain: str) -> None:
+    """global_time and system_time are host-epoch ms already; hardware_clock counts from the
+    device's boot, so the frame's time of arrival at the host stands in (only global_time was used
+    as such; system_time fell back to the read time)."""
+    _world, _unit = fake(**unit_kw)
+    cam = camera()
+    cam.start(PROTO_STREAMS)
+    frames = [cam.wait_for_frames(1.0) for _ in range(4)]
+    cam.stop()
+    now = time.time_ns()
+    assert all(f.metadata["timestamp_domain"] == domain for f in frames)
+    assert all(abs(now - f.timestamp_ns) < 5e9 for f in frames)  # the host's epoch, not the device's boot
+    if "time_of_arrival" in domain:
+        assert all(f.timestamp_ns == round(f.metadata["time_of_arrival"] * 1e6) for f in frames)
+    steps = [b.timestamp_ns - a.timestamp_ns for a, b in itertools.pairwise(frames)]
+    assert all(s > 0 for s in steps)
