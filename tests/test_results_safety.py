@@ -204,3 +204,21 @@ def test_full_disk_db3_simulation_fails_loudly(tmp_path: Path) -> None:
     assert "simulated into" not in r.stdout and "Traceback" not in r.stderr
     assert "internal error" not in r.stderr and ("disk full" in r.stderr or "no space left" in r.stderr)
     assert not out.exists() or not (out / "result.json").exists()
+
+
+def test_a_folder_that_appears_meanwhile_keeps_the_finished_result_where_the_error_says(tmp_path: Path) -> None:
+    """A folder someone else fills while the run writes is not replaced; the finished result is kept
+    under the visible name the error gives (it used to be deleted right after being announced)."""
+    from depthstation.core.errors import InputError
+    from depthstation.core.results import RESULT_MARKER, result_folder
+
+    out = tmp_path / "res"
+    with pytest.raises(InputError) as caught, result_folder(out) as tmp:
+        (tmp / "table.csv").write_text("a,b\n1,2\n")
+        out.mkdir()
+        (out / "theirs.txt").write_text("written by another program meanwhile")
+    kept = Path(str(caught.value).rsplit("left in ", 1)[1])
+    assert kept.is_dir() and not kept.name.startswith(".")
+    assert (kept / "table.csv").read_text() == "a,b\n1,2\n" and (kept / RESULT_MARKER).is_file()
+    assert (out / "theirs.txt").read_text() == "written by another program meanwhile"
+    assert not list(tmp_path.glob(".res.partial-*"))

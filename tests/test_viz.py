@@ -158,3 +158,24 @@ def test_view_rebuilds_a_recording_older_than_its_folder(tmp_path: Path) -> None
     made = again.stat().st_mtime
     os.utime(scan / "grid.npz", (1, 1))  # nothing newer than the recording: opened as it is
     assert view_path(scan, spawn=False).stat().st_mtime == made
+
+
+def test_view_writes_its_recording_under_one_temporary_name(tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """`view` hands the final name to the recording, which alone writes it under a temporary name
+    and renames it (it was `..view.rrd.partial-N.partial-N`, renamed twice)."""
+    from tests.test_station_compare import write_scan
+
+    made: list[Path] = []
+    real_new_file = viz.new_file
+
+    def recording_new_file(path: Path, *, force: bool = False) -> Path:
+        made.append(real_new_file(path, force=force))
+        return made[-1]
+
+    monkeypatch.setattr(viz, "new_file", recording_new_file)
+    scan = write_scan(tmp_path / "scan", 0.004)
+    rrd = view_path(scan, spawn=False)
+    assert rrd == scan / "view.rrd" and rrd.is_file()
+    assert [p.name.count(".partial-") for p in made] == [1] and made[0].parent == scan
+    assert not [p for p in scan.iterdir() if ".partial-" in p.name]

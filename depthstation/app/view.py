@@ -44,8 +44,9 @@ def _describe(folder: Path, info: dict[str, Any], parts: list[str]) -> str:
     return "\n".join(lines)
 
 
-def folder_to_rrd(folder: Path, rrd: Path) -> Path:
-    """Convert what a result folder holds into an `.rrd` with a blueprint and a description."""
+def folder_to_rrd(folder: Path, rrd: Path, *, force: bool = False) -> Path:
+    """Convert what a result folder holds into an `.rrd` with a blueprint and a description (written
+    under a temporary name by the recording and renamed when complete; `force` replaces an earlier one)."""
     import rerun as rr
 
     folder = Path(folder)
@@ -63,7 +64,7 @@ def folder_to_rrd(folder: Path, rrd: Path) -> Path:
             raise InputError(folder / EXPLAIN_FILE, f"broken JSON ({exc})") from exc
     parts: list[str] = []
     views: list[Any] = []
-    with viz.recording(f"depthstation-view-{folder.name}", viz.RerunTarget(rrd=rrd)) as rec:
+    with viz.recording(f"depthstation-view-{folder.name}", viz.RerunTarget(rrd=rrd, force=force)) as rec:
         if has[GRID_FILE]:
             g = Grid.load(folder / GRID_FILE)
             enough = g.count >= MIN_COUNT_VIEW
@@ -171,9 +172,7 @@ def view_path(path: Path, *, spawn: bool = True, serve: bool = False, rrd: Path 
                 stderr_console.print(f"{target} is older than the result it shows; rebuilding it")
                 force = True
             check_writable(target.parent, rrd is None)
-            tmp = new_file(target, force=force)
-            folder_to_rrd(path, tmp)
-            finish_file(tmp, target)
+            folder_to_rrd(path, target, force=force)
             stderr_console.print(f"recording of {path} written to {target}")
     else:
         raise InputError(path, "expected a result folder or an .rrd file")

@@ -336,16 +336,21 @@ def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path
         tmp.mkdir()
         with ensure_collecting():
             yield tmp
-        if _non_empty(out) and not force:
-            raise InputError(out, f"appeared while this run was writing; the new result is left in {tmp}")
-        if force:
-            try:
-                check_replaceable(out, inputs, kind)
-            except InputError as exc:
-                raise InputError(out, f"{exc.problem}; the new result is left in {tmp}") from exc
         (tmp / RESULT_MARKER).write_text(json.dumps({"kind": kind or _kind_of(tmp),
                                                      "command_line": COMMAND_LINE.get(),
                                                      "files": _listing(tmp)}) + "\n")
+        problem = None
+        if _non_empty(out) and not force:
+            problem = "appeared while this run was writing"
+        elif force:
+            try:
+                check_replaceable(out, inputs, kind)
+            except InputError as exc:
+                problem = exc.problem
+        if problem is not None:  # the finished result is kept beside `out` under a visible name
+            kept = out.parent / f"{out.name}.new-{os.getpid()}"
+            tmp.rename(kept)
+            raise InputError(out, f"{problem}; the new result is left in {kept}")
         old = out.parent / f".{out.name}.replaced-{os.getpid()}"
         if out.exists():
             out.rename(old)
