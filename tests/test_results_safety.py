@@ -206,7 +206,7 @@ def test_full_disk_db3_simulation_fails_loudly(tmp_path: Path) -> None:
     assert not out.exists() or not (out / "result.json").exists()
 
 
-def test_a_folder_that_appears_meanwhile_keeps_the_finished_result_where_the_error_says(tmp_path: Path) -> None:
+def test_a_folder_appearing_meanwhile_keeps_the_result_where_the_error_says(tmp_path: Path) -> None:
     """A folder someone else fills while the run writes is not replaced; the finished result is kept
     under the visible name the error gives (it used to be deleted right after being announced)."""
     from depthstation.core.errors import InputError

@@ -20,9 +20,7 @@ from depthstation.core.results import (
     RESULT_FILE,
     RESULT_MARKER,
     STANDPOINTS_FILE,
-    finish_file,
     is_recording_rrd,
-    new_file,
     read_result_info,
     read_standpoints,
 )
