@@ -47,8 +47,8 @@ from depthstation.core.protocol import Streams
 # temperature frame metadata, and these options answer only while streaming (whole degrees)
 TEMPERATURE_OPTIONS = {"asic_temperature": "asic", "projector_temperature": "projector"}
 # camera_info member -> key in device_info() (the rs names; the older short keys are kept beside them)
-CAMERA_INFO = ("name", "serial_number", "firmware_version", "product_id", "product_line",
-               "usb_type_descriptor", "connection_type", "advanced_mode")
+CAMERA_INFO = ("name", "serial_number", "firmware_version", "recommended_firmware_version", "product_id",
+               "product_line", "usb_type_descriptor", "connection_type", "advanced_mode")
 LEGACY_INFO_KEYS = {"serial_number": "serial", "firmware_version": "firmware", "usb_type_descriptor": "usb"}
 
 # Intel's self-calibration mode (rs-on-chip-calib.cpp, depth_auto_calibration_example.py, Viewer)
@@ -61,6 +61,7 @@ ON_CHIP_JSON = '{"calib type": 0, "speed": 3, "scan parameter": 0, "adjust both 
 TARE_JSON = '{"average step count": 20, "step count": 20, "accuracy": 2, "scan parameter": 0, ' \
             '"data sampling": 0}'
 TARE_GROUND_TRUTH_MM = (60.0, 10000.0)  # librealsense rs_device.h
+RESTART_PAUSE_S = 0.6  # a start that fails right after a stop is tried once more after this
 
 
 def intrinsics_from_rs(intr: Any) -> Intrinsics:
@@ -136,6 +137,28 @@ def stream_requests(streams: Streams) -> list[tuple[str, int, int, str, int]]:
     if streams.infrared:
         out.append(("infrared", w, h, "y8", fps))
     return out
+
+
+# firmware: the thermal compensation loop needs 5.12.11 or later; Intel's recommended D455 firmware
+# for the SDK the station is built on (librealsense release notes); compared and recorded
+THERMAL_LOOP_FIRMWARE = (5, 12, 11)
+RECOMMENDED_D455_FIRMWARE = "5.13.0.50"
+
+
+def _version(text: str) -> tuple[int, ...]:
+    return tuple(int(p) for p in text.split(".") if p.isdigit())
+
+
+def firmware_check(identity: dict[str, str]) -> dict[str, Any]:
+    """The device's firmware against the thermal loop's minimum and the recommended version (the
+    SDK's `recommended_firmware_version` where it says one)."""
+    have = identity.get("firmware_version", "")
+    rec = identity.get("recommended_firmware_version") or RECOMMENDED_D455_FIRMWARE
+    v = _version(have)
+    return {"firmware": have or None, "recommended": rec,
+            "thermal_loop_min": ".".join(map(str, THERMAL_LOOP_FIRMWARE)),
+            "thermal_loop_ok": bool(v) and v[:3] >= THERMAL_LOOP_FIRMWARE,
+            "at_least_recommended": bool(v) and v >= _version(rec)}
 
 
 def frame_time_ns(fs: Any, ref: Any) -> tuple[int, str]:
@@ -512,7 +535,14 @@ class LiveCamera:
         pipe = rs.pipeline(self._context())
         self._feed = FrameFeed({r[0] for r in wanted if r[0] in ("depth", "color")}) if feed else None
         try:
-            profile = pipe.start(cfg) if self._feed is None else pipe.start(cfg, self._feed)
+            try:
+                profile = pipe.start(cfg) if self._feed is None else pipe.start(cfg, self._feed)
+            except RuntimeError:
+                # right after a stop the device may still be busy: the Viewer waits 600 ms and
+                # tries once more (common/on-chip-calib.cpp restarts)
+                time.sleep(RESTART_PAUSE_S)
+                pipe = rs.pipeline(self._context())
+                profile = pipe.start(cfg) if self._feed is None else pipe.start(cfg, self._feed)
         except RuntimeError as exc:
             self._feed = None
             raise CameraError(f"cannot start {what} on {self._label()}: {exc}") from exc
@@ -575,7 +605,18 @@ class LiveCamera:
                                    f"'{streams.preset}' cannot be set")
         if ds.supports(rs.option.emitter_enabled):
             ds.set_option(rs.option.emitter_enabled, 1.0 if streams.emitter else 0.0)
+        self._pin_emitter_on_off(ds)
         self._apply_held_table()
+
+    def _pin_emitter_on_off(self, ds: Any) -> None:
+        """`emitter_on_off` (the emitter on every other frame) persists in the device until a reset:
+        left on by another program it blanks the pattern of every other depth frame. Pinned off."""
+        import pyrealsense2 as rs
+
+        opt = getattr(rs.option, "emitter_on_off", None)
+        if opt is not None and ds.supports(opt) and ds.get_option(opt) != 0.0:
+            ds.set_option(opt, 0.0)
+            self._log("emitter_on_off_pinned_off")
 
     def _apply_held_table(self) -> None:
         """The session's table, set again after every pipeline start, as the Viewer does: whether
@@ -619,7 +660,8 @@ class LiveCamera:
             infrared_intrinsics=None if iprof is None else intrinsics_from_rs(iprof.get_intrinsics()),
             baseline_m=baseline,
             fps=float(streams.fps),
-            device={**self.device_info(), "preset": streams.preset, "emitter": streams.emitter},
+            device={**self.device_info(), "preset": streams.preset, "emitter": streams.emitter,
+                    "options": read_options(ds), "firmware_check": firmware_check(self._identity)},
         )
 
     def wait_for_frames(self, timeout_s: float = 5.0) -> FrameSet:
@@ -855,6 +897,7 @@ class LiveCamera:
             raise CameraError(msg)
         if ds.supports(rs.option.emitter_enabled):
             ds.set_option(rs.option.emitter_enabled, 1.0)
+        self._pin_emitter_on_off(ds)
         self._apply_held_table()
         ok, _ = self._pipe.try_wait_for_frames(int(self.first_frame_timeout_s * 1000))
         if not ok:
@@ -882,7 +925,10 @@ class LiveCamera:
                 table, health = self._acd().run_tare_calibration(gt_mm, TARE_JSON, int(timeout_s * 1000))
             except RuntimeError as exc:
                 raise CalibrationFailed(f"tare calibration failed: {' '.join(str(exc).split())}") from exc
-        details = {"json": TARE_JSON, "ground_truth_mm": gt_mm, "mode": _describe(CALIBRATION_PROFILE),
+        # the SDK passes the ground truth to the firmware in whole mm (static_cast<uint32_t>(gt) * 100,
+        # d400-auto-calibration.cpp run_tare_calibration): what the device used is recorded beside it
+        details = {"json": TARE_JSON, "ground_truth_mm": gt_mm, "ground_truth_mm_used": float(int(gt_mm)),
+                   "mode": _describe(CALIBRATION_PROFILE),
                    "timeout_ms": int(timeout_s * 1000)}
         return CalibrationResult("tare", bytes(table), (float(health[0]), float(health[1])), details)
 

@@ -134,6 +134,25 @@ class Station:
             self.camera.real_time = True
         self.seed = seed
         self._hold_session_calibration()
+        self._record_settings(info)
+
+    def _record_settings(self, info: Any) -> None:
+        """The device's options (exposure, laser power, thermal compensation, emitter_on_off, ...)
+        and its firmware against the recommended one, per run in `camera_settings` (what the
+        depth of this run was made with); an old firmware without the thermal loop is a warning."""
+        dev = getattr(info, "device", None) or {}
+        if "options" not in dev and "firmware_check" not in dev:
+            return
+        fw = dev.get("firmware_check") or {}
+        runs = list(self.session.data.get("camera_settings") or [])
+        runs.append({"time_unix_s": time.time(), "usb": dev.get("usb_type_descriptor"),
+                     "options": dev.get("options"), "firmware_check": fw})
+        self.session.set("camera_settings", runs)
+        if fw and not fw.get("thermal_loop_ok"):
+            warn(f"firmware {fw.get('firmware')} of the camera is older than {fw.get('thermal_loop_min')}, "
+                 f"which the thermal compensation loop needs (recommended {fw.get('recommended')}): depth "
+                 "drifts more with temperature; update it with rs-fw-update or the Viewer",
+                 str(self.session.dir), "firmware-old")
 
     def _hold_session_calibration(self) -> None:
         """A table the session applied to RAM only is gone after a power cycle: set it again."""

@@ -78,7 +78,7 @@ camera_info = _enum("camera_info", [
 option = _enum("option", [
     "visual_preset", "emitter_enabled", "laser_power", "enable_auto_exposure", "exposure", "gain",
     "depth_units", "stereo_baseline", "asic_temperature", "projector_temperature",
-    "motion_module_temperature", "thermal_compensation", "frames_queue_size"])
+    "motion_module_temperature", "thermal_compensation", "frames_queue_size", "emitter_on_off"])
 stream = _enum("stream", ["any", "depth", "color", "infrared", "fisheye", "gyro", "accel"])
 format = _enum("format", ["any", "z16", "disparity16", "xyz32f", "yuyv", "rgb8", "bgr8", "rgba8", "bgra8",
                           "y8", "y16"])
@@ -211,7 +211,7 @@ class FakeUnit:
         self.options: dict[str, float] = {
             "emitter_enabled": 1.0, "laser_power": 150.0, "enable_auto_exposure": 1.0, "exposure": 33000.0,
             "gain": 16.0, "depth_units": 0.001, "stereo_baseline": 95.0, "thermal_compensation": 1.0,
-            "frames_queue_size": 16.0, "visual_preset": 1.0}
+            "frames_queue_size": 16.0, "visual_preset": 1.0, "emitter_on_off": 0.0}
         self.counters = {"depth": 0, "color": 0, "infrared": 0}
         self.host_counters = {"depth": 0, "color": 0, "infrared": 0}
         self.last_frames: dict[str, FakeFrame] = {}
@@ -449,6 +449,25 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
         def get_extrinsics_to(self, other: Any) -> extrinsics:
             return extrinsics()
 
+    class motion_stream_profile:
+        def __init__(self, s: str, fps: int) -> None:
+            self.s, self._fps = s, fps
+
+        def stream_type(self) -> Member:
+            return getattr(stream, self.s)  # type: ignore[no-any-return]
+
+        def format(self) -> Member:
+            return format.xyz32f  # type: ignore[attr-defined,no-any-return]
+
+        def fps(self) -> int:
+            return self._fps
+
+        def is_video_stream_profile(self) -> bool:
+            return False
+
+        def is_motion_stream_profile(self) -> bool:
+            return True
+
     class device:
         def __init__(self, unit: FakeUnit, generation: int) -> None:
             self.unit, self.generation = unit, generation
@@ -487,8 +506,10 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
             return sensor(self, "depth")
 
         def query_sensors(self) -> list[sensor]:
+            """Stereo module, RGB camera and, on a D455, the motion module (BMI055: gyro at 200 or
+            400 Hz, accel at 63 or 250 Hz; src/ds/d400/d400-motion.cpp): not video profiles."""
             self._check()
-            return [sensor(self, "depth"), sensor(self, "color")]
+            return [sensor(self, "depth"), sensor(self, "color"), sensor(self, "motion")]
 
         def is_connected(self) -> bool:
             return self.generation == self.unit.generation and self.unit.listed
@@ -499,6 +520,8 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
 
         def _names(self) -> list[str]:
             u = self.dev._check()
+            if self.kind == "motion":
+                return ["motion_module_temperature"]
             if self.kind != "depth":
                 return ["enable_auto_exposure", "exposure", "gain"]
             names = [k for k in u.options if k != "visual_preset"]
@@ -520,6 +543,8 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
                     raise RuntimeError("query is available during streaming only")
                 t = u.temperature_c() + (u.projector_offset_c if opt.name == "projector_temperature" else 0.0)
                 return float(math.trunc(t))  # int8 whole degrees in the firmware
+            if opt.name == "motion_module_temperature":
+                return float(u.temperature_c())
             return u.options[opt.name]
 
         def set_option(self, opt: Member, value: float) -> None:
@@ -546,8 +571,11 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
                 raise RuntimeError(f"option '{_title(opt.name)}' has no value descriptions")
             return PRESETS[int(value)]
 
-        def get_stream_profiles(self) -> list[video_stream_profile]:
+        def get_stream_profiles(self) -> list[Any]:
             u = self.dev._check()
+            if self.kind == "motion":
+                imu = (("gyro", (200, 400)), ("accel", (63, 250)))
+                return [motion_stream_profile(s, f) for s, rates in imu for f in rates]
             keep = ("depth", "infrared") if self.kind == "depth" else ("color",)
             return [video_stream_profile(u, *p) for p in profile_table(u.usb) if p[0] in keep]
 

@@ -290,3 +290,30 @@ def test_each_timestamp_domain_gives_a_host_epoch_time(fake: Any, unit_kw: dict[
         assert all(f.timestamp_ns == round(f.metadata["time_of_arrival"] * 1e6) for f in frames)
     steps = [b.timestamp_ns - a.timestamp_ns for a, b in itertools.pairwise(frames)]
     assert all(s > 0 for s in steps)
+
+
+def test_settings_and_firmware_are_recorded_and_emitter_on_off_pinned(fake: Any, tmp_path: Path) -> None:
+    """emitter_on_off left on by another program (it blanks every other frame's pattern) is pinned
+    off; the options the depth was made with and the firmware against the thermal loop's minimum
+    go into session.json; an old firmware is a warning. The motion module is there and offers no
+    video profile the checks could mistake for one."""
+    from depthstation.acquire.station import Station
+    from depthstation.core.capture.session import Session
+    from depthstation.core.run_warnings import collecting
+
+    world, unit = fake(firmware="5.12.7.100")
+    unit.options["emitter_on_off"] = 1.0
+    proto = tmp_path / "p.toml"
+    proto.write_text(SESSION_TOML)
+    with collecting() as warned:
+        st = Station("live", str(proto), tmp_path / "s", False, 0, False)
+        st.close()
+    assert unit.options["emitter_on_off"] == 0.0
+    assert "emitter_on_off_pinned_off" in [e["event"] for e in st.camera.take_events()]
+    run = Session.open(tmp_path / "s").data["camera_settings"][0]
+    assert run["options"]["emitter_on_off"] == 0.0 and run["options"]["laser_power"] == 150.0
+    assert run["firmware_check"]["thermal_loop_ok"] is False and run["usb"] == "3.2"
+    assert any(w.code == "firmware-old" for w in warned)
+    rs = world.module
+    sensors = rs.context().query_devices()[0].query_sensors()
+    assert any(not p.is_video_stream_profile() for p in sensors[-1].get_stream_profiles())
