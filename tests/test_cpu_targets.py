@@ -3,17 +3,18 @@ numba compiles them for another CPU (docs/conventions.md, "Same result on every 
 
 Why: numba compiles for the CPU it runs on. With fast maths LLVM contracted a * b + c into an FMA
 where the CPU has one and reordered sums to its vector width, and the scan pass put a few pixels
-near a bin edge in the neighbouring bin on an AVX2 machine without AVX-512. Here this module runs
-as a script once per target, in a subprocess with its own numba cache (a cache compiled for one
-target must not serve another): the host, Haswell's features (AVX2 and FMA, no AVX-512; the
-features string emptied, else numba adds the host's) and generic x86-64 (SSE2, no FMA), the last
-also with the C library's FMA and AVX2 variants (cos, acos, exp) and numpy's AVX2/AVX-512 loops
-switched off, as on an older CPU. Each prints a hash per output; all must be equal.
+near a bin edge in the neighbouring bin on an AVX2 machine without AVX-512. Here the host's
+outputs (this process) are compared with those of this module run as a script per target, in a
+subprocess with its own numba cache (a cache compiled for one target must not serve another):
+Haswell's features (AVX2 and FMA, no AVX-512; the features string emptied, else numba adds the
+host's) and generic x86-64 (SSE2, no FMA), the last also with the C library's FMA and AVX2
+variants (cos, acos, exp) and numpy's AVX2/AVX-512 loops switched off, as on an older CPU. Each
+prints a hash per output; all must be equal.
 
 The cases: grid binning with samples on and next to the bin edges, and a merge; the scan pass
 (pinhole and per-pixel rays) over normals within 1e-7 deg of an inclination edge and distances
 next to distance edges, with its fold into cells and frame moments; the rasteriser and the pass
-behind it over a small mesh; the checkerboard's moment kernel; the simulator's fused sampler,
+behind it over a small mesh (generic only); the checkerboard's moment kernel; the simulator's fused sampler,
 dropout and z16 kernels.
 """
 
