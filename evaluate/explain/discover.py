@@ -111,12 +111,13 @@ def _fixed_text(c: Candidate) -> str:
 class Discovery:
     terms: list[DiscoveredTerm] = field(default_factory=list)
     dropped: list[dict[str, Any]] = field(default_factory=list)     # catalogue effects superseded
+    kept: list[dict[str, Any]] = field(default_factory=list)        # catalogue effects kept against generic
     rejected: list[dict[str, Any]] = field(default_factory=list)    # best terms that failed a guard
     library_size: int = 0
 
     def summary(self) -> dict[str, Any]:
         return {"library_size": self.library_size, "terms": [t.details() for t in self.terms],
-                "dropped_catalogue": self.dropped, "rejected": self.rejected}
+                "dropped_catalogue": self.dropped, "kept_catalogue": self.kept, "rejected": self.rejected}
 
 
 def _covers(c: Candidate) -> set[str]:
@@ -182,29 +183,81 @@ class TableResult:
     bic: float
 
 
+Record = dict[str, Any]
+PROXIES = {"time": "frame", "frame": "time", "disparity": "distance", "distance": "disparity"}
+"""Axes that stand in for one another: time within a standpoint is the frame's position; disparity is
+fB / distance. A generic term along one is tested against the catalogue effect of the same physics."""
+
+
 def select_table(t: Table, catalogue: Sequence[Candidate], lib: Sequence[Candidate],
                  fits: dict[str, CandidateFit], present: dict[str, dict[str, float]], real: Samples,
                  max_terms: int = 4
-                 ) -> tuple[list[DiscoveredTerm], list[dict[str, Any]], list[dict[str, Any]]]:
+                 ) -> tuple[list[DiscoveredTerm], list[Record], list[Record], list[Record]]:
     """Discovery on one table (updates `fits` in place): the catalogue's choice continued with the
-    library; if the catalogue chose anything, the same from an empty model too, and the lower BIC
-    wins (catalogue effects that only approximated an outside signal are then not kept; where the
-    catalogue is right, both paths pick it and the catalogue's choice stands)."""
+    library; if the catalogue chose anything, the same from an empty model too. The path without
+    the catalogue's choice wins only if it is better in BIC AND on held-out standpoints, and every
+    catalogue effect it leaves out is no longer significant beside its generic terms (a generic term
+    that spans the effect, or an axis that is a proxy of the effect's, is the same physics unnamed).
+    Returns (terms, catalogue effects dropped, best rejected terms, catalogue effects kept against a
+    generic path), each drop and keep with why."""
     start = [f.effect for f in fits.values() if f.selected and f.effect in t.X]
     seq = _select(t, catalogue, lib, copy_fits(fits), present, real, start, max_terms)
     best = seq
+    kept: list[dict[str, Any]] = []
     if start:
         fresh = copy_fits(fits)
         for f in fresh.values():
             f.selected, f.step, f.near_ties = False, None, []
         uni = _select(t, catalogue, lib, fresh, present, real, [], max_terms)
-        if uni.bic < seq.bic:
+        left_out = [n for n in start if n not in uni.selected]
+        if uni.bic < seq.bic and left_out:
+            why_keep = _catalogue_holds(t, seq, uni, left_out)
+            if why_keep:
+                kept = [{"effect": n, "table": t.name, "generic_path": [x.effect for x in uni.terms],
+                         "bic_gap": float(uni.bic - seq.bic), "why": why_keep} for n in left_out]
+            else:
+                best = uni
+                h_seq, h_uni = heldout_rmse(t, seq.selected), heldout_rmse(t, uni.selected)
+                a, b = _rmse_pair(t, h_seq, h_uni)
+                best.dropped = [{"effect": n, "table": t.name, "bic_gap": float(uni.bic - seq.bic),
+                                 "heldout_rmse_with_m": a, "heldout_rmse_without_m": b,
+                                 "why": "the discovered terms (" + ", ".join(x.effect for x in uni.terms)
+                                 + f") explain the residual better without it: BIC {uni.bic - seq.bic:.1f}, "
+                                 f"held-out RMSE {_mm(t, a)} -> {_mm(t, b)}, and beside them it is no "
+                                 "longer significant"} for n in left_out]
+        elif uni.bic < seq.bic:
             best = uni
-            best.dropped = [{"effect": n, "why": "the discovered terms explain the residual better without "
-                             f"it (BIC {uni.bic - seq.bic:.1f})"} for n in start if n not in uni.selected]
     fits.clear()
     fits.update(best.fits)
-    return best.terms, best.dropped, best.rejected
+    return best.terms, best.dropped, best.rejected, kept
+
+
+def _mm(t: Table, x: float) -> str:
+    return f"{x * 1e3:.3g} mm"
+
+
+def _catalogue_holds(t: Table, seq: TableResult, uni: TableResult, left_out: list[str]) -> str:
+    """Why the catalogue's path stands against a generic path of lower BIC ('' if it does not):
+    the generic path must also predict held-out standpoints better, and each catalogue effect it
+    leaves out must lose its significance beside the generic terms (tested jointly)."""
+    h_seq, h_uni = heldout_rmse(t, seq.selected), heldout_rmse(t, uni.selected)
+    a, b = _rmse_pair(t, h_seq, h_uni)
+    generic = ", ".join(x.effect for x in uni.terms) or "none"
+    if not h_uni < h_seq:
+        return (f"the generic terms ({generic}) fit better in BIC ({uni.bic - seq.bic:.1f}) but not on "
+                f"held-out standpoints (RMSE {_mm(t, b)} against {_mm(t, a)} with the catalogue effect)")
+    proxy = sorted({a2 for x in uni.terms for a2 in x.axes if a2 in PROXIES})
+    for n in left_out:
+        joint = [*uni.selected, n]
+        if not _identifiable(t, joint):
+            return (f"the generic terms ({generic}) span {n} (jointly not identifiable): the same physics "
+                    "unnamed; the catalogue effect is kept")
+        p, _, _ = wald_p(t, joint, n)
+        if p < WALD_P:
+            return (f"{n} stays significant beside the generic terms ({generic}; Wald p {p:.2g} in the joint "
+                    "fit)" + (f"; their axes ({', '.join(proxy)}) are proxies of "
+                              f"{', '.join(PROXIES[x] for x in proxy)}" if proxy else ""))
+    return ""
 
 
 def copy_fits(fits: dict[str, CandidateFit]) -> dict[str, CandidateFit]:
@@ -286,10 +339,19 @@ def _select(t: Table, catalogue: Sequence[Candidate], lib: Sequence[Candidate], 
         p, _, _ = wald_p(t, selected, name)
         cost = bic(t, without) - full
         if p >= WALD_P or cost < -BIC_THRESHOLD:
+            # dropped only where held-out standpoints do not need it either
+            h_with, h_without = heldout_rmse(t, selected), heldout_rmse(t, without)
+            if not h_without <= h_with:
+                continue
+            a, b = _rmse_pair(t, h_with, h_without)
             selected = without
             fits[name].selected = False
-            dropped.append({"effect": name, "wald_p": float(p), "bic_cost_of_dropping": float(cost),
-                            "why": "the discovered terms explain what it had absorbed"})
+            dropped.append({"effect": name, "table": t.name, "wald_p": float(p),
+                            "bic_cost_of_dropping": float(cost),
+                            "heldout_rmse_with_m": a, "heldout_rmse_without_m": b,
+                            "why": f"the discovered terms explain what it had absorbed (beside them Wald p "
+                                   f"{p:.2g}, dropping it costs {cost:.1f} in BIC, held-out RMSE "
+                                   f"{_mm(t, a)} with it, {_mm(t, b)} without)"})
     if selected != start:
         _final(t, selected, by_name, terms, fits, present, real)
     return TableResult(selected, terms, fits, dropped, rejected, bic(t, selected))
@@ -343,10 +405,11 @@ def discover(attr: Attribution, catalogue: Sequence[Candidate], lib: Sequence[Ca
         cat = [c for c in catalogue if c.kind == kind and c.table == where]
         gen = [c for c in lib if c.kind == kind and c.table == where]
         sub = {k: f for k, f in fits.items() if f.kind == kind and k in t.X}
-        terms, dropped, rejected = select_table(t, cat, gen, sub, present, real)
+        terms, dropped, rejected, kept = select_table(t, cat, gen, sub, present, real)
         fits.update(sub)
         out.terms += terms
         out.dropped += dropped
+        out.kept += kept
         out.rejected += rejected
     attr.candidates = rank(list(fits.values()))
     out.terms.sort(key=lambda x: (0 if x.quantity == "bias" else 1, x.step))

@@ -168,8 +168,8 @@ def _candidate(real: Samples, spec: TermSpec, fixed: dict[str, float] | None = N
 
 def _usable_axis(real: Samples, axis: str) -> bool:
     """An axis the data vary along (a term along a constant axis is a constant: not identifiable)."""
-    if axis == "time":
-        return float(np.ptp(real.time_s)) > 0
+    if axis == "time":   # a session clock only (a PNG folder's k / fps repeats the frame's position)
+        return real.time_stamps and float(np.ptp(real.time_s)) > 0
     if axis == "temperature":
         t = real.temperature_c[np.isfinite(real.temperature_c)]
         return t.size > 0 and float(np.ptp(t)) > 0.2

@@ -449,6 +449,8 @@ def default_groups(real: Samples, sim: Samples, distance_step_m: float = 0.25,
     for fam, xr, xs, unit, key in (("time", real.time_s, sim.time_s, "s", "time_s"),
                                    ("temperature", real.temperature_c, sim.temperature_c, "degC",
                                     "temperature_c")):
+        if fam == "time" and not real.time_stamps:   # no session clock: time would repeat the frame
+            continue
         edges = _quantile_edges(xr, 5)
         if edges is not None:
             out.append(_binned(fam, xr, xs, edges, unit, key, (fam,)))

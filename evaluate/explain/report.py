@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from itertools import pairwise
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -19,6 +18,7 @@ from depthstation.evaluate.explain.figures import (
 )
 from depthstation.evaluate.explain.locate import ALBEDO_GROUPS, residual_grid
 from depthstation.evaluate.explain.samples import FloatArray, Samples, unpaired_standpoints
+from depthstation.evaluate.explain.samples import session_clock as samples_session_clock
 from depthstation.evaluate.explain.structure import decompose, frame_common
 from depthstation.simulate.effects import PixelContext
 from depthstation.simulate.effects.generic import AXIS_INFO, axis_value
@@ -55,13 +55,9 @@ NO_TIME_STAMPS = ("the inputs carry no time stamps of their own (a PNG folder's 
 
 
 def session_clock(clocks: dict[str, Any]) -> bool:
-    """Whether the frames' time stamps are a clock of the session: standpoints recorded one after
-    another never share an instant, and a camera's clock never reads exactly 0 (a PNG folder's
-    nominal stamps k / fps start at 0 in every standpoint)."""
-    spans = sorted((min(c.timestamp_ns), max(c.timestamp_ns)) for c in clocks.values() if c.timestamp_ns)
-    if not spans or any(lo == 0 for lo, _ in spans):
-        return False
-    return all(b[0] > a[1] for a, b in pairwise(spans))
+    """Whether the frames' time stamps (FrameClocks by standpoint) are a clock of the session
+    (`samples.session_clock`, decided where the samples are built)."""
+    return samples_session_clock([c.timestamp_ns for c in clocks.values()])
 
 
 def in_domain(candidate: dict[str, Any]) -> dict[str, Any]:
@@ -122,7 +118,7 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
         "discovery": ex.discovery.summary() if ex.discovery is not None else None,
         "remaining_after": ex.remaining,
         "tests": [t.to_dict() for t in ex.before.tests],
-        "time_stamps": session_clock(ex.real.clocks),
+        "time_stamps": ex.real.samples.time_stamps,
     }
 
 
@@ -150,7 +146,7 @@ def figures(ex: Explanation, out: Path) -> list[str]:
               if (g := residual_grid(loc)) is not None]
     residual_grid_figure(out / "residual_grid.png", panels)
     names.append("residual_grid.png")
-    clock = session_clock(ex.real.clocks)
+    clock = ex.real.samples.time_stamps
     for fam, xlabel, fname, title in (
             ("column", "image column u (px)", "residual_columns.png", "mean error along the image columns"),
             ("albedo", "square colour", "residual_albedo.png", "mean error on black and white squares"),
@@ -428,6 +424,8 @@ def _discovered_md(data: dict[str, Any], figs: list[str]) -> list[str]:
             lines += ["", f"![{figs[k]}]({figs[k]})", ""]
     for dr in disc.get("dropped_catalogue", []):
         lines.append(f"- {dr['effect']} was taken out again: {dr['why']}.")
+    for kp in disc.get("kept_catalogue", []):
+        lines.append(f"- {kp['effect']} is kept against generic terms of lower BIC: {kp['why']}.")
     rest = data.get("remaining_after")
     if rest:
         lines += ["", "## What remains after the refit", "",

@@ -40,7 +40,15 @@ from depthstation.evaluate.explain.locate import (
 )
 from depthstation.evaluate.explain.report import reference_lookalikes, write_outputs
 from depthstation.evaluate.explain.rerun_log import log_explanation
-from depthstation.evaluate.explain.samples import Samples, board_edge_px, concat, thin, unpaired_standpoints
+from depthstation.evaluate.explain.samples import (
+    Samples,
+    board_edge_px,
+    concat,
+    session_clock,
+    thin,
+    unpaired_standpoints,
+    without_clock,
+)
 from depthstation.evaluate.explain.structure import decompose
 from depthstation.simulate.checkerboard_session import DepthTally
 from depthstation.simulate.effects import PixelContext
@@ -136,14 +144,20 @@ def _plane_z(board_to_cam: Any, info: StreamInfo, u: Any, v: Any) -> Any:
 
 
 def _side(results: Sequence[Any], info: StreamInfo, baseline_m: float, t0_ns: int | None = None,
-          true_poses: dict[str, Any] | None = None) -> Side:
+          true_poses: dict[str, Any] | None = None, time_stamps: bool | None = None) -> Side:
+    """One side's samples, poses, clocks and figures. `time_stamps` None: decided from the frames'
+    own stamps (`session_clock`); the simulated sides take the real side's verdict. Without a
+    session clock the samples carry no time (0), so no locate test and no term runs along it."""
     ok = [r for r in results if r.usable and r.samples is not None]
     poses = {r.name: r.pose_depth for r in ok if r.pose_depth is not None}
     clocks = {r.name: FrameClock([f.index for f in r.frames if f.ok],
                                  [int(f.timestamp_ns) for f in r.frames if f.ok],
                                  [float(f.temperature_c) for f in r.frames if f.ok]) for r in ok}
     figures = {r.name: dict(r.figures) for r in ok}
-    return Side(samples_from_results(ok, info, baseline_m, t0_ns, true_poses), poses, clocks, info, figures)
+    if time_stamps is None:
+        time_stamps = session_clock([c.timestamp_ns for c in clocks.values()])
+    samples = samples_from_results(ok, info, baseline_m, t0_ns, true_poses)
+    return Side(samples if time_stamps else without_clock(samples), poses, clocks, info, figures)
 
 
 def known_baseline(info: StreamInfo, baseline_m: float, source: str, where: str) -> StreamInfo:
@@ -257,7 +271,8 @@ def simulate_like(real: Side, board: Board, model: SensorModel, *, seed: int = 0
                                        sample_stride=_stride(info), reference=REFERENCE))
         tally.done(name)
     tally.warn_if_empty(f"'{model.name}'")
-    return _side(results, info, info.baseline_m or model.camera.baseline_m, t0, true_poses=real.poses)
+    return _side(results, info, info.baseline_m or model.camera.baseline_m, t0, true_poses=real.poses,
+                 time_stamps=real.samples.time_stamps)
 
 
 def warn_unpaired(real: Samples, sim: Samples, what: str) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields, replace
+from itertools import pairwise
 from typing import Any
 
 import cv2
@@ -48,6 +49,7 @@ class Samples:
     ppy: float = 180.0
     baseline_m: float = 0.095
     px_scale: float = 1.0            # stereo-imager pixels per depth-image pixel (aligned depth: < 1)
+    time_stamps: bool = True         # False: the frames carry no clock of the session (time_s is 0)
 
     ARRAYS = ("standpoint", "frame", "u", "v", "z_ref_m", "err_m", "inclination_deg", "albedo",
               "time_s", "temperature_c", "edge_px", "ref_err_m", "u_px", "v_px")
@@ -149,7 +151,24 @@ def concat(parts: Sequence[Samples]) -> Samples:
     first = parts[0]
     kw = {k: np.concatenate(v) for k, v in arrays.items()}
     return Samples(**kw, names=names, fx=first.fx, ppx=first.ppx, ppy=first.ppy,
-                   baseline_m=first.baseline_m, px_scale=first.px_scale)
+                   baseline_m=first.baseline_m, px_scale=first.px_scale,
+                   time_stamps=all(p.time_stamps for p in parts))
+
+
+def session_clock(spans_ns: Sequence[Sequence[int]]) -> bool:
+    """Whether the frames' time stamps (one list per standpoint) are a clock of the session:
+    standpoints recorded one after another never share an instant, and a camera's clock never reads
+    exactly 0 (a PNG folder's nominal stamps k / fps start at 0 in every standpoint). Without one,
+    no test or term runs along time: time within a standpoint would only repeat the frame's position."""
+    spans = sorted((min(ts), max(ts)) for ts in spans_ns if len(ts))
+    if not spans or any(lo == 0 for lo, _ in spans):
+        return False
+    return all(b[0] > a[1] for a, b in pairwise(spans))
+
+
+def without_clock(s: Samples) -> Samples:
+    """`s` with no time axis (time_s 0, `time_stamps` False): the inputs carry no session clock."""
+    return replace(s, time_s=np.zeros_like(s.time_s), time_stamps=False)
 
 
 def align_standpoints(real: Samples, sim: Samples) -> IntArray:

@@ -397,9 +397,10 @@ def discover_cells(bc: BlockCells, info: StreamInfo, present: dict[str, dict[str
         if len(np.unique(bc.block)) < MIN_BLOCKS:
             continue
         before = {k: v.selected for k, v in f.items()}
-        terms, drop, rejected = select_table(t, cat, gen, f, present, s)
+        terms, drop, rejected, kept = select_table(t, cat, gen, f, present, s)
         out.terms += terms
         out.dropped += drop
+        out.kept += kept
         out.rejected += rejected
         dropped += [k for k, v in f.items() if before.get(k) and not v.selected]
         for k, v in f.items():       # a catalogue effect discovery added on this table
