@@ -1,14 +1,17 @@
 """Per-pixel correction: the inclination from the depth image itself (local normals through the
-camera model's rays) and the model's bias removed, in one numba pass over the image.
+camera model's rays) and the model's bias removed, in numba passes over the image.
 
-Why from the depth itself: a user's sequence has no reference to take normals from. The normal is
-the cross product of two tangents, each a difference of back-projected points a stride apart
-(`stride_for`) on a 3 x 3 box-smoothed depth (the smoothing and the stride keep the depth noise out
-of the angle). At a crease or an edge the tangent is taken on the side that is planar (the
-second difference of the inverse depth, which is affine in the rays on a plane), so a wall's
-pixels next to a corner still see the wall. On the tests' room (tests/test_error_model.py) this
-took the bias error per pixel from 2.8 mm std (5 x 5 smoothing, the smaller depth step choosing
-the side) to 1.2 mm.
+Why from the depth itself: a user's sequence has no reference to take normals from. On a plane
+n . X = 1 the inverse depth is affine in the rays, 1/z = n . (x, y, 1), so its slope over the rays
+gives the normal. Real stereo noise is correlated over the matcher's window, so the slopes span
+width/40 pixels of a depth box-averaged about as wide: the work is done on a grid of blocks of a
+quarter of that (block means, a box of 5 blocks, slopes over 4), one normal per block, which every
+pixel of the block takes. At a crease or an edge the slope is taken on the side that is planar
+(the smaller second difference of the inverse depth). On the tests' room
+(tests/test_error_model.py) the inclination is within 0.3-0.5 deg (median) of the truth below
+70 deg and the bias removed per pixel within 1.2 mm (std) of the true one; on the real D435 set
+slopes over 12 px of 1920 left its boards' plane residual 13 mm against 7.8 raw (the stereo
+noise, correlated, tilted the normals), over 48 px 8.1-12.1 mm against 7.7-11.2.
 """
 
 from __future__ import annotations
@@ -28,7 +31,10 @@ from depthstation.evaluate.errormodel.schema import THETA_CAP_DEG, ErrorModel
 # a slope (the step's share of the depth: EDGE_SLOPE x the lateral spacing over z, at most 0.5).
 EDGE_SLOPE = math.tan(math.radians(80.0))
 EDGE_SHARE_MAX = 0.5
-SMOOTH_MIN_PX = 3      # box filter of the depth before the slopes: the stride's width, at least this (odd)
+# The normals are taken on a grid of blocks of stride / COARSE_STRIDE pixels: slopes over
+# COARSE_STRIDE blocks of a depth averaged over COARSE_SMOOTH blocks (about the stride's width)
+COARSE_STRIDE = 4
+COARSE_SMOOTH = 5
 _FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 
@@ -36,24 +42,6 @@ def stride_for(width: int) -> int:
     """Tangent stride: 8 px at 1280 wide (the same angle of view at every resolution), at least 3
     (on the tests' 160 x 120 room 3 px gave 1.7 deg RMS against 2.2 deg for 2 px below 60 deg)."""
     return max(3, round(width / 40))
-
-
-def smooth_for(stride: int) -> int:
-    """Box filter width: the stride's (odd), so the slopes see the noise averaged over what they span."""
-    return max(SMOOTH_MIN_PX, 2 * (stride // 2) + 1)
-
-
-def smoothed_depth(depth: NDArray[np.uint16], units_m: float,
-                   size: int = SMOOTH_MIN_PX) -> NDArray[np.float32]:
-    """Box mean of the valid depths around each pixel (metres, 0 where none is valid)."""
-    d = depth.astype(np.float32) * np.float32(units_m)
-    valid = (depth > 0).astype(np.float32)
-    k = (size, size)
-    s = cv2.boxFilter(d, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    n = cv2.boxFilter(valid, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
-    out = np.zeros_like(d)
-    np.divide(s, n, out=out, where=n > 0.5)
-    return out
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST, inline="always")
@@ -131,14 +119,14 @@ def normals_kernel(wi: Any, x: Any, y: Any, jac: Any, s: int, sub: int, out_cos:
 
 
 @numba.njit(cache=True, nogil=True, fastmath=_FAST)
-def correct_kernel(depth: Any, wi: Any, x: Any, y: Any, jac: Any, coarse: Any, sub: int, units: float,
-                   s: int, cb: Any, cs: Any, dom: Any, dz_step: float, nc: int, theta_cap: float,
+def correct_kernel(depth: Any, coarse: Any, sub: int, units: float, cb: Any, cs: Any, dom: Any,
+                   dz_step: float, nc: int, theta_cap: float,
                    iterate: int, out_depth: Any, out_sigma: Any, out_cos: Any, want_sigma: bool,
                    counts: Any, row0: int, row1: int) -> None:
     """Corrected depth (counts of `units`), sigma (m, NaN where unknown), cos(inclination) per pixel
     of rows [row0, row1) (each row's result depends on nothing but the inputs: bands may run in
-    any order, on any thread). A pixel takes its block's normal (`coarse`), or its own where the
-    block's centre has none (a hole, an edge).
+    any order, on any thread). A pixel takes its block's normal (`coarse`); none where the block
+    has none (no depth around it, or an edge on both sides).
 
     `dom` is the domain raster over (z / dz_step, cos(theta) * nc).
     counts per row: [0] corrected, [1] outside the domain, [2] no normal, [3] beyond 16 bits."""
@@ -160,10 +148,8 @@ def correct_kernel(depth: Any, wi: Any, x: Any, y: Any, jac: Any, coarse: Any, s
                 continue
             c = coarse[i // sub, j // sub]
             if not c >= 0.0:
-                c = _cos_at(wi, x, y, jac, i, j, s)
-                if not c >= 0.0:
-                    c2 += 1
-                    continue
+                c2 += 1
+                continue
             out_cos[i, j] = c
             zm = raw * units
             iz = int(zm / dz_step)
@@ -202,13 +188,6 @@ def ray_jacobian(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.f
     return np.ascontiguousarray(np.stack([xu, xv, yu, yv], axis=-1))
 
 
-def inverse_depth(zs: NDArray[np.float32]) -> NDArray[np.float32]:
-    """1 / z of the smoothed depth, 0 where none."""
-    out = np.zeros_like(zs)
-    np.divide(np.float32(1.0), zs, out=out, where=zs > 0)
-    return out
-
-
 class Corrector:
     """The model made ready for one stream: coefficient vectors, the domain raster, the rays; the
     kernels run in row bands on `threads` threads (they release the GIL)."""
@@ -218,14 +197,36 @@ class Corrector:
         self.cb = model.bias.full()
         self.cs = model.sigma.full()
         self.dom, self.dz, self.nc = model.domain.cos_raster()
-        self.x, self.y = x, y
-        self.jac = ray_jacobian(x, y)
         self.units = float(units_m)
         self.out_units = float(out_units_m)
         self.stride = stride_for(x.shape[1])
-        self.sub = max(1, self.stride // 4)
+        self.sub = max(1, round(self.stride / COARSE_STRIDE))
+        h, w = x.shape
+        self.coarse_shape = (-(-h // self.sub), -(-w // self.sub))
+        self.xc, self.yc = self._blocks(np.asarray(x, np.float64)), self._blocks(np.asarray(y, np.float64))
+        self.jac = ray_jacobian(self.xc, self.yc)
         self.threads = max(1, threads)
         self._pool = ThreadPoolExecutor(self.threads) if self.threads > 1 else None
+
+    def _blocks(self, a: NDArray[Any]) -> NDArray[Any]:
+        """Means over sub x sub blocks (the image's edge blocks over what they hold)."""
+        if self.sub == 1:
+            return np.ascontiguousarray(a)
+        hc, wc = self.coarse_shape
+        return np.ascontiguousarray(cv2.resize(a, (wc, hc), interpolation=cv2.INTER_AREA))
+
+    def coarse_inverse_depth(self, depth: NDArray[np.uint16]) -> NDArray[np.float32]:
+        """The inverse of the box-mean depth of the valid pixels, on the block grid: block means
+        (INTER_AREA) then a box over COARSE_SMOOTH blocks, about the stride's width in pixels."""
+        d = depth.astype(np.float32) * np.float32(self.units)
+        v = (depth > 0).astype(np.float32)
+        ds, vs = self._blocks(d), self._blocks(v)
+        k = (COARSE_SMOOTH, COARSE_SMOOTH)
+        ds = cv2.boxFilter(ds, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        vs = cv2.boxFilter(vs, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        out = np.zeros(ds.shape, np.float32)
+        np.divide(vs, ds, out=out, where=(vs > 1e-3) & (ds > 0))
+        return out
 
     def close(self) -> None:
         if self._pool is not None:
@@ -242,10 +243,10 @@ class Corrector:
                  ) -> tuple[NDArray[np.uint16], NDArray[np.float32], NDArray[np.float32], NDArray[np.int64]]:
         """(corrected depth, sigma or a 1x1 placeholder, cos(inclination), counts)."""
         h, w = depth.shape
-        wi = inverse_depth(smoothed_depth(depth, self.units, smooth_for(self.stride)))
+        wi = self.coarse_inverse_depth(depth)
         sub = self.sub
-        coarse = np.empty((-(-h // sub), -(-w // sub)), np.float64)
-        self._bands(lambda r0, r1: normals_kernel(wi, self.x, self.y, self.jac, self.stride, sub, coarse,
+        coarse = np.empty(self.coarse_shape, np.float64)
+        self._bands(lambda r0, r1: normals_kernel(wi, self.xc, self.yc, self.jac, COARSE_STRIDE, 1, coarse,
                                                   r0, r1), coarse.shape[0])
         out = np.empty((h, w), np.uint16)
         sig = np.empty((h, w) if want_sigma else (1, 1), np.float32)
@@ -257,9 +258,8 @@ class Corrector:
                           ).astype(np.uint16)
 
         def band(r0: int, r1: int) -> None:
-            correct_kernel(src, wi, self.x, self.y, self.jac, coarse, sub, self.out_units, self.stride,
-                           self.cb, self.cs, self.dom, self.dz, self.nc, THETA_CAP_DEG, 2, out, sig, cos,
-                           want_sigma, counts, r0, r1)
+            correct_kernel(src, coarse, sub, self.out_units, self.cb, self.cs, self.dom, self.dz, self.nc,
+                           THETA_CAP_DEG, 2, out, sig, cos, want_sigma, counts, r0, r1)
 
         self._bands(band, h)
         return out, sig, cos, counts.sum(axis=0)
