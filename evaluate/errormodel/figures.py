@@ -81,8 +81,11 @@ def model_figure(model: ErrorModel, path: Path) -> Path:
         a.set_title(title, fontsize=10)
 
     def formula(part: Any) -> str:
-        return " + ".join(f"{c * 1e3:.3g} mm {TERM_FORMULAS[k] if k != 'offset' else ''}".rstrip()
-                          for k, c in zip(part.terms, part.coefficients, strict=True))
+        out = ""
+        for n, (k, c) in enumerate(zip(part.terms, part.coefficients, strict=True)):
+            sign = ("-" if c < 0 else "") if n == 0 else (" - " if c < 0 else " + ")
+            out += f"{sign}{abs(c) * 1e3:.3g} mm" + ("" if k == "offset" else f" {TERM_FORMULAS[k]}")
+        return out
 
     cam = model.camera
     fig.suptitle(f"Depth error model of {cam.get('name') or cam.get('model') or 'the camera'}"
