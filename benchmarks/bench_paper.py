@@ -15,6 +15,7 @@ and with the paper's similarity registration.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import tempfile
 import time
@@ -179,28 +180,35 @@ def pooled(grid: Any, d_lo: float, d_hi: float, i_lo: float, i_hi: float) -> tup
     if n.sum() < 100:
         return float("nan"), float("nan"), int(n.sum())
     mean = grid["mean_m"][sel]
-    var = grid["var_m2"][sel]
+    var = np.nan_to_num(grid["var_m2"][sel])   # a cell of one sample has no variance
     ok = n > 0
     m = float(np.sum(n[ok] * mean[ok]) / n[ok].sum())
     v = float(np.sum(n[ok] * (var[ok] + (mean[ok] - m) ** 2)) / n[ok].sum())
     return m, float(np.sqrt(v)), int(n.sum())
 
 
-def scan_findings(frames: int, model: SensorModel, root: Path, seed: int) -> list[Finding]:
+def scan_findings(frames: int, model: SensorModel, root: Path, seed: int,
+                  reuse: Path | None = None) -> list[Finding]:
     """R8, R9 and S14 on a simulated walk round the room's table, with the true poses (`--register
     none`) and with the paper's registration (`--register similarity`: ICP with a scale, 0.5-2 m)."""
     from depthstation.evaluate.scan.run import ScanOptions, run_scan
     from depthstation.simulate.scan_sequence import simulate_scan
 
-    cap = simulate_scan("room", "walk", model, root / "walk", frames=frames, seed=seed, width=640, height=480)
     out: list[Finding] = []
     grids: dict[str, Any] = {}
     scale = float("nan")
+    if reuse is not None:   # the studies of an earlier --keep run: only the analysis again
+        root = reuse
+    else:
+        cap = simulate_scan("room", "walk", model, root / "walk", frames=frames, seed=seed, width=640,
+                            height=480)
+        for mode in ("none", "similarity"):
+            run_scan(cap / "sequence.mcap", cap / "trajectory.txt", cap / "scene.ply", root / mode,
+                     ScanOptions(register=mode, workers=2))
     for mode in ("none", "similarity"):
-        summary = run_scan(cap / "sequence.mcap", cap / "trajectory.txt", cap / "scene.ply", root / mode,
-                           ScanOptions(register=mode, workers=2))
         grids[mode] = dict(np.load(root / mode / "grid.npz"))
         if mode == "similarity":
+            summary = json.loads((root / mode / "summary.json").read_text())
             scale = float(summary.get("registration", {}).get("scale", float("nan")))
     print("\nscan study: pooled mean accuracy / std (mm) per distance (rows) x inclination (columns) band")
     for mode, g in grids.items():
@@ -261,7 +269,9 @@ def main(argv: list[str] | None = None) -> int:
         model = draw_unit(model, args.unit_seed)
     if args.scan_only:
         with tempfile.TemporaryDirectory() as tmp:
-            items = scan_findings(args.scan_frames, model, Path(tmp), args.seed)
+            root = args.keep or Path(tmp)
+            root.mkdir(parents=True, exist_ok=True)
+            items = scan_findings(args.scan_frames, model, root, args.seed, reuse=args.reuse)
         print_table(items, f"The paper's scan findings on the simulated camera ({args.scan_frames} frames)")
         return 0
     with tempfile.TemporaryDirectory() as tmp:
