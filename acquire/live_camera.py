@@ -377,7 +377,19 @@ class LiveCamera:
             out, self._events = self._events, []
         return out
 
-    def _find(self) -> Any:
+    def _find(self, wait: bool = True) -> Any:
+        """Our device (waited for while a device is listed but still enumerating, up to
+        `enumeration_timeout_s`, unless not `wait`), made from the context's list."""
+        t_end = time.monotonic() + self.enumeration_timeout_s
+        while True:
+            try:
+                return self._find_now()
+            except CameraError as exc:
+                if not wait or "still enumerating" not in str(exc) or time.monotonic() > t_end:
+                    raise
+            time.sleep(self.poll_s)
+
+    def _find_now(self) -> Any:
         """Our device, made from the context's list. Making each device opens it over USB, which
         throws while its interfaces enumerate (pyrealsense2's `device_list.__getitem__` calls
         `rs2_create_device`, wrappers/python/pyrs_device.cpp; src/device_hub.cpp catches the same
@@ -424,7 +436,7 @@ class LiveCamera:
 
     def _listed(self) -> bool:
         try:
-            self._find()
+            self._find(wait=False)
         except (CameraError, RuntimeError):
             return False
         return True

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-from depthstation.acquire.calibrate import run_calibration
+from depthstation.acquire.calibrate import CalibrationAborted, run_calibration
 from depthstation.acquire.camera_select import open_camera, parse_camera
 from depthstation.acquire.guidance import Guidance
 from depthstation.acquire.guided_capture import (
@@ -30,7 +30,7 @@ from depthstation.acquire.recovery import reconnect
 from depthstation.acquire.views import BOARD_HELP, RerunView, TerminalPanel, blueprint
 from depthstation.acquire.warmup import WarmupDecision, WarmupSample, run_warmup
 from depthstation.core.capture.session import SESSION_FILE, Session, camera_identity, identity_differences
-from depthstation.core.device import CalibratableCamera, device_model
+from depthstation.core.device import CalibratableCamera, CameraUnsuitable, device_model
 from depthstation.core.errors import CameraError, CaptureError, DepthstationError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.progress import progress, stderr_console
@@ -49,6 +49,7 @@ from depthstation.simulate.operator import SimulatedOperator, Stance
 
 DEFAULT_PROTOCOL = "checkerboard-d455"
 RECONNECT_TIMEOUT_S = 60.0  # a warm-up waits this long for a stalled or unplugged camera
+CALIBRATION_RECONNECTS = 3  # a calibration interrupted by an unplug is run again this often
 ACQUIRE_APP_ID = "depthstation-acquire"
 GuidanceHook = Callable[[Guidance, FrameSet, float], None]
 
@@ -480,9 +481,20 @@ def do_calibrate(st: Station, yes: bool, write: bool, ask: Callable[[str], bool]
     if isinstance(st.camera, CalibratableCamera):  # a recording is not started just to be skipped
         try:
             st.start()
-            record = run_calibration(st.camera, st.protocol.calibration, confirm=confirm, say=say,
-                                     write=write, ask_distance=None if yes else ask_distance, unattended=yes,
-                                     choose=None if yes else choose)
+            for tries in range(1, CALIBRATION_RECONNECTS + 2):
+                try:
+                    record = run_calibration(st.camera, st.protocol.calibration, confirm=confirm, say=say,
+                                             write=write, ask_distance=None if yes else ask_distance,
+                                             unattended=yes, choose=None if yes else choose)
+                    break
+                except CameraError as exc:
+                    # unplugged or reset while it calibrated: wait for it as the capture does, then
+                    # run the calibration again (a table set before lives in RAM and is held)
+                    final = isinstance(exc, (CalibrationAborted, CameraUnsuitable))
+                    if final or tries > CALIBRATION_RECONNECTS:
+                        raise
+                    say(f"calibration interrupted ({exc}): waiting for the camera, then calibrating again")
+                    reconnect(st.camera, st.start, exc, timeout_s=RECONNECT_TIMEOUT_S, say=say)
         except BaseException:
             st.close()
             raise
