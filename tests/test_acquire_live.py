@@ -490,9 +490,18 @@ def test_a_real_d455_behaves_as_the_double_assumes() -> None:
         temps = cam.temperatures()
         assert temps and all(v == int(v) for v in temps.values())
         assert fs.metadata["frame_counter"] in ("device", "host") and info.depth_units_m > 0
+        # the double's assumptions: host-epoch stamps, counted drops, the options it pins and records
+        assert fs.metadata["timestamp_domain"].split()[0] in ("global_time", "system_time", "hardware_clock")
+        assert abs(fs.timestamp_ns - time.time_ns()) < 5e9
+        assert fs.metadata["host_frames_dropped_before"] is not None
+        assert info.device["options"].get("emitter_on_off", 0.0) == 0.0
+        assert info.device["firmware_check"]["firmware"]
         dev = rs.context().query_devices()[0]
         if ident["usb_type_descriptor"].startswith("3."):
             assert ("depth", 256, 144, "z16", 90) in cam._offered(dev)
+        # a D455 has a motion module: its profiles are not video profiles
+        profiles = [p for s in dev.query_sensors() for p in s.get_stream_profiles()]
+        assert any(not p.is_video_stream_profile() for p in profiles)
     finally:
         cam.stop()
     with pytest.raises(RuntimeError, match="streaming"):
