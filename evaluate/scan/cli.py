@@ -97,6 +97,12 @@ def scan(
                                       "bit for bit what ray casting gives, several times faster) or "
                                       "'raycast' (Open3D ray casting, the reference implementation). "
                                       "Streams with lens distortion are always ray cast."),
+    budget: bool = typer.Option(False, "--budget",
+                                help="Also split the error into the sensor's, the poses' (per frame), the "
+                                     "registration's and the reference's parts: per-frame pose corrections "
+                                     "fitted jointly with a smooth sensor field; writes sensor_grid.npz, "
+                                     "budget.json, pose_corrections.csv/.tum and fig_budget.png "
+                                     "(docs/scan-study.md, 'Error budget')."),
 ) -> None:
     """The reference-scan study (paper Section 3.2): per-pixel depth error against a TLS reference,
     gridded over distance x inclination."""
@@ -113,6 +119,7 @@ def scan(
                        surface_gap_m=surface_gap_m, poses_of=poses_of,
                        pose_convention=pose_convention, force=force, depth_topic=depth_topic,
                        color_topic=color_topic, infrared_topic=infrared_topic, renderer=renderer,
+                       budget=budget,
                        target=RerunTarget(rrd, spawn, serve, force))
     s = run_scan(sequence, poses, reference, out, opts)
     typer.echo(f"{s['frames']['used']} frames, {s['pixels']['evaluated']} pixels evaluated; "

@@ -29,6 +29,7 @@ from depthstation.core.rerun_bridge import RerunTarget, recording
 from depthstation.core.results import result_folder
 from depthstation.core.run_warnings import warn
 from depthstation.evaluate.scan import rerun_log
+from depthstation.evaluate.scan.budget import run_budget
 from depthstation.evaluate.scan.chunks import (
     ScanChunk,
     frames_to_read,
@@ -112,6 +113,7 @@ class ScanOptions:
     color_topic: str | None = None
     infrared_topic: str | None = None
     renderer: str = DEFAULT_RENDERER
+    budget: bool = False  # --budget: the error's parts (budget.py): sensor_grid.npz, budget.json
     target: RerunTarget = field(default_factory=RerunTarget)
 
     @property
@@ -553,4 +555,7 @@ def run_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                        description=rerun_log.DESCRIPTION) as rec:
             result = run_prepared(job, runner, rec=rec)
             rerun_log.log_grid_tensors(rec, result.grid, opt.min_count_sequence)
-        return write_scan(job, result)
+        summary = write_scan(job, result)
+        if opt.budget:  # after the plain study's files, which it leaves as they are
+            summary["budget"] = run_budget(job, result, runner)
+        return summary

@@ -1,0 +1,447 @@
+"""Per-frame pose corrections estimated jointly with a low-dimensional sensor field (the budget's maths).
+
+Why jointly: a depth error seen against the reference is the sum of the camera's own error, a
+field over distance x inclination shared by every frame, and the pose's error, shared by every
+pixel of one frame and smooth in time (SLAM drift). Linearised at the given pose, a pixel's error is
+
+    e = b(z, theta) + g . xi_f ,   g = -[p x n_c, n_c] / (n_c . d)
+
+with xi_f = (omega, v) the correction of frame f in its camera frame (T_true = T exp(xi_f)), d the
+pixel's ray (z = 1), p = z d the point and n_c the surface normal in the camera frame. Both parts
+are linear, so one sparse least-squares problem (Gauss-Newton, re-rendered at the corrected poses)
+holds them: a block-banded part for the frames (a second-difference prior on xi in time: drift; a
+weak prior of SLAM size on xi itself: the gauge where a frame's view does not fix a direction)
+and a few dense columns for the sensor basis. The sensor basis is there only so that the poses do
+not absorb the camera's error; the sensor grid itself is measured afresh with the corrected poses.
+Uncertainty: the posterior of the whole problem (Schur complement for the sensor terms, banded
+Cholesky for the frames), sampled, so every figure derived from it carries the correlation
+between the sensor terms and the poses (what the data cannot separate shows as a wide band).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+from scipy.linalg import cho_solve_banded, cholesky_banded, solve_banded
+
+F64 = NDArray[np.float64]
+
+SIGMA_ROT_RAD = float(np.radians(0.3))  # the prior's scale of a SLAM pose error (rotation) ...
+SIGMA_TRANS_M = 0.015                    # ... and translation: about what ORB-SLAM3 drifts by
+PRIOR_SCALE = np.array([SIGMA_ROT_RAD] * 3 + [SIGMA_TRANS_M] * 3)
+RIDGE = 1.0          # prior xi ~ N(0, PRIOR_SCALE^2) per frame: the gauge of what a view does not fix
+LAMBDAS = (1e0, 1e2, 1e4, 1e6)  # second-difference weights tried by cross-validation
+HOLD_OUT_EVERY = 5   # every 5th frame held out (its data dropped, its pose from the prior) in the CV
+MAX_THETA_DEG = 75.0  # beyond: 1/cos(theta) makes a pixel's pose derivative explode
+GROSS_M = 0.15       # |error| beyond this is not a depth error (an edge, an occluder) in the first pass
+TRIM_SIGMAS = 5.0    # robust trimming of whitened residuals (MAD scale)
+NOISE_FLOOR_M = 0.001
+SUBPIXEL_PX = 0.08   # Intel's expected disparity noise: sigma_z = z^2 0.08 px / (f B)
+SENSOR_TERMS = ("offset", "z", "z2", "z_tan", "z2_tan", "z_tan2")
+SENSOR_MEANING = {
+    "offset": "constant depth offset (m)",
+    "z": "depth scale (m per m)",
+    "z2": "disparity offset (z^2)",
+    "z_tan": "inclination: z tan(theta)",
+    "z2_tan": "inclination: z^2 tan(theta)",
+    "z_tan2": "inclination: z tan(theta)^2",
+}
+VIF_LIMIT = 10.0  # a sensor term whose variance grows 10x once the poses are free is not separated
+
+
+def tan_incl(theta_deg: F64) -> F64:
+    return np.asarray(np.tan(np.radians(np.minimum(theta_deg, MAX_THETA_DEG))), dtype=np.float64)
+
+
+def sensor_basis(z: F64, theta_deg: F64) -> F64:
+    """The sensor field's basis at distance z (m) and inclination theta: (n, len(SENSOR_TERMS))."""
+    z = np.asarray(z, dtype=np.float64)
+    t = tan_incl(np.asarray(theta_deg, dtype=np.float64))
+    return np.stack([np.ones_like(z), z, z * z, z * t, z * z * t, z * t * t], axis=-1)
+
+
+def skew(w: F64) -> F64:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def exp_se3(xi: F64) -> F64:
+    """4x4 of a small motion xi = (omega, v) (first-order translation: the corrections are mm)."""
+    w = np.asarray(xi[:3], dtype=np.float64)
+    th = float(np.linalg.norm(w))
+    k = skew(w)
+    if th < 1e-12:
+        r = np.eye(3) + k
+    else:
+        r = np.eye(3) + np.sin(th) / th * k + (1 - np.cos(th)) / th ** 2 * (k @ k)
+    m = np.eye(4)
+    m[:3, :3] = r
+    m[:3, 3] = xi[3:]
+    return m
+
+
+def corrected(poses: F64, xi: F64) -> F64:
+    """T_f exp(xi_f) for every frame."""
+    return np.stack([p @ exp_se3(x) for p, x in zip(poses, xi, strict=True)])
+
+
+@dataclass(frozen=True)
+class FrameData:
+    """The sampled pixels of one frame at its current pose: what the solve needs."""
+
+    e: F64            # measured - reference z-depth (m)
+    z: F64            # reference z-depth (m)
+    theta: F64        # inclination (deg)
+    g: F64            # (n, 6) d e / d xi
+    w: F64            # 1 / sigma^2 of the pixel's depth noise
+    c: F64            # n_c . d (point-to-plane over depth)
+    key: NDArray[np.int64]  # surface patch of the hit (world voxel and normal direction)
+
+    def take(self, keep: NDArray[np.bool_]) -> FrameData:
+        return FrameData(self.e[keep], self.z[keep], self.theta[keep], self.g[keep], self.w[keep],
+                         self.c[keep], self.key[keep])
+
+    @property
+    def n(self) -> int:
+        return int(self.e.size)
+
+
+PATCH_M = 0.25
+
+
+PATCH_NORMAL_M = 1.0   # a patch's extent along its normal: a surface and its defect stay in one patch
+PATCH_SHIFT_M = 0.0173  # bins off round coordinates (a room's walls often lie on them)
+
+
+def patch_keys(points: F64, normals: F64) -> NDArray[np.int64]:
+    """A surface patch per hit: PATCH_M squares in the plane of its normal's dominant axis,
+    PATCH_NORMAL_M along that axis (centred on whole metres), and the normal's sign."""
+    ax = np.argmax(np.abs(normals), axis=1)
+    v = np.floor((points + PATCH_SHIFT_M) / PATCH_M).astype(np.int64)
+    along = np.floor((np.take_along_axis(points, ax[:, None], axis=1)[:, 0] + PATCH_NORMAL_M / 2)
+                     / PATCH_NORMAL_M).astype(np.int64)
+    np.put_along_axis(v, ax[:, None], along[:, None], axis=1)
+    v += 4096
+    sign = (np.take_along_axis(normals, ax[:, None], axis=1)[:, 0] > 0).astype(np.int64)
+    return np.asarray(((v[:, 0] * 8192 + v[:, 1]) * 8192 + v[:, 2]) * 6 + ax * 2 + sign, dtype=np.int64)
+
+
+def patch_centres(keys: NDArray[np.int64]) -> tuple[F64, NDArray[np.int64]]:
+    """The centres (m) of the patches `patch_keys` named, and their normals' axis (0-2)."""
+    k = np.asarray(keys, dtype=np.int64)
+    ax = (k % 6) // 2
+    v = k // 6
+    vz, v = v % 8192, v // 8192
+    vy, vx = v % 8192, v // 8192
+    idx = np.stack([vx, vy, vz], axis=1) - 4096
+    centre = (idx + 0.5) * PATCH_M - PATCH_SHIFT_M
+    rows = np.arange(k.size)
+    centre[rows, ax] = idx[rows, ax] * PATCH_NORMAL_M
+    return np.asarray(centre, dtype=np.float64), ax
+
+
+def frame_data(t_hit: NDArray[Any], normals: NDArray[Any], dirs: NDArray[Any], pose: F64,
+               depth: NDArray[Any], units: float, fb: float, z_max: float,
+               gross_m: float = GROSS_M) -> FrameData:
+    """Samples of a frame from its rendered reference (z-depth t_hit, world normals per pixel)."""
+    z_meas = np.asarray(depth, dtype=np.float64).ravel() * units
+    t = np.asarray(t_hit, dtype=np.float64)
+    nw = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    d = np.asarray(dirs, dtype=np.float64).reshape(-1, 3)
+    ok = (z_meas > 0) & np.isfinite(t) & np.all(np.isfinite(nw), axis=1) & (t < z_max)
+    rot = pose[:3, :3]
+    nc = nw[ok] @ rot  # R^T n, row-wise
+    dd = d[ok]
+    c = np.einsum("ij,ij->i", nc, dd)
+    cos = np.abs(c) / np.linalg.norm(dd, axis=1)
+    theta = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+    z = t[ok]
+    e = z_meas[ok] - z
+    sel = (theta < MAX_THETA_DEG) & (np.abs(e) < gross_m) & (np.abs(c) > 1e-6)
+    nc, dd, c, theta, z, e = nc[sel], dd[sel], c[sel], theta[sel], z[sel], e[sel]
+    p = z[:, None] * dd
+    g = -np.concatenate([np.cross(p, nc), nc], axis=1) / c[:, None]
+    sigma2 = NOISE_FLOOR_M ** 2 + (z * z * SUBPIXEL_PX / fb) ** 2
+    world = p @ rot.T + pose[:3, 3]
+    return FrameData(e, z, theta, g, 1.0 / sigma2, c, patch_keys(world, nc @ rot.T))
+
+
+@dataclass
+class Solution:
+    """One solve: increments of the corrections, the sensor terms, and what is needed to sample."""
+
+    dxi: F64          # (F, 6)
+    a: F64            # (K,)
+    s2: float         # reduced chi^2 (residual scale)
+    chol: F64         # banded Cholesky of the frames' block (upper form)
+    y: F64            # H_pp^-1 H_ps
+    s_inv: F64        # Schur complement's inverse (unscaled)
+    hss_inv: F64      # H_ss^-1 (the sensor terms' covariance with the poses known)
+    samples: int
+
+
+def _prior(frames: int, lam: float) -> sp.csr_matrix:
+    """lam * (second differences)^T (second differences) + RIDGE, whitened by PRIOR_SCALE."""
+    inv = sp.diags(np.tile(1.0 / PRIOR_SCALE ** 2, frames))
+    if frames >= 3:
+        d2 = sp.diags([np.ones(frames - 2), -2 * np.ones(frames - 2), np.ones(frames - 2)], [0, 1, 2],
+                      shape=(frames - 2, frames))
+        dd = sp.kron((d2.T @ d2).tocsr(), sp.identity(6))
+        prior = lam * (inv @ dd) + RIDGE * inv
+    else:
+        prior = RIDGE * inv
+    return sp.csr_matrix(prior)
+
+
+BAND = 17  # upper bandwidth of the frames' block: blocks of 6 and the second difference's reach of 2
+
+
+def _banded(h: sp.csr_matrix) -> F64:
+    n = h.shape[0]
+    ab = np.zeros((BAND + 1, n))
+    for k in range(BAND + 1):
+        ab[BAND - k, k:] = h.diagonal(k)
+    return ab
+
+
+def solve(data: list[FrameData | None], xi_prev: F64, lam: float) -> Solution:
+    """Joint Gauss-Newton step: frames without data (None: held out or empty) follow the prior."""
+    frames = len(data)
+    k = len(SENSOR_TERMS)
+    hpp_blocks = np.zeros((frames, 6, 6))
+    hps = np.zeros((frames * 6, k))
+    hss = np.zeros((k, k))
+    gp = np.zeros(frames * 6)
+    gs = np.zeros(k)
+    n = 0
+    for f, fd in enumerate(data):
+        if fd is None or fd.n == 0:
+            continue
+        phi = sensor_basis(fd.z, fd.theta)
+        gw = fd.g * fd.w[:, None]
+        hpp_blocks[f] = gw.T @ fd.g
+        hps[6 * f:6 * f + 6] = gw.T @ phi
+        hss += (phi * fd.w[:, None]).T @ phi
+        gp[6 * f:6 * f + 6] = gw.T @ fd.e
+        gs += (phi * fd.w[:, None]).T @ fd.e
+        n += fd.n
+    prior = _prior(frames, lam)
+    gp -= prior @ xi_prev.ravel()
+    hpp = (sp.block_diag(list(hpp_blocks), format="csr") + prior).tocsr()
+    chol = cholesky_banded(_banded(hpp), lower=False)
+    y = cho_solve_banded((chol, False), hps)
+    schur = hss - hps.T @ y
+    s_inv = np.linalg.inv(schur)
+    a = s_inv @ (gs - y.T @ gp)
+    dxi = cho_solve_banded((chol, False), gp - hps @ a)
+    chi2 = 0.0
+    for f, fd in enumerate(data):
+        if fd is None or fd.n == 0:
+            continue
+        r = fd.e - sensor_basis(fd.z, fd.theta) @ a - fd.g @ dxi[6 * f:6 * f + 6]
+        chi2 += float(np.sum(fd.w * r * r))
+    s2 = chi2 / max(n - 6 * frames - k, 1)
+    try:
+        hss_inv = np.linalg.inv(hss)
+    except np.linalg.LinAlgError:
+        hss_inv = np.full((k, k), np.nan)
+    return Solution(dxi.reshape(frames, 6), a, s2, chol, y, np.asarray(s_inv, dtype=np.float64),
+                    np.asarray(hss_inv, dtype=np.float64), n)
+
+
+def residuals(fd: FrameData, a: F64, dxi: F64) -> F64:
+    return np.asarray(fd.e - sensor_basis(fd.z, fd.theta) @ a - fd.g @ dxi, dtype=np.float64)
+
+
+def trim(data: list[FrameData | None], sol: Solution) -> list[FrameData | None]:
+    """Drop samples whose whitened residual exceeds TRIM_SIGMAS robust sigmas (edges, occluders)."""
+    whitened = [residuals(fd, sol.a, sol.dxi[f]) * np.sqrt(fd.w) for f, fd in enumerate(data)
+                if fd is not None and fd.n]
+    if not whitened:
+        return data
+    allw = np.concatenate(whitened)
+    scale = 1.4826 * float(np.median(np.abs(allw - np.median(allw)))) or 1.0
+    out: list[FrameData | None] = []
+    for f, fd in enumerate(data):
+        if fd is None or fd.n == 0:
+            out.append(fd)
+            continue
+        rw = residuals(fd, sol.a, sol.dxi[f]) * np.sqrt(fd.w)
+        out.append(fd.take(np.abs(rw) <= TRIM_SIGMAS * scale))
+    return out
+
+
+def cross_validate(data: list[FrameData | None], xi_prev: F64,
+                   lambdas: tuple[float, ...] = LAMBDAS) -> tuple[float, list[dict[str, float]]]:
+    """The second-difference weight whose poses best predict held-out frames (every
+    HOLD_OUT_EVERY-th frame's data dropped; its pose comes from its neighbours by the prior)."""
+    held = [f for f in range(len(data)) if f % HOLD_OUT_EVERY == HOLD_OUT_EVERY // 2 and data[f] is not None]
+    table: list[dict[str, float]] = []
+    if len(data) < 2 * HOLD_OUT_EVERY or not held:
+        return lambdas[len(lambdas) // 2], table
+    fit_data = [None if f in held else fd for f, fd in enumerate(data)]
+    best = (np.inf, lambdas[0])
+    for lam in lambdas:
+        sol = solve(fit_data, xi_prev, lam)
+        num = den = 0.0
+        for f in held:
+            fd = data[f]
+            assert fd is not None
+            r = residuals(fd, sol.a, sol.dxi[f])
+            num += float(np.sum(fd.w * np.minimum(r * r, 25 * sol.s2 / fd.w)))  # an outlier counts as 5 sigma
+            den += float(fd.w.size)
+        score = num / max(den, 1.0)
+        table.append({"lambda": lam, "held_out_chi2_per_sample": score, "held_out_frames": float(len(held))})
+        if score < best[0]:
+            best = (score, lam)
+    return best[1], table
+
+
+def draws(sol: Solution, xi_prev: F64, count: int = 40,
+          seed: int = 0) -> tuple[F64, F64]:
+    """Posterior draws (xi total (D, F, 6), sensor terms (D, K)) of the linear problem: the sensor
+    terms from their marginal (the Schur complement: their confusion with the poses included), the
+    poses given them, the frames' covariance through the banded Cholesky factor."""
+    rng = np.random.default_rng(seed)
+    k = sol.a.size
+    cov_a = sol.s2 * sol.s_inv
+    la = np.linalg.cholesky(0.5 * (cov_a + cov_a.T) + 1e-30 * np.eye(k))
+    frames = sol.dxi.shape[0]
+    xs = np.empty((count, frames, 6))
+    as_ = np.empty((count, k))
+    s = np.sqrt(sol.s2)
+    for i in range(count):
+        da = la @ rng.standard_normal(k)
+        eta = solve_banded((0, BAND), sol.chol, rng.standard_normal(frames * 6))
+        dx = -sol.y @ da + s * eta  # the frames move with the sensor terms (their correlation)
+        as_[i] = sol.a + da
+        xs[i] = xi_prev + sol.dxi + dx.reshape(frames, 6)
+    return xs, as_
+
+
+@dataclass
+class Patches:
+    """Reference surface patches whose error is the same seen from every frame: a mesh defect."""
+
+    keys: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    offset_m: F64 = field(default_factory=lambda: np.zeros(0))   # along the normal (point-to-plane)
+    u95_m: F64 = field(default_factory=lambda: np.zeros(0))
+    frames: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    z_span_m: F64 = field(default_factory=lambda: np.zeros(0))
+    defect: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+
+    def lookup(self, keys: NDArray[np.int64]) -> F64:
+        """Point-to-plane offset of the defect patches at `keys` (0 elsewhere)."""
+        out = np.zeros(keys.shape)
+        if not self.keys.size:
+            return out
+        idx = np.searchsorted(self.keys, keys)
+        idx = np.clip(idx, 0, self.keys.size - 1)
+        hit = (self.keys[idx] == keys) & self.defect[idx]
+        out[hit] = self.offset_m[idx[hit]]
+        return out
+
+
+DEFECT_MIN_M = 0.003   # a patch offset below this is not called a defect
+DEFECT_FRAMES = 3      # seen by at least this many frames
+DEFECT_Z_SPAN_M = 0.2  # from distances at least this far apart: a sensor error would change with them
+DEFECT_SIGMAS = 5.0    # and off the patches' median by this many robust spreads
+
+
+def find_patches(data: list[FrameData | None], sol: Solution) -> Patches:
+    """Per surface patch the mean point-to-plane residual and its frames-as-clusters U95; a defect
+    when it is larger than DEFECT_MIN_M and its U95, seen by DEFECT_FRAMES frames from distances
+    DEFECT_Z_SPAN_M apart (so that it is the surface, not the camera at one distance)."""
+    keys, q, wts, frames, zs = [], [], [], [], []
+    cell_of: list[NDArray[np.int64]] = []
+    for f, fd in enumerate(data):
+        if fd is None or fd.n == 0:
+            continue
+        r = residuals(fd, sol.a, sol.dxi[f])
+        cell_of.append((fd.z / 0.25).astype(np.int64) * 100 + (fd.theta / 5.0).astype(np.int64))
+        keys.append(fd.key)
+        q.append(r)
+        wts.append(fd.w / (fd.c * fd.c))
+        frames.append(np.full(fd.n, f))
+        zs.append(fd.z)
+    if not keys:
+        return Patches()
+    key = np.concatenate(keys)
+    rr, ww, ff, zz = np.concatenate(q), np.concatenate(wts), np.concatenate(frames), np.concatenate(zs)
+    cc = np.concatenate([fd.c for fd in data if fd is not None and fd.n])
+    # the camera's own error beyond the smooth model is a function of distance x inclination: taken
+    # out by each 0.25 m x 5 deg cell's mean residual, so that what stays is the surface's
+    _, cinv = np.unique(np.concatenate(cell_of), return_inverse=True)
+    wd = np.concatenate([fd.w for fd in data if fd is not None and fd.n])
+    cell_mean = np.bincount(cinv, wd * rr) / np.bincount(cinv, wd)
+    qq = (rr - cell_mean[cinv]) * cc
+    uk, inv = np.unique(key, return_inverse=True)
+    sw = np.bincount(inv, ww)
+    mean = np.bincount(inv, ww * qq) / sw
+    # frames as clusters: per (patch, frame) weighted sums
+    pf = inv.astype(np.int64) * (len(data) + 1) + ff
+    upf, pinv = np.unique(pf, return_inverse=True)
+    pw = np.bincount(pinv, ww)
+    pm = np.bincount(pinv, ww * qq) / pw
+    patch_of = upf // (len(data) + 1)
+    nf = np.bincount(patch_of, minlength=uk.size)
+    dev = pw * (pm - mean[patch_of])
+    var = np.bincount(patch_of, dev * dev, minlength=uk.size) / (sw * sw) * nf / np.maximum(nf - 1, 1)
+    u95 = 1.96 * np.sqrt(var)
+    zmin = np.full(uk.size, np.inf)
+    zmax = np.full(uk.size, -np.inf)
+    np.minimum.at(zmin, inv, zz)
+    np.maximum.at(zmax, inv, zz)
+    span = zmax - zmin
+    seen = (nf >= DEFECT_FRAMES) & (span >= DEFECT_Z_SPAN_M)
+    # a defect is local: an outlier among the patches (a shared offset of all of them is the
+    # sensor's or the poses', never the mesh's)
+    typical = float(np.median(mean[seen])) if seen.any() else 0.0
+    spread = 1.4826 * float(np.median(np.abs(mean[seen] - typical))) if seen.any() else 0.0
+    off = np.abs(mean - typical)
+    defect = seen & (off > np.maximum(DEFECT_MIN_M, u95)) & (off > DEFECT_SIGMAS * spread)
+    return Patches(uk, mean, u95, nf, span, defect)
+
+
+def without_patches(data: list[FrameData | None], patches: Patches) -> list[FrameData | None]:
+    """The samples less those on defect patches: a mesh defect must not move the poses (it would
+    pull the frames that see it and leave its trace on the neighbouring patches)."""
+    if not patches.defect.any():
+        return data
+    bad = patches.keys[patches.defect]
+    return [fd if fd is None or fd.n == 0 else fd.take(~np.isin(fd.key, bad)) for fd in data]
+
+
+def split_registration(poses: F64, xi: F64) -> tuple[F64, dict[str, Any]]:
+    """The global part of the corrections: one small similarity of the reference frame (rotation
+    r, translation t, scale k about the walk's centroid) that best moves the given cameras onto the
+    corrected ones (rotations and centres, each weighted by PRIOR_SCALE); its per-frame xi and the
+    parameters. The rest is the poses' own (per-frame) error. Gauge: the registration is this
+    least-squares similarity, so the per-frame part has no global rotation, translation or scale."""
+    rots = poses[:, :3, :3]
+    cent = poses[:, :3, 3]
+    c0 = cent.mean(axis=0)
+    rows, rhs, wts = [], [], []
+    for r, c, x in zip(rots, cent, xi, strict=True):
+        # rotation: world rotation vector R omega = r_g
+        rows.append(np.hstack([np.eye(3), np.zeros((3, 3)), np.zeros((3, 1))]))
+        rhs.append(r @ x[:3])
+        wts.append(np.full(3, 1 / SIGMA_ROT_RAD))
+        # centre: R v = r_g x (c - c0) + t + k (c - c0)
+        rows.append(np.hstack([-skew(c - c0), np.eye(3), (c - c0)[:, None]]))
+        rhs.append(r @ x[3:])
+        wts.append(np.full(3, 1 / SIGMA_TRANS_M))
+    a = np.vstack(rows)
+    b = np.concatenate(rhs)
+    w = np.concatenate(wts)
+    sol, *_ = np.linalg.lstsq(a * w[:, None], b * w, rcond=None)
+    rg, tg, kg = sol[:3], sol[3:6], float(sol[6])
+    xreg = np.empty_like(xi)
+    for f, (r, c) in enumerate(zip(rots, cent, strict=True)):
+        xreg[f, :3] = r.T @ rg
+        xreg[f, 3:] = r.T @ (np.cross(rg, c - c0) + tg + kg * (c - c0))
+    return xreg, {"rotation_rad": rg.tolist(), "translation_m": tg.tolist(), "scale": 1.0 + kg,
+                  "about_m": c0.tolist()}
