@@ -945,11 +945,14 @@ class LiveCamera:
         return CalibrationResult("tare", bytes(table), (float(health[0]), float(health[1])), details)
 
     def set_calibration_table(self, table: bytes) -> None:
-        """Make `table` active in RAM; held and set again after every reset while it differs from flash."""
+        """Make `table` active in RAM; held and set again after every start and reset while it
+        differs from flash. Flash is read before the set: what `get_calibration_table` (GETINTCAL)
+        returns after a RAM set is not documented, and if it were the RAM table, comparing after
+        the set would drop the hold and a reset would bring the flash table back unnoticed."""
         acd = self._acd()
         try:
-            acd.set_calibration_table(list(table))
             flash = bytes(acd.get_calibration_table())
+            acd.set_calibration_table(list(table))
         except RuntimeError as exc:
             raise CameraError(f"cannot set the calibration table of {self._label()}: {exc}") from exc
         self._held = None if bytes(table) == flash else bytes(table)
