@@ -148,7 +148,7 @@ def correct_recording(sequence: Path, model_path: Path, out: Path, *, sigma: boo
                 if sigma:
                     w.write_sigma(fs, sig)
                 stats.frames += 1
-                stats.pixels += int(np.count_nonzero(fs.depth))
+                stats.pixels += int(counts.sum())   # every pixel with depth falls in one count
                 stats.corrected += int(counts[0])
                 stats.outside_domain += int(counts[1])
                 stats.no_normal += int(counts[2])

@@ -177,6 +177,19 @@ def correct_kernel(depth: Any, coarse: Any, sub: int, units: float, cb: Any, cs:
         counts[i, 3] = c3
 
 
+@numba.njit(cache=True, nogil=True)
+def block_sums(depth: Any, sub: int, units: float, out_sum: Any, out_count: Any) -> None:
+    """Sum of the valid depths (m) and their count per sub x sub block."""
+    h, w = depth.shape
+    for i in range(h):
+        bi = i // sub
+        for j in range(w):
+            d = depth[i, j]
+            if d != 0:
+                out_sum[bi, j // sub] += d * units
+                out_count[bi, j // sub] += 1.0
+
+
 def ray_jacobian(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
     """dx/du, dx/dv, dy/du, dy/dv of the rays per pixel (H x W x 4). A pinhole's (rays broadcast
     from a row and a column) are one constant, broadcast: no 30 MB array to stream per frame."""
@@ -216,11 +229,11 @@ class Corrector:
         return np.ascontiguousarray(cv2.resize(a, (wc, hc), interpolation=cv2.INTER_AREA))
 
     def coarse_inverse_depth(self, depth: NDArray[np.uint16]) -> NDArray[np.float32]:
-        """The inverse of the box-mean depth of the valid pixels, on the block grid: block means
-        (INTER_AREA) then a box over COARSE_SMOOTH blocks, about the stride's width in pixels."""
-        d = depth.astype(np.float32) * np.float32(self.units)
-        v = (depth > 0).astype(np.float32)
-        ds, vs = self._blocks(d), self._blocks(v)
+        """The inverse of the box-mean depth of the valid pixels, on the block grid: block sums
+        (one pass over the image) then a box over COARSE_SMOOTH blocks, about the stride's width."""
+        ds = np.zeros(self.coarse_shape, np.float32)
+        vs = np.zeros(self.coarse_shape, np.float32)
+        block_sums(depth, self.sub, self.units, ds, vs)
         k = (COARSE_SMOOTH, COARSE_SMOOTH)
         ds = cv2.boxFilter(ds, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
         vs = cv2.boxFilter(vs, -1, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
