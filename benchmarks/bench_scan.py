@@ -51,6 +51,96 @@ def build_mesh(subdivide: int, segments: int) -> Any:
     return room, mesh
 
 
+def split_triangles(v: Any, f: Any, k: int, first_new: int) -> tuple[Any, Any]:
+    """Each triangle of (v, f) cut into k*k congruent ones on a barycentric lattice; the points on an
+    edge are shared by the triangles on both sides of it (no cracks). Returns the new vertices
+    (numbered from `first_new`) and the new triangles, same orientation as their parent."""
+    if k == 1:
+        return np.empty((0, 3)), f.copy()
+    nf = len(f)
+    pairs = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2).astype(np.int64)
+    lo, hi = pairs.min(1), pairs.max(1)
+    key, inv = np.unique(lo * (int(f.max()) + 1) + hi, return_inverse=True)
+    inv = inv.reshape(nf, 3)
+    ea, eb = key // (int(f.max()) + 1), key % (int(f.max()) + 1)
+    steps = np.arange(1, k)[None, :, None] / k
+    edge_pts = (v[ea][:, None, :] + (v[eb] - v[ea])[:, None, :] * steps).reshape(-1, 3)
+    n_edge = len(edge_pts)
+    inner = [(i, j) for i in range(1, k) for j in range(1, k) if i + j < k]
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    inner_pts = np.stack([a * ((k - i - j) / k) + b * (i / k) + c * (j / k) for i, j in inner], 1) \
+        if inner else np.empty((nf, 0, 3))
+    lat = np.empty((nf, k + 1, k + 1), np.int64)
+
+    def on_edge(e: int, p: Any, q: Any, s: int) -> Any:
+        """Index of the point s/k of the way from p to q on the face's edge e."""
+        fwd = p < q
+        return first_new + inv[:, e] * (k - 1) + np.where(fwd, s, k - s) - 1
+
+    lat[:, 0, 0], lat[:, k, 0], lat[:, 0, k] = f[:, 0], f[:, 1], f[:, 2]
+    for s in range(1, k):
+        lat[:, s, 0] = on_edge(0, f[:, 0], f[:, 1], s)          # A -> B
+        lat[:, k - s, s] = on_edge(1, f[:, 1], f[:, 2], s)      # B -> C
+        lat[:, 0, k - s] = on_edge(2, f[:, 2], f[:, 0], s)      # C -> A
+    for m, (i, j) in enumerate(inner):
+        lat[:, i, j] = first_new + n_edge + np.arange(nf) * len(inner) + m
+    tris = []
+    for i in range(k):
+        for j in range(k - i):
+            tris.append(np.stack([lat[:, i, j], lat[:, i + 1, j], lat[:, i, j + 1]], 1))
+            if i + j < k - 1:
+                tris.append(np.stack([lat[:, i + 1, j], lat[:, i + 1, j + 1], lat[:, i, j + 1]], 1))
+    return np.concatenate([edge_pts, inner_pts.reshape(-1, 3)]), np.concatenate(tris)
+
+
+def sized_mesh(target_m: float, kind: str) -> Any:
+    """The benchmark room at about `target_m` million triangles. 'even': a base room (walls
+    subdivided, the table's slivers) with every triangle cut into k*k (the same scene at a finer
+    tessellation); 'uneven': a coarser base cut patch by patch into two sizes (2:1 edges, by a
+    smooth field over space, as an adaptive surface reconstruction refines where there is detail),
+    so triangles of one frame range from several pixels to a fraction of one. New vertices are
+    jittered by 0.3 mm (the base by 1 mm), so no two neighbours are coplanar."""
+    from depthstation.core.lazy_open3d import open3d
+
+    o3d = open3d()
+    if kind == "even":
+        options = [(7, 45_000, 1), (8, 100_000, 1), (7, 45_000, 3), (8, 100_000, 3), (8, 100_000, 4)]
+        base_n = [(12 * 4**n + 3 * s) * k * k for n, s, k in options]
+        n, segs, k = options[int(np.argmin([abs(np.log(b / (target_m * 1e6))) for b in base_n]))]
+        _, base = build_mesh(n, segs)
+        levels = [(k, np.ones(len(base.triangles), bool))]
+    elif kind == "uneven":
+        _, base = build_mesh(6, 15_000)
+        nb = len(base.triangles)
+        m = max(target_m * 1e6 / nb, 1.0)
+        ks = [1, 2, 4, 8, 16, 32]
+        lo = max(kk for kk in ks if kk * kk <= m)
+        hi = 2 * lo
+        p = (m - lo * lo) / (hi * hi - lo * lo)
+        cen = np.asarray(base.vertices)[np.asarray(base.triangles)].mean(1)
+        field = (np.sin(cen[:, 0] * 2.3 + 0.4) + np.sin(cen[:, 1] * 3.1 + 1.3) + np.sin(cen[:, 2] * 4.7)
+                 + 0.5 * np.sin((cen[:, 0] + cen[:, 1]) * 7.9))
+        fine = field >= np.quantile(field, 1 - p) if p > 0 else np.zeros(nb, bool)
+        levels = [(lo, ~fine), (hi, fine)]
+    else:
+        raise ValueError(f"mesh kind {kind!r} (even, uneven)")
+    v = np.asarray(base.vertices)
+    f = np.asarray(base.triangles).astype(np.int64)
+    verts, faces = [v], []
+    rng = np.random.default_rng(1)
+    for k, sel in levels:
+        if not sel.any():
+            continue
+        nv = sum(len(x) for x in verts)
+        new_v, new_f = split_triangles(v, f[sel], k, nv)
+        verts.append(new_v + rng.normal(0, 0.0003, new_v.shape))
+        faces.append(new_f)
+    mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.concatenate(verts)),
+                                     o3d.utility.Vector3iVector(np.concatenate(faces).astype(np.int32)))
+    mesh.compute_triangle_normals()
+    return mesh
+
+
 def make_workload(frames: int, distinct: int, width: int, height: int) -> Any:
     from depthstation.evaluate.scan.synthetic import SyntheticSequence, make_sequence
 
@@ -210,8 +300,25 @@ def main() -> None:
                     help="then N back-to-back cycles: casting alone, 1-process study, nearest neighbour")
     ap.add_argument("--skip", default="",
                     help="comma list of runs to skip: alone,compare,raster,raster-w1,raycast,kdtree")
+    ap.add_argument("--triangles", default="",
+                    help="comma list of mesh sizes in millions (e.g. 0.3,1,3,10): the study against casting "
+                         "alone, memory and nearest neighbour at each size, as one table (then nothing else)")
+    ap.add_argument("--meshes", default="even,uneven", help="with --triangles: mesh kinds (even, uneven)")
+    ap.add_argument("--size-cycles", type=int, default=2,
+                    help="with --triangles: casting alone and the study, alternating, N times per mesh")
+    ap.add_argument("--kdtree-max", type=float, default=1.2,
+                    help="with --triangles: nearest neighbour up to this many million triangles")
+    ap.add_argument("--hd", default="1,3", help="with --triangles: sizes (millions) with a 1280x720 run")
+    ap.add_argument("--hd-frames", type=int, default=64)
+    ap.add_argument("--study-child", default="", help=argparse.SUPPRESS)
     args = ap.parse_args()
     skip = set(filter(None, args.skip.split(",")))
+    if args.study_child:
+        study_child(args)
+        return
+    if args.triangles:
+        run_sizes(args)
+        return
 
     from depthstation.core.lazy_open3d import open3d
     from depthstation.core.raster import arithmetic_report
@@ -326,6 +433,110 @@ def run_cycles(args: Any, mesh: Any, mesh_path: Path, seq: Any) -> None:
     print(f"over {args.cycles} cycles: study / casting alone median {np.median(vs_cast):.2f}x "
           f"(range {min(vs_cast):.2f}-{max(vs_cast):.2f}); nearest neighbour / study median "
           f"{np.median(vs_kd):.1f}x (range {min(vs_kd):.1f}-{max(vs_kd):.1f})")
+
+
+def study_child(args: Any) -> None:
+    """One study in a process of its own (`--study-child MESH`), so that its peak memory is the
+    study's (this process and its workers) and not the benchmark's meshes and scenes: a JSON line."""
+    import json
+
+    seq = make_workload(args.frames, args.distinct, args.width, args.height)
+    gc.freeze()
+    s = time_study(seq, Path(args.study_child), args.workers, "raster", chunk=64)
+    print(json.dumps({"wall": s["wall"], "cpu": s["cpu"], "peak_gib": s["peak_gib"]}))
+
+
+def child_study(mesh_path: Path, args: Any, workers: int, frames: int, width: int,
+                height: int) -> dict[str, float]:
+    import json
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, __file__, "--study-child", str(mesh_path), "--workers", str(workers),
+           "--frames", str(frames), "--width", str(width), "--height", str(height),
+           "--distinct", str(args.distinct)]
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    return dict(json.loads(out.strip().splitlines()[-1]))
+
+
+def run_sizes(args: Any) -> None:
+    """`--triangles 0.3,1,3,10`: per mesh kind and size, the renderers' equality, casting alone and
+    the study (1 process) alternating `--size-cycles` times (the ratio of each pair: the box's state
+    moves less within a pair than between runs), the study's peak memory with `--workers` processes
+    (in a process of its own), nearest neighbour at the smaller sizes and the 1280x720 frame rate."""
+    from depthstation.core.lazy_open3d import open3d
+    from depthstation.evaluate.scan.raycast import MeshCaster
+
+    o3d = open3d()
+    sizes = [float(x) for x in args.triangles.split(",") if x]
+    hd = {float(x) for x in args.hd.split(",") if x}
+    load = os.getloadavg()
+    print(f"cpus available: {len(os.sched_getaffinity(0))}; "
+          f"load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}; "
+          f"{args.frames} frames of {args.width}x{args.height} per study, casting alone over "
+          f"{args.render_frames} frames, {args.size_cycles} alternating pairs", flush=True)
+    seq = make_workload(args.frames, args.distinct, args.width, args.height)
+    tmp = Path(tempfile.mkdtemp(prefix="bench_scan_"))
+    atexit.register(shutil.rmtree, tmp, ignore_errors=True)
+    rows = []
+    for kind in args.meshes.split(","):
+        for size in sizes:
+            t0 = time.perf_counter()
+            mesh = sized_mesh(size, kind)
+            mesh_path = tmp / "mesh.ply"
+            o3d.io.write_triangle_mesh(str(mesh_path), mesh)
+            ntri = len(mesh.triangles)
+            took = time.perf_counter() - t0
+            print(f"{kind} {ntri / 1e6:.2f} M triangles (built and written in {took:.0f} s)", flush=True)
+            cmp = compare_renderers(mesh, seq, 4)
+            b = max(cmp["both_hit"], 1)
+            equal = min(cmp["hit_agree"] / cmp["pixels"], cmp["t_equal"] / b, cmp["triangle_equal"] / b)
+            print(f"  rasteriser vs ray casting over 4 frames: hit/miss, depth and triangle equal on "
+                  f"{equal:.6%} of {cmp['pixels']:,} pixels", flush=True)
+            caster = MeshCaster(mesh, seq.info.depth_intrinsics, 0)
+            ratios, studies, casts = [], [], []
+            for _ in range(args.size_cycles):
+                cw, _c = time_renderer(caster, seq.poses, args.render_frames)
+                s = time_study(seq, mesh_path, 1, "raster", chunk=64)
+                casts.append(cw * 1000)
+                studies.append(s["wall"] / args.frames * 1000)
+                ratios.append(s["wall"] / (cw * args.frames))
+                print(f"  casting alone {cw * 1000:.1f} ms/frame, study {studies[-1]:.1f} ms/frame "
+                      f"-> {ratios[-1]:.2f}x", flush=True)
+            del caster
+            gc.collect()
+            mem = child_study(mesh_path, args, args.workers, max(args.frames, 128), args.width, args.height)
+            print(f"  study with --workers {args.workers}: peak memory {mem['peak_gib']:.2f} GiB", flush=True)
+            kd = None
+            if ntri <= args.kdtree_max * 1e6:
+                kdw, _b, _k = time_kdtree(seq, mesh, args.kdtree_frames, args.kdtree_points)
+                kd = kdw * 1000 / float(np.median(studies))
+                print(f"  nearest neighbour {kdw * 1000:.0f} ms/frame = {kd:.1f}x the study", flush=True)
+            fps = cast_fps = None
+            if any(abs(size - h) < 1e-9 for h in hd):
+                seq_hd = make_workload(args.hd_frames, args.distinct, 1280, 720)
+                caster = MeshCaster(mesh, seq_hd.info.depth_intrinsics, 0)
+                cw, _c = time_renderer(caster, seq_hd.poses, min(args.render_frames, args.hd_frames))
+                del caster
+                s = time_study(seq_hd, mesh_path, 1, "raster", chunk=64)
+                fps, cast_fps = args.hd_frames / s["wall"], 1 / cw
+                print(f"  1280x720: the study {fps:.1f} frames/s, casting alone {cast_fps:.1f} frames/s "
+                      f"(the camera: 30)", flush=True)
+            rows.append((kind, ntri, float(np.median(studies)), float(np.median(casts)), ratios,
+                         mem["peak_gib"], kd, fps, cast_fps))
+            del mesh
+            gc.collect()
+    load = os.getloadavg()
+    print(f"\nload average at the end {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}\n")
+    print("| mesh | triangles | study ms/frame | casting alone ms/frame | study / casting (each pair) "
+          f"| peak memory, --workers {args.workers} | nearest neighbour / study "
+          "| 1280x720 study fps (casting) |")
+    print("|---|---|---|---|---|---|---|---|")
+    for kind, ntri, st, ca, rs, mem_gib, kd, fps, cfps in rows:
+        pairs = ", ".join(f"{r:.2f}" for r in rs)
+        print(f"| {kind} | {ntri / 1e6:.2f} M | {st:.1f} | {ca:.1f} | **{np.median(rs):.2f}x** ({pairs}) "
+              f"| {mem_gib:.2f} GiB | {'' if kd is None else f'{kd:.1f}x'} "
+              f"| {'' if fps is None else f'{fps:.1f} ({cfps:.1f})'} |")
 
 
 if __name__ == "__main__":
