@@ -179,6 +179,8 @@ class FakeUnit:
         # the older on-demand mode, one frameset per fetch (kept for tests that place a fault on
         # an exact frameset)
         self.real_time, self.speed = real_time, speed
+        # partial sets: each stream's frame goes missing with this probability (seeded)
+        self.miss_p, self.rng = 0.0, np.random.default_rng(0)
         # a table set in RAM after `pipeline.stop()`: 'kept' or 'lost'. The sources do not say
         # (set_calibration_table sends CALIBRECALC, d400-auto-calibration.cpp; the Viewer sets the
         # table again after each restart, common/on-chip-calib.cpp): the live path must hold either way
@@ -248,7 +250,9 @@ class FakeUnit:
     # -- faults a test injects ----------------------------------------------------------------
     def inject(self, **fault: Any) -> None:
         """The next frameset: repeat='depth'|'color' (the aggregator re-sends the last frame),
-        drop={'depth': n} (the firmware counter skips n numbers: frames lost on the device)."""
+        missing='depth'|'color' (the device lost that stream's frame: a partial set the aggregator
+        fills with the last frame), drop={'depth': n} (the firmware counter skips n numbers: frames
+        lost on the device)."""
         self.pending.append(fault)
 
     def stall(self) -> None:
@@ -824,6 +828,13 @@ def build_module(world: FakeRealSense) -> types.ModuleType:
             frames = []
             for key in self.streams:
                 kind, w, h, _fmt, fps, index = key
+                missing = fault.get("missing") == kind or (u.miss_p > 0 and u.rng.random() < u.miss_p)
+                if missing and kind in u.last_frames:
+                    # the device lost this stream's frame: its counter moves on, and the aggregator
+                    # fills the set with the stream's last frame (src/pipeline/aggregator.cpp,
+                    # `_last_set`); a callback gets the set without it
+                    u.counters[kind] += 1
+                    fault = {**fault, "repeat": kind}
                 if fault.get("repeat") == kind and kind in u.last_frames:
                     old = u.last_frames[kind]
                     frames.append(FakeFrame(u, kind, old.index, old.number, old.host_number, old.ts_ms,

@@ -318,3 +318,30 @@ def test_settings_and_firmware_are_recorded_and_emitter_on_off_pinned(fake: Any,
     rs = world.module
     sensors = rs.context().query_devices()[0].query_sensors()
     assert any(not p.is_video_stream_profile() for p in sensors[-1].get_stream_profiles())
+
+
+def test_partial_framesets_repeat_on_the_queue_and_are_counted_in_the_capture(fake: Any) -> None:
+    """A stream's frame that the device lost: `wait_for_frames` gets the set filled with that
+    stream's last frame (the aggregator's `_last_set`); the capture, fed by the callback, waits for
+    the stream's next frame and books one device loss. Never the same colour frame twice."""
+    world, unit = fake(real_time=True)
+    unit.miss_p = 0.3
+    rs = world.module
+    cfg = rs.config()
+    cfg.enable_stream(rs.stream.depth, 640, 360, rs.format.z16, 30)
+    cfg.enable_stream(rs.stream.color, 640, 360, rs.format.rgb8, 30)
+    pipe = rs.pipeline()
+    pipe.start(cfg)
+    colors = [pipe.wait_for_frames(1000).get_color_frame().get_frame_number() for _ in range(20)]
+    pipe.stop()
+    assert len(set(colors)) < len(colors)  # repeats on the queue
+    unit.miss_p = 0.3
+    cam = camera()
+    cam.start(PROTO_STREAMS)
+    sets = [cam.wait_for_frames(1.0) for _ in range(20)]
+    cam.stop()
+    numbers = [s.metadata["color_frame_number"] for s in sets]
+    assert len(set(numbers)) == len(numbers)
+    lost = sum(s.metadata["frames_lost_before"]["color"] for s in sets[1:])
+    dropped = sum(s.metadata["host_frames_dropped_before"]["color"] for s in sets[1:])
+    assert lost > 0 and numbers[-1] - numbers[0] + 1 - len(numbers) == lost + dropped
