@@ -473,6 +473,10 @@ def remaining(regions: Sequence[dict[str, Any]], attr: Attribution, lib: Sequenc
                                          else "no fit table for this quantity")
             out.append(entry)
             continue
+        if r["family"].startswith("periodic") or r["family"] == "static":
+            entry.update(_fine_remedy(r))
+            out.append(entry)
+            continue
         if r["family"].startswith("correlation") and correlation:
             real, sim = correlation["real"], correlation["sim"]
             entry["term"] = "window_noise"
@@ -499,3 +503,23 @@ def remaining(regions: Sequence[dict[str, Any]], attr: Attribution, lib: Sequenc
             entry.update(best)
         out.append(entry)
     return out
+
+
+def _fine_remedy(r: dict[str, Any]) -> dict[str, Any]:
+    """The smallest term that would remove a periodic or static region, and why it is not in the model."""
+    if r["family"].startswith("periodic"):
+        axis = r["family"].split("_")[1]
+        return {"term": "periodic_bias",
+                "expression": (f"delta = {r.get('amplitude_px', float('nan')):.3g} px sin(2 pi {axis} / "
+                               f"{r.get('period_px', float('nan')):.3g} px + {r.get('phase_rad', 0.0):.2f})"),
+                "why_not_selected": "a ripple the refit did not remove: its amplitude or period differs "
+                                    "in the re-simulation (the written term is fitted on all standpoints)"}
+    length = r.get("correlation_px", float("nan"))
+    return {"term": "static_pattern",
+            "expression": (f"a static field of {np.sqrt(max(r.get('real_px2', 0.0), 0.0)):.3g} px RMS"
+                           + (f" over {length:.3g} px" if np.isfinite(length) else "")),
+            "why_not_selected": ("a pattern repeating in every frame of this standpoint beyond the model's "
+                                 "static_pattern; one fixed to the unit is calibrated from the pooled test, "
+                                 "one of a single standpoint (its texture, its pose) is no term the "
+                                 "standpoints share")}
+

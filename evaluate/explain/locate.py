@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import stdtr
 
+from depthstation.evaluate.explain.fine import fine_tests
 from depthstation.evaluate.explain.samples import (
     FloatArray,
     IntArray,
@@ -391,6 +392,8 @@ FAMILY_AXES: dict[str, tuple[str, ...]] = {
     "inclination": ("inclination",), "albedo": ("albedo",), "frame": ("frame",), "time": ("time",),
     "temperature": ("temperature",), "edge": ("edge",), "frame_common": ("frame",),
     "correlation_u": ("u",), "correlation_v": ("v",),
+    "periodic_u": ("u",), "periodic_v": ("v",), "gradient_u": ("u",), "gradient_v": ("v",),
+    "static": ("tile",),
 }
 
 
@@ -548,6 +551,8 @@ def locate(real: Samples, sim: Samples, alpha: float = ALPHA, groups: list[Group
         tests += compare_groups(real, sim, g, "noise", st_r.dev2, st_s.dev2)
     tests += _frame_common_tests(real, sim, st_r, st_s)
     tests += _correlation_tests(real, sim, st_r, st_s)
+    window = st_r.corr.window_px if st_r.corr.fraction > 0.2 else 9.0
+    tests += [GroupTest(**t) for t in fine_tests(real, sim, window)]
     adj, rej = holm(np.array([t.p for t in tests]), alpha)
     for t, a, r in zip(tests, adj, rej, strict=True):
         t.p_adj, t.significant = float(a), bool(r)

@@ -119,6 +119,7 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
         "remaining_after": ex.remaining,
         "tests": [t.to_dict() for t in ex.before.tests],
         "time_stamps": ex.real.samples.time_stamps,
+        "fine_terms": ex.fine_terms,
     }
 
 
@@ -424,6 +425,10 @@ def _discovered_md(data: dict[str, Any], figs: list[str]) -> list[str]:
             lines += ["", f"![{figs[k]}]({figs[k]})", ""]
     for dr in disc.get("dropped_catalogue", []):
         lines.append(f"- {dr['effect']} was taken out again: {dr['why']}.")
+    for ft in data.get("fine_terms") or []:
+        shown = ", ".join(f"{k} = {v:.4g}" for k, v in ft["params"].items())
+        lines.append(f"- Found by the {ft['family']} test and written into model.toml: "
+                     f"`[effects.{ft['effect']}]` {shown}.")
     for kp in disc.get("kept_catalogue", []):
         lines.append(f"- {kp['effect']} is kept against generic terms of lower BIC: {kp['why']}.")
     rest = data.get("remaining_after")

@@ -30,6 +30,7 @@ from depthstation.evaluate.explain.attribute import Attribution, attribute
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
 from depthstation.evaluate.explain.coverage import FillTest, extrapolation_messages, fill_message, fill_tests
 from depthstation.evaluate.explain.discover import Discovery, discover, remaining
+from depthstation.evaluate.explain.fine import fine_terms
 from depthstation.evaluate.explain.library import library
 from depthstation.evaluate.explain.locate import (
     FAMILY_AXES,
@@ -340,7 +341,7 @@ def correlated_variance(model: SensorModel) -> Callable[[Samples], tuple[Any, fl
 
 
 def improved_model(model: SensorModel, attribution: Attribution, discovery: Discovery | None = None,
-                   candidates: Sequence[Candidate] = ()) -> SensorModel:
+                   candidates: Sequence[Candidate] = (), fine: Sequence[dict[str, Any]] = ()) -> SensorModel:
     """The base model with every selected effect added or its parameters replaced by the fit, and
     every discovered term as a generic term the simulator renders."""
     fixed = {c.name: c.fixed for c in candidates}
@@ -352,6 +353,8 @@ def improved_model(model: SensorModel, attribution: Attribution, discovery: Disc
         new = new.with_effect(c.effect, **{**fixed.get(c.effect, {}), **params})
     for t in (discovery.terms if discovery is not None else []):
         new = new.with_effect(t.effect, **t.params())
+    for f in fine:
+        new = new.with_effect(f["effect"], **f["params"])
     return new
 
 
@@ -370,6 +373,7 @@ class Explanation:
     library: list[Candidate] | None = None
     remaining: list[dict[str, Any]] | None = None   # regions significant after, and what would explain them
     valid_depth: list[FillTest] = field(default_factory=list)   # fill rates real vs sim per standpoint
+    fine_terms: list[dict[str, Any]] = field(default_factory=list)   # ripple / static pattern written
 
 
 def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, seed: int = 0,
@@ -408,7 +412,8 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     for look in reference_lookalikes(attr.selected):
         warn(f"{look['effect']} selected (scale_error {look['scale_error']:+.4f}): {look['also']}", None,
              "reference-lookalike")
-    new_model = improved_model(model, attr, disc, cands)
+    fine = fine_terms(before.tests, present, real.samples.fx)
+    new_model = improved_model(model, attr, disc, cands, fine)
     resim = after = None
     if resimulate:
         resim = simulate_like(real, board, new_model, seed=seed + 1, tick=tick)
@@ -420,7 +425,8 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     summary = after.summary() if after is not None else None
     rest = (remaining(summary["regions"], attr, lib, disc, FAMILY_AXES, cands, present,
                       summary.get("noise_correlation")) if summary is not None and lib else None)
-    return Explanation(real, sim, before, attr, model, new_model, resim, after, cands, disc, lib, rest, fills)
+    return Explanation(real, sim, before, attr, model, new_model, resim, after, cands, disc, lib, rest, fills,
+                       fine)
 
 
 def _frame_counts(side: Side) -> dict[str, int]:
