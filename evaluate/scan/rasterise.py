@@ -19,6 +19,7 @@ from depthstation.core.camera_model import Intrinsics
 from depthstation.core.errors import InputError
 from depthstation.core.lazy_open3d import open3d
 from depthstation.core.raster import MeshRaster, arithmetic_report
+from depthstation.evaluate.scan.hit_refine import TrianglePlanes
 from depthstation.evaluate.scan.raycast import F32, F64, FrameRenderer, MeshCaster
 
 RENDERERS = ("raster", "raycast")
@@ -41,12 +42,16 @@ class MeshRasteriser(FrameRenderer):
 
     name = "raster"
 
-    def __init__(self, mesh: Any, intr: Intrinsics, raster: MeshRaster | None = None) -> None:
+    def __init__(self, mesh: Any, intr: Intrinsics, raster: MeshRaster | None = None,
+                 planes: TrianglePlanes | None = None) -> None:
         super().__init__(intr)
         if raster is None:
             vertices, triangles = mesh_arrays(mesh)
             raster = MeshRaster(vertices, triangles)
+            planes = TrianglePlanes(vertices, triangles).reordered(raster.perm)  # by rank
         self.raster = raster
+        self.planes = planes
+        self._table = None if planes is None else planes.table
         self.n_triangles = raster.n_triangles
         self._unmeasured_ranks: NDArray[np.int32] | None = None  # `_unmeasured_ids`' ranks
         n = self.dirs.shape[0]
@@ -66,6 +71,8 @@ class MeshRasteriser(FrameRenderer):
         the table, so no per-pixel normal array is gathered (7 MB written and read per frame)."""
         raster = self.raster
         raster.render(self.intr, np.asarray(pose, dtype=np.float64), self._t, self._ids, None, ranks=True)
+        if self._table is not None:  # normals from float64 vertices, unmeasured rows NaN (`hit_refine`)
+            return self._t, self._ids, self._table
         table = raster.normal_table()
         um = self._unmeasured_ranks
         if um is not None and self.unmeasured is not None:  # the winners' normals were just written
@@ -80,13 +87,15 @@ class MeshRasteriser(FrameRenderer):
         super().mark_unmeasured(mask)
         um = self._unmeasured_ids
         self._unmeasured_ranks = None if um is None else self.raster.rank[um]
+        if self.planes is not None:
+            self._table = self.planes.with_unmeasured(self._unmeasured_ranks)
 
     def describe(self) -> dict[str, Any]:
         return {"renderer": self.name, **arithmetic_report()}
 
     def sibling(self) -> MeshRasteriser:
         """Another renderer over the same prepared mesh (for another thread)."""
-        other = MeshRasteriser(None, self.intr, self.raster.sibling())
+        other = MeshRasteriser(None, self.intr, self.raster.sibling(), self.planes)
         other.mark_unmeasured(self.unmeasured)
         return other
 

@@ -25,6 +25,7 @@ from depthstation.core.camera_model import Intrinsics, pixel_rays
 from depthstation.core.grid import EXACT_MATH, FrameMoments, Grid, bin_index
 from depthstation.core.lazy_open3d import open3d
 from depthstation.core.raster import fill_rays, pinhole_axes
+from depthstation.evaluate.scan.hit_refine import TrianglePlanes, refine_depths
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -430,6 +431,9 @@ class FrameRenderer:
         self._identity = np.zeros(0, np.int32)
         self.unmeasured: NDArray[np.bool_] | None = None
         self._unmeasured_ids: NDArray[np.int64] | None = None
+        # the mesh's planes in float64, by the index `cast_indexed` hands the pass (None: the
+        # renderer's float32 hits are used as they are)
+        self.planes: TrianglePlanes | None = None
 
     def mark_unmeasured(self, mask: NDArray[np.bool_] | None) -> None:
         """Triangles of reference surface nobody scanned (`reference.unmeasured_triangles`, by the
@@ -474,6 +478,8 @@ class FrameRenderer:
         cell it touches; the frame's cell means into `moments` (frames as clusters, for the standard
         error of a cell mean)."""
         t_hit, index, normals = self.cast_indexed(pose)
+        if self.planes is not None:  # the same triangles, depth in float64 (`hit_refine`)
+            refine_depths(t_hit, index, self.planes, self.dirs, pose)
         fc = frame_cells if frame_cells is not None else cells
         d_lo, d_step, nd, _, _, ni = cells.grid.bins
         n = self.dirs.shape[0]
@@ -525,12 +531,17 @@ class MeshCaster(FrameRenderer):
         if isinstance(mesh, (str, Path)):
             mesh = o3d.io.read_triangle_mesh(str(mesh))
         if isinstance(mesh, o3d.geometry.TriangleMesh):
+            self.planes = TrianglePlanes(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
             mesh = o3d.t.geometry.TriangleMesh.from_legacy(mesh)
+        else:
+            self.planes = TrianglePlanes(mesh.vertex.positions.numpy(), mesh.triangle.indices.numpy())
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(mesh)
         self.n_triangles = int(mesh.triangle.indices.shape[0])
         self.nthreads = int(nthreads)
         self._rays_t = o3d.core.Tensor.from_numpy(self.rays)
+        self._hit_ids = np.zeros(0, np.int32)
+        self._table = self.planes.table
 
     def cast(self, pose: F64) -> tuple[F32, F32]:
         """Cast all pixels of a camera with camera-to-reference pose (4x4 rigid); (t_hit, normals)."""
@@ -538,5 +549,19 @@ class MeshCaster(FrameRenderer):
         fill_rays(self.rays, pose[:3, 3].copy(), pose[:3, :3].copy(), self.dirs)
         ans = self.scene.cast_rays(self._rays_t, nthreads=self.nthreads)
         normals = ans["primitive_normals"].numpy()
-        self._blank_unmeasured(ans["primitive_ids"].numpy(), normals)
+        ids = ans["primitive_ids"].numpy()
+        self._blank_unmeasured(ids, normals)
+        hit = ids < self.n_triangles  # a miss is Open3D's INVALID_ID (2^32 - 1)
+        self._hit_ids = np.where(hit, ids, -1).astype(np.int32)
         return ans["t_hit"].numpy(), normals
+
+    def cast_indexed(self, pose: F64) -> tuple[F32, NDArray[np.int32], F32]:
+        """(t_hit, hit triangle ids, the per-triangle normals from float64 vertices): the table the
+        rasteriser hands too, so both renderers bin alike in any frame (`hit_refine`)."""
+        t_hit, _ = self.cast(pose)
+        return t_hit, self._hit_ids, self._table
+
+    def mark_unmeasured(self, mask: NDArray[np.bool_] | None) -> None:
+        super().mark_unmeasured(mask)
+        if self.planes is not None:
+            self._table = self.planes.with_unmeasured(self._unmeasured_ids)
