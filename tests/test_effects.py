@@ -29,6 +29,7 @@ TEST_PARAMS: dict[str, dict[str, float]] = {
     "incidence_noise": {"sigma_px": 0.08, "exponent": 1.0, "max_deg": 80.0},
     "static_pattern": {"sigma_px": 0.2, "length": 0.05, "pattern_seed": 3.0},
     "slant_scale": {"k": 0.02, "max_deg": 75.0},
+    "periodic_bias": {"amplitude_px": 0.05, "period_px": 24.0, "phase_rad": 0.3, "axis": 0.0},
     "color_camera": {"psf_sigma_px": 0.8, "full_well_e": 250.0, "read_noise_e": 4.0},  # leaves depth alone
 }
 FX, PPX, PPY, B = 674.42, 641.8, 358.1, 0.095

@@ -88,7 +88,8 @@ def test_a_static_field_repeating_over_the_frames_is_found(sim: Samples) -> None
     tests = [t for t in fine_tests(_session(4, "static", 0.03), sim) if t["family"] == "static"]
     pooled = [t for t in tests if t["label"] == "pooled"]
     assert pooled and pooled[0]["p"] < HOLM_FLOOR
-    diffs = np.array([t["coords"]["real_px2"] - t["coords"]["sim_px2"] for t in tests if t["label"] != "pooled"])
+    diffs = np.array([t["coords"]["real_px2"] - t["coords"]["sim_px2"] for t in tests
+                      if t["label"] != "pooled"])
     assert np.median(diffs) == pytest.approx(0.03 ** 2, rel=0.35)   # minus what the plane takes
     lengths = [t["coords"]["correlation_px"] for t in tests if np.isfinite(t["coords"]["correlation_px"])]
     assert lengths and 2.0 <= np.median(lengths) <= 12.0

@@ -14,6 +14,7 @@ from depthstation.simulate.effects.dropout import Dropout
 from depthstation.simulate.effects.flying_pixels import FlyingPixels
 from depthstation.simulate.effects.incidence_noise import IncidenceNoise
 from depthstation.simulate.effects.lr_focal_mismatch import LrFocalMismatch
+from depthstation.simulate.effects.periodic_bias import PeriodicBias
 from depthstation.simulate.effects.pixel_locking import PixelLocking
 from depthstation.simulate.effects.quantization import Quantization
 from depthstation.simulate.effects.reference_pose_noise import ReferencePoseNoise
@@ -28,6 +29,7 @@ EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (
     DisparityNoise, Quantization, Dropout, DisparityOffset, DepthScale, LrFocalMismatch,
     DistortionResidual, PixelLocking, ThermalDrift, SlantNoise, SlantBias, AlbedoBias, AlbedoNoise,
     FlyingPixels, ReferencePoseNoise, WindowNoise, IncidenceNoise, StaticPattern, ColorCamera, SlantScale,
+    PeriodicBias,
 )}
 
 __all__ = ["EFFECTS", "Effect", "PixelContext"]
