@@ -5,6 +5,7 @@ radius, height and start), and check what the study, a TSDF map and the exports 
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -275,3 +276,22 @@ def test_fit_refuses_a_folder_that_is_no_study(tmp_path: Path, capsys: pytest.Ca
     capsys.readouterr()
     assert run_cli(["model", "fit", str(tmp_path / "r"), "--out", str(tmp_path / "m.json")]) == 2
     _one_error_line(capsys, "grid.npz", "standpoints.csv")
+
+
+def test_fit_refuses_studies_of_two_cameras(world: dict[str, Any], tmp_path: Path,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """A copy of walk A's study that names another serial (and whose recording is gone, so only
+    result.json speaks): one model cannot describe two cameras."""
+    other = tmp_path / "other"
+    shutil.copytree(world["root"] / "scan_a", other)
+    info = json.loads((other / "result.json").read_text())
+    info["device"]["serial_number"] = "OTHER9"
+    (other / "result.json").write_text(json.dumps(info))
+    summary = json.loads((other / "summary.json").read_text())
+    summary["inputs"]["sequence"] = str(tmp_path / "gone.mcap")
+    (other / "summary.json").write_text(json.dumps(summary))
+    capsys.readouterr()
+    assert run_cli(["model", "fit", str(world["root"] / "scan_a"), str(other), "--out",
+                    str(tmp_path / "m.json"), "--min-count", "100"]) == 2
+    _one_error_line(capsys, "other", "serial_number", "OTHER9")
+    assert not (tmp_path / "m.json").exists()

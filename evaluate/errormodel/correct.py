@@ -14,6 +14,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -140,10 +141,8 @@ def correct_recording(sequence: Path, model_path: Path, out: Path, *, sigma: boo
             for name, (times, values) in rec.temperatures().items():
                 for t, v in zip(times, values, strict=True):
                     w.write_temperature(t, {name: v})
-            for i, fs in enumerate(rec.frames()):
-                if fs.depth is None:
-                    raise InputError(rec.path, f"frame {fs.index} has no depth")
-                depth, sig, _, counts = corr(fs.depth, sigma)
+            def emit(i: int, fs: FrameSet, job: Future[Any]) -> None:
+                depth, sig, _, counts = job.result()
                 w.write(replace(fs, depth=depth))
                 if sigma:
                     w.write_sigma(fs, sig)
@@ -155,6 +154,20 @@ def correct_recording(sequence: Path, model_path: Path, out: Path, *, sigma: boo
                 stats.out_of_range += int(counts[3])
                 if on_frame is not None:
                     on_frame(i, rec.frame_count)
+
+            # the next frame is corrected while this one is written (the kernels release the GIL,
+            # the writer's compression too): reading and writing no longer wait for the kernels
+            with ThreadPoolExecutor(1) as ahead:
+                pending: tuple[int, FrameSet, Future[Any]] | None = None
+                for i, fs in enumerate(rec.frames()):
+                    if fs.depth is None:
+                        raise InputError(rec.path, f"frame {fs.index} has no depth")
+                    job = ahead.submit(corr, fs.depth, sigma)
+                    if pending is not None:
+                        emit(*pending)
+                    pending = (i, fs, job)
+                if pending is not None:
+                    emit(*pending)
         if stats.frames == 0:
             raise InputError(rec.path, "holds no frame with depth to correct")
         stats.seconds = time.perf_counter() - t0

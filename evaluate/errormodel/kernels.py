@@ -9,9 +9,10 @@ quarter of that (block means, a box of 5 blocks, slopes over 4), one normal per 
 pixel of the block takes. At a crease or an edge the slope is taken on the side that is planar
 (the smaller second difference of the inverse depth). On the tests' room
 (tests/test_error_model.py) the inclination is within 0.3-0.5 deg (median) of the truth below
-70 deg and the bias removed per pixel within 1.2 mm (std) of the true one; on the real D435 set
-slopes over 12 px of 1920 left its boards' plane residual 13 mm against 7.8 raw (the stereo
-noise, correlated, tilted the normals), over 48 px 8.1-12.1 mm against 7.7-11.2.
+70 deg and the bias removed per pixel within 1.2 mm (std) of the true one. On the real D435 set,
+with a four-term model whose inclination terms magnify a normal's error, slopes over 12 px of 1920
+left its boards' plane residual at 13 mm against 7.8 raw (the stereo noise, correlated, tilted the
+normals); over 48 px at 8.1-12.1 mm against 7.7-11.2.
 """
 
 from __future__ import annotations
