@@ -285,25 +285,41 @@ def static_fields(real: Samples, sim: Samples, window_px: float = 9.0) -> list[S
     return out
 
 
-def _frame_slopes(s: Samples, k: int, axis: str) -> tuple[float, float] | None:
-    """Slope of delta along `axis` on standpoint k (mean over its frames of a plane fit per frame)
-    and its SE from the frames' scatter (window noise and pose jitter of each frame in it)."""
-    m = s.standpoint == k
-    d = disparity_residual(s)[m]
-    fr, u, v = s.frame[m], s.u[m], s.v[m]
-    out = []
-    for f in np.unique(fr):
-        sel = (fr == f) & np.isfinite(d)
-        if sel.sum() < 50 or np.ptp(u[sel]) < 10 or np.ptp(v[sel]) < 10:
-            continue
-        uu, vv = u[sel] - u[sel].mean(), v[sel] - v[sel].mean()
-        X = np.stack([np.ones_like(uu), uu, vv], axis=1)
-        beta, *_ = np.linalg.lstsq(X, d[sel], rcond=None)
-        out.append(beta[1] if axis == "u" else beta[2])
-    if len(out) < 2:
+def frame_slopes(s: Samples) -> dict[int, tuple[FloatArray, FloatArray]]:
+    """Per standpoint the plane slopes of delta along u and along v of each of its frames (px per
+    px; frames with 50 samples or more spanning 10 px both ways), from per-frame normal equations."""
+    d = disparity_residual(s)
+    ok = np.isfinite(d)
+    fi, fsp = s.frame_index()
+    fi, u, v, d = fi[ok], s.u[ok], s.v[ok], d[ok]
+    nf = fsp.size
+
+    def tot(w: FloatArray) -> FloatArray:
+        return np.bincount(fi, weights=w, minlength=nf)
+
+    n = tot(np.ones_like(u))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mu, mv, md = tot(u) / n, tot(v) / n, tot(d) / n
+        uu, vv = u - mu[fi], v - mv[fi]
+        dd = d - md[fi]
+        suu, svv, suv = tot(uu * uu), tot(vv * vv), tot(uu * vv)
+        sud, svd = tot(uu * dd), tot(vv * dd)
+        det = suu * svv - suv**2
+        su = (svv * sud - suv * svd) / det
+        sv = (suu * svd - suv * sud) / det
+    span_u = np.zeros(nf)
+    span_v = np.zeros(nf)
+    np.maximum.at(span_u, fi, np.abs(uu))
+    np.maximum.at(span_v, fi, np.abs(vv))
+    good = (n >= 50) & (span_u >= 5) & (span_v >= 5) & np.isfinite(su) & np.isfinite(sv)
+    return {int(k): (su[good & (fsp == k)], sv[good & (fsp == k)]) for k in np.unique(fsp)}
+
+
+def _slope_mean(slopes: FloatArray) -> tuple[float, float] | None:
+    """Mean of a standpoint's frame slopes and its SE from their scatter (window noise, pose jitter)."""
+    if slopes.size < 2:
         return None
-    a = np.array(out)
-    return float(a.mean()), float(a.std(ddof=1) / np.sqrt(a.size))
+    return float(slopes.mean()), float(slopes.std(ddof=1) / np.sqrt(slopes.size))
 
 
 @dataclass
@@ -315,7 +331,9 @@ class Gradient:
     p: float
 
 
-def gradients(real: Samples, sim: Samples, axis: str) -> Gradient | None:
+def gradients(
+    real: Samples, sim: Samples, axis: str, slopes: tuple[Any, Any] | None = None
+) -> Gradient | None:
     """The slope of delta along `axis` (px per px) common to the standpoints, real minus sim.
 
     Per standpoint a slope with the SE of its frames' scatter; standpoints combined with
@@ -323,11 +341,14 @@ def gradients(real: Samples, sim: Samples, axis: str) -> Gradient | None:
     tilt differs per standpoint), the SE from the weighted scatter (Knapp-Hartung, t with n - 1 dof),
     so neither a small far board nor a bad pose carries the test."""
     to_sim = {n: i for i, n in enumerate(sim.names)}
+    fr, fs = slopes if slopes is not None else (frame_slopes(real), frame_slopes(sim))
     ys, vs = [], []
     for k, name in enumerate(real.names):
         if name not in to_sim:
             continue
-        r, s = _frame_slopes(real, k, axis), _frame_slopes(sim, to_sim[name], axis)
+        j = 0 if axis == "u" else 1
+        r = _slope_mean(fr[k][j]) if k in fr else None
+        s = _slope_mean(fs[to_sim[name]][j]) if to_sim[name] in fs else None
         if r is None or s is None:
             continue
         ys.append(r[0] - s[0])
@@ -357,6 +378,7 @@ def fine_tests(real: Samples, sim: Samples, window_px: float = 9.0) -> list[dict
     median K, or m^2 for the static field's variance); `locate` Holm-corrects them with the rest."""
     k = _k_median(real)
     tests: list[dict[str, Any]] = []
+    slopes = (frame_slopes(real), frame_slopes(sim))
     for axis in ("u", "v"):
         r = ripple(real, sim, axis)
         if r is not None:
@@ -388,7 +410,7 @@ def fine_tests(real: Samples, sim: Samples, window_px: float = 9.0) -> list[dict
                     axes=[axis],
                 )
             )
-        g = gradients(real, sim, axis)
+        g = gradients(real, sim, axis, slopes)
         if g is not None:
             n = g.standpoints
             tests.append(
