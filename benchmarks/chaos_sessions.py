@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import re
 import sys
 import tempfile
 import time
@@ -38,16 +39,21 @@ def main() -> int:
     n = len(outcomes)
     broken = [o for o in outcomes if o.problems]
     resumed = [o for o in outcomes if o.resumed and not o.problems]
-    reasons = collections.Counter((o.reason or "").split(":")[2].strip()[:60] if o.reason and
-                                  o.reason.count(":") >= 2 else (o.reason or "") for o in resumed)
+    reasons = collections.Counter(re.sub(r"/\S+", "PATH", o.reason or "")[:110] for o in resumed)
     secs = sorted(o.seconds for o in outcomes)
     print()
     wall = time.monotonic() - t0
     print(f"{n} sessions in {wall:.0f} s ({secs[n // 2]:.1f} s median, {secs[-1]:.1f} s max)")
     print(f"complete at once: {n - len(resumed) - len(broken)}; stopped with one line and completed on "
           f"--resume: {len(resumed)}; broke a rule: {len(broken)}")
-    print(f"faults that hit: {sum(o.faults_hit for o in outcomes)} over {sum(o.fetches for o in outcomes)} "
-          "frame fetches")
+    drawn, hit = sum(o.faults_drawn for o in outcomes), sum(o.faults_hit for o in outcomes)
+    fetches = sum(o.fetches for o in outcomes)
+    print(f"stalls, unplugs, drops, slow frames drawn: {drawn}, hit: {hit} (over {fetches} frame fetches; "
+          "one drawn past a session's last fetch does not hit)")
+    failed = sum(o.verdicts_failed for o in outcomes)
+    created = sum(o.creation_errors for o in outcomes)
+    print(f"self-calibrations failed: {failed}; device creations that threw while re-enumerating: {created}; "
+          f"full disks: {sum('disk_full' in o.chaos for o in outcomes)}")
     for why, count in reasons.most_common():
         print(f"  stopped x{count}: {why}")
     for o in broken:

@@ -64,7 +64,7 @@ class Chaos:
         rng = np.random.default_rng(seed)
         c = cls(seed)
         for _ in range(int(rng.integers(0, 4))):
-            at = int(rng.integers(1, 60))  # fetches: warm-up (~8), guidance and recording (~40)
+            at = int(rng.integers(1, 36))  # fetches: warm-up (~8), guidance and recording (~26)
             kind = str(rng.choice(FRAME_FAULTS))
             c.frame_faults[at] = (kind, float(rng.uniform(0.03, 0.3)))
         if rng.random() < 0.5:
@@ -77,6 +77,10 @@ class Chaos:
         if rng.random() < 0.15:
             c.calibration_unplug = int(rng.integers(1, 3))
         return c
+
+    def count(self) -> int:
+        """Stalls, unplugs, drops and slow frames drawn (at a fetch, or in the calibration mode)."""
+        return len(self.frame_faults) + (self.calibration_unplug is not None)
 
     def describe(self) -> str:
         parts = [f"{k}@{a}" for a, (k, _) in sorted(self.frame_faults.items())]
@@ -98,6 +102,9 @@ class Outcome:
     seconds: float = 0.0
     faults_hit: int = 0
     fetches: int = 0
+    faults_drawn: int = 0
+    verdicts_failed: int = 0  # self-calibrations the double failed
+    creation_errors: int = 0  # devices whose creation threw during a re-enumeration
 
 
 def _acquire(args: list[str]) -> tuple[int, str]:
@@ -197,7 +204,9 @@ def run_session(seed: int, root: Path) -> Outcome:
                     problems.append(f"{name}, complete before the resume, changed or vanished")
     problems += check_session(sess)
     return Outcome(seed, chaos.describe(), first_code, reason, resumed, problems, time.monotonic() - t0,
-                   hit[0], calls[0])
+                   hit[0], calls[0], chaos.count(),
+                   sum(n.endswith("_calibration_failed") for n in world.names()),
+                   world.names().count("create_device_failed"))
 
 
 def _complete_files(sess: Path) -> dict[str, tuple[int, int]]:
