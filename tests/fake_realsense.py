@@ -24,7 +24,17 @@ issue tracker say the device does (the research note behind docs/acquisition.md,
 - frames: the firmware frame counter per stream; a device-side drop skips numbers; a missing
   frame makes the aggregator repeat the stream's last frame; without metadata the numbers come
   from a host counter (no gaps visible) and `frame_counter` is not supported;
-- a stall: no frame arrives while the device stays listed, until a hardware reset.
+- a stall: no frame arrives while the device stays listed, until a hardware reset;
+- dynamics (each where the live path depends on it): frames made in real time on a thread, into a
+  pipeline callback (the synchronised frames only: `async_set`, src/pipeline/aggregator.cpp) or
+  into the aggregator's 1-frameset queue that drops the older (`single_consumer_frame_queue(1)`,
+  rsutils concurrency.h); partial sets filled with a stream's last frame (`_last_set`); timestamp
+  domains (src/ds/ds-timestamp.cpp); a re-enumeration that lasts and throws from device creation
+  (`device_list.__getitem__` -> `rs2_create_device`, wrappers/python/pyrs_device.cpp; "failed to
+  set power state", src/uvc/uvc-device.cpp) with extra remove/add events (src/device_hub.cpp
+  tries again); a RAM table kept or lost on stop (unknown: configurable); a refused table
+  swallowed (d400-auto-calibration.cpp `set_calibration_table`); self-calibration verdicts
+  (`handle_calibration_error`); a motion module (src/ds/d400/d400-motion.cpp).
 
 Inject with `monkeypatch.setitem(sys.modules, "pyrealsense2", world.module)`. Errors are
 RuntimeError (IndexError for an empty device list), with the SDK's texts where it has them.
