@@ -913,7 +913,11 @@ class LiveCamera:
         self._apply_held_table()
         ok, _ = self._pipe.try_wait_for_frames(int(self.first_frame_timeout_s * 1000))
         if not ok:
-            raise CameraError(f"no frame within {self.first_frame_timeout_s:g} s in the calibration mode")
+            msg = f"no frame within {self.first_frame_timeout_s:g} s in the calibration mode"
+            if self._removed.is_set() or not self._listed():
+                raise CameraDisconnected(f"{self._label()}: {msg}: it was unplugged")
+            # a stall that began while warming up persists until a reset: the station resets it
+            raise CameraStalled(f"{self._label()}: {msg} while it stays connected (a stalled stream)")
 
     def run_on_chip_calibration(self, timeout_s: float = 30.0) -> CalibrationResult:
         with self._calibration_mode("on-chip"):

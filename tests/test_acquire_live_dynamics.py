@@ -345,3 +345,23 @@ def test_partial_framesets_repeat_on_the_queue_and_are_counted_in_the_capture(fa
     lost = sum(s.metadata["frames_lost_before"]["color"] for s in sets[1:])
     dropped = sum(s.metadata["host_frames_dropped_before"]["color"] for s in sets[1:])
     assert lost > 0 and numbers[-1] - numbers[0] + 1 - len(numbers) == lost + dropped
+
+
+def test_a_stall_carried_into_the_calibration_mode_is_reset_and_the_calibration_run(fake: Any,
+                                                                                      tmp_path: Path) -> None:
+    """Frames that stopped at the end of the warm-up stay stopped in the calibration mode: the
+    missing first frame there is a stall (reset, then the calibration runs), not the end of the
+    session (found by benchmarks/chaos_sessions.py, seeds 86 and 122)."""
+    from depthstation.acquire.station import Station, do_calibrate
+
+    world, unit = fake()
+    proto = tmp_path / "p.toml"
+    proto.write_text(SESSION_TOML)
+    st = Station("live", str(proto), tmp_path / "s", False, 0, False)
+    st.camera.removal_timeout_s, st.camera.enumeration_timeout_s, st.camera.quiet_s = 2.0, 3.0, 0.05
+    st.camera.stop_deadline_s, st.camera.first_frame_timeout_s = 0.2, 0.5
+    unit.stall()
+    rec = do_calibrate(st, True, write=False)
+    st.close()
+    assert not rec["skipped"] and rec["steps"][0]["kind"] == "on_chip"
+    assert "hardware_reset" in world.names()
