@@ -13,6 +13,7 @@ joint problem; frames as clusters), and says what the data could not separate.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import replace
@@ -31,7 +32,7 @@ from depthstation.core.results import write_json
 from depthstation.core.run_warnings import warn
 from depthstation.evaluate.scan import pose_refine as pr
 from depthstation.evaluate.scan.chunks import run_scan_chunks
-from depthstation.evaluate.scan.rasterise import make_renderer
+from depthstation.evaluate.scan.raycast import FrameRenderer, MeshCaster
 from depthstation.evaluate.scan.reference import load_unmeasured
 from depthstation.evaluate.scan.study import ChunkResult
 from depthstation.evaluate.scan.trajectory import Trajectory, write_tum
@@ -49,15 +50,47 @@ DEFECT_MASK = "budget_excluded_triangles.npy"
 COARSE_M = 0.25
 COARSE_DEG = 5.0
 SAMPLE_PIXELS = 2500   # pixels per frame the refinement renders (the frame subsampled to about this)
-ITERATIONS = 3         # Gauss-Newton renders: at the given poses, then twice at the corrected ones
+ITERATIONS = 4         # Gauss-Newton renders: at the given poses, then three times at the corrected ones
 DRAWS = 40             # posterior draws for the U95s of the parts
 CONFUSION_LIMIT_M = 0.0015  # a cell whose sensor mean moves this much with the poses' uncertainty
 
 
-def small_intrinsics(intr: Intrinsics, step: int) -> Intrinsics:
-    """Every `step`-th pixel of a view as a view of its own (pixel centres coincide: u = step u')."""
-    return replace(intr, width=len(range(0, intr.width, step)), height=len(range(0, intr.height, step)),
-                   fx=intr.fx / step, fy=intr.fy / step, ppx=intr.ppx / step, ppy=intr.ppy / step)
+def small_intrinsics(intr: Intrinsics, step: int, ox: int = 0, oy: int = 0) -> Intrinsics:
+    """Every `step`-th pixel of a view from (ox, oy) as a view of its own (pixel centres coincide:
+    u = ox + step u'); a lens's coefficients act on normalised coordinates and stay as they are."""
+    return replace(intr, width=len(range(ox, intr.width, step)), height=len(range(oy, intr.height, step)),
+                   fx=intr.fx / step, fy=intr.fy / step, ppx=(intr.ppx - ox) / step,
+                   ppy=(intr.ppy - oy) / step)
+
+
+def pixel_offset(frame: int, step: int) -> tuple[int, int]:
+    """Where frame `frame`'s subsample starts: it walks the step x step offsets frame by frame, so
+    that over the frames every pixel position is sampled. Why: with one fixed subsample a thin band
+    of a distance x inclination cell (a floor at grazing view) is hit in some frames and missed in
+    others, and the cell's mean of a per-frame part (the pose's) is off by that aliasing."""
+    k = frame % (step * step)
+    return k % step, (k // step + 2 * (k % step)) % step
+
+
+class SampledRenderers:
+    """Ray casters of the subsampled views, one per pixel offset, on one ray-casting scene."""
+
+    def __init__(self, job: ScanJob, step: int) -> None:
+        self.intr = job.source.info.depth_intrinsics
+        self.step = step
+        self.base = MeshCaster(job.mesh_path, small_intrinsics(self.intr, step), 0)
+        if job.config.unmeasured is not None:
+            self.base.mark_unmeasured(load_unmeasured(job.config.unmeasured, self.base.n_triangles))
+        self.views: dict[tuple[int, int], MeshCaster] = {(0, 0): self.base}
+
+    def view(self, offset: tuple[int, int]) -> MeshCaster:
+        if offset not in self.views:
+            other = copy.copy(self.base)  # the same scene and unmeasured mask, other rays
+            FrameRenderer.__init__(other, small_intrinsics(self.intr, self.step, *offset))
+            other.unmeasured, other._unmeasured_ids = self.base.unmeasured, self.base._unmeasured_ids
+            other._rays_t = open3d().core.Tensor.from_numpy(other.rays)
+            self.views[offset] = other
+        return self.views[offset]
 
 
 def sample_step(intr: Intrinsics, pixels: int = SAMPLE_PIXELS) -> int:
@@ -90,10 +123,7 @@ def refine(job: ScanJob, used: list[int]) -> dict[str, Any]:
     source, opt = job.source, job.options
     intr = source.info.depth_intrinsics
     step = sample_step(intr)
-    small = small_intrinsics(intr, step)
-    renderer = make_renderer("raycast", job.mesh_path, small, 0)
-    if job.config.unmeasured is not None:
-        renderer.mark_unmeasured(load_unmeasured(job.config.unmeasured, renderer.n_triangles))
+    renderers = SampledRenderers(job, step)
     units = source.info.depth_units_m
     fb = intr.fx * (source.info.baseline_m or 0.05)
     want = set(used)
@@ -113,7 +143,8 @@ def refine(job: ScanJob, used: list[int]) -> dict[str, Any]:
                 continue
             stamps.append(fs.timestamp_ns * 1e-9)
             poses.append(np.asarray(pose, dtype=np.float64))
-            depths.append(np.ascontiguousarray(fs.depth[::step, ::step]))
+            ox, oy = pixel_offset(len(positions), step)
+            depths.append(np.ascontiguousarray(fs.depth[oy::step, ox::step]))
             positions.append(pos)
             bar.update(task, advance=1)
         given = np.stack(poses)
@@ -130,6 +161,7 @@ def refine(job: ScanJob, used: list[int]) -> dict[str, Any]:
             current = pr.corrected(given, xi)
             data: list[pr.FrameData | None] = []
             for f in range(frames):
+                renderer = renderers.view(pixel_offset(f, step))
                 t_hit, normals = renderer.cast(current[f])
                 fd = pr.frame_data(t_hit, normals, renderer.dirs, current[f], depths[f], units, fb,
                                    opt.distance_max_m)
@@ -145,16 +177,21 @@ def refine(job: ScanJob, used: list[int]) -> dict[str, Any]:
             sol = pr.solve(use, xi, lam)
             use = pr.trim(use, sol)
             sol = pr.solve(use, xi, lam)
-            # the surface's own errors, from the errors as measured (gross ones out), at these poses
+            # the surface's own errors, from the errors as measured (gross ones out), at these poses:
+            # left out of the next step, and found again at the last one's poses for the budget
             patches = pr.find_patches(data, sol)
             if it < ITERATIONS - 1:
                 xi = xi + sol.dxi
     assert sol is not None
     xdraws, adraws = pr.draws(sol, xi, count=DRAWS)
+    # what the choice of sensor model moves the poses by: the last step with a smaller model
+    reduced = pr.solve(use, xi, lam, pr.REDUCED_TERMS)
+    xi_reduced = xi + reduced.dxi
     xi = xi + sol.dxi
     return {"step": step, "stamps": np.array(stamps), "positions": positions, "given": given, "xi": xi,
             "a": sol.a, "solution": sol, "lambda": lam, "cv": cv, "first": first, "patches": patches,
-            "xdraws": xdraws, "adraws": adraws, "samples": sol.samples}
+            "xdraws": xdraws, "adraws": adraws, "samples": sol.samples,
+            "xi_reduced": xi_reduced}
 
 
 def _defect_mask(job: ScanJob, patches: pr.Patches, out: Path) -> tuple[Path | None, int]:
@@ -345,10 +382,31 @@ def attribute(job: ScanJob, total_grid: Grid, sensor_grid: Grid, ref: dict[str, 
         draw_pose[d, cells] = p.mean()
         draw_reg[d, cells] = r.mean()
         draw_both[d, cells] = (p + r).mean()
+    # the sensor model's share: the parts' cell means with the poses of the smaller model
+    xr_red, _ = pr.split_registration(given, ref["xi_reduced"])
+    model = []
+    for xx in (xi, ref["xi_reduced"]):
+        xr = xreg if xx is xi else xr_red
+        pp, rr = [], []
+        for f in frames_of:
+            fd = first[f]
+            assert fd is not None
+            gx = fd.g.astype(np.float64)
+            pp.append(gx @ (xx[f] - xr[f]))
+            rr.append(gx @ xr[f])
+        p, r = np.concatenate(pp), np.concatenate(rr)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            model.append(np.stack([np.append(np.bincount(cell, v, minlength=cells) / n_cell, v.mean())
+                                   for v in (p, r, p + r)]))
+    shift = np.abs(model[0] - model[1])  # (pose, registration, both) x (cells + pooled)
+    # and the cell means' sampling (the refinement's pixels, frames as clusters)
+    samp = [np.append(_cluster_stats(v, cell, frame, cells, len(first))[3],
+                      _cluster_stats(v, np.zeros_like(cell), frame, 1, len(first))[3])
+            for v in (cat["pose"], cat["reg"], cat["pose"] + cat["reg"])]
     with np.errstate(invalid="ignore"):
-        u_pose = 1.96 * np.std(draw_pose, axis=0)
-        u_reg = 1.96 * np.std(draw_reg, axis=0)
-        u_both = 1.96 * np.std(draw_both, axis=0)
+        u_pose = np.sqrt((1.96 * np.std(draw_pose, axis=0)) ** 2 + shift[0] ** 2 + samp[0] ** 2)
+        u_reg = np.sqrt((1.96 * np.std(draw_reg, axis=0)) ** 2 + shift[1] ** 2 + samp[1] ** 2)
+        u_both = np.sqrt((1.96 * np.std(draw_both, axis=0)) ** 2 + shift[2] ** 2 + samp[2] ** 2)
 
     def stats(values: F64, which: NDArray[np.int64], count: int) -> tuple[F64, F64, F64, F64]:
         return _cluster_stats(values, which, frame, count, frames)

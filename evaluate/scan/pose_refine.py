@@ -41,27 +41,28 @@ GROSS_M = 0.15       # |error| beyond this is not a depth error (an edge, an occ
 TRIM_SIGMAS = 5.0    # robust trimming of whitened residuals (MAD scale)
 NOISE_FLOOR_M = 0.001
 SUBPIXEL_PX = 0.08   # Intel's expected disparity noise: sigma_z = z^2 0.08 px / (f B)
-SENSOR_TERMS = ("offset", "z", "z2", "z_tan", "z2_tan", "z_tan2")
+SENSOR_TERMS = ("offset", "z", "z2", "z_tan", "z_sec", "z2_sec")
 SENSOR_MEANING = {
     "offset": "constant depth offset (m)",
     "z": "depth scale (m per m)",
     "z2": "disparity offset (z^2)",
     "z_tan": "inclination: z tan(theta)",
-    "z2_tan": "inclination: z^2 tan(theta)",
-    "z_tan2": "inclination: z tan(theta)^2",
+    "z_sec": "inclination: z (1/cos(theta) - 1) (a slant scale)",
+    "z2_sec": "inclination: z^2 (1/cos(theta) - 1) (a slant disparity offset)",
 }
+REDUCED_TERMS = (0, 1, 2, 3)  # the smaller model whose poses measure how much the choice of model moves them
 VIF_LIMIT = 10.0  # a sensor term whose variance grows 10x once the poses are free is not separated
 
 
-def tan_incl(theta_deg: F64) -> F64:
-    return np.asarray(np.tan(np.radians(np.minimum(theta_deg, MAX_THETA_DEG))), dtype=np.float64)
-
-
-def sensor_basis(z: F64, theta_deg: F64) -> F64:
-    """The sensor field's basis at distance z (m) and inclination theta: (n, len(SENSOR_TERMS))."""
+def sensor_basis(z: F64, theta_deg: F64, cols: tuple[int, ...] | None = None) -> F64:
+    """The sensor field's basis at distance z (m) and inclination theta: (n, len(SENSOR_TERMS)),
+    or its columns `cols`."""
     z = np.asarray(z, dtype=np.float64)
-    t = tan_incl(np.asarray(theta_deg, dtype=np.float64))
-    return np.stack([np.ones_like(z), z, z * z, z * t, z * z * t, z * t * t], axis=-1)
+    th = np.radians(np.minimum(np.asarray(theta_deg, dtype=np.float64), MAX_THETA_DEG))
+    t = np.tan(th)
+    sec = 1.0 / np.cos(th) - 1.0
+    out = np.stack([np.ones_like(z), z, z * z, z * t, z * sec, z * z * sec], axis=-1)
+    return out if cols is None else out[:, list(cols)]
 
 
 def skew(w: F64) -> F64:
@@ -109,7 +110,7 @@ class FrameData:
         return int(self.e.size)
 
 
-PATCH_M = 0.25
+PATCH_M = 0.125
 
 
 PATCH_NORMAL_M = 1.0   # a patch's extent along its normal: a surface and its defect stay in one patch
@@ -181,6 +182,7 @@ class Solution:
     s_inv: F64        # Schur complement's inverse (unscaled)
     hss_inv: F64      # H_ss^-1 (the sensor terms' covariance with the poses known)
     samples: int
+    cols: tuple[int, ...] | None = None  # the sensor terms fitted (None: all)
 
 
 def _prior(frames: int, lam: float) -> sp.csr_matrix:
@@ -207,10 +209,12 @@ def _banded(h: sp.csr_matrix) -> F64:
     return ab
 
 
-def solve(data: list[FrameData | None], xi_prev: F64, lam: float) -> Solution:
-    """Joint Gauss-Newton step: frames without data (None: held out or empty) follow the prior."""
+def solve(data: list[FrameData | None], xi_prev: F64, lam: float,
+          cols: tuple[int, ...] | None = None) -> Solution:
+    """Joint Gauss-Newton step: frames without data (None: held out or empty) follow the prior;
+    `cols`: the sensor terms fitted (all by default)."""
     frames = len(data)
-    k = len(SENSOR_TERMS)
+    k = len(SENSOR_TERMS) if cols is None else len(cols)
     hpp_blocks = np.zeros((frames, 6, 6))
     hps = np.zeros((frames * 6, k))
     hss = np.zeros((k, k))
@@ -220,7 +224,7 @@ def solve(data: list[FrameData | None], xi_prev: F64, lam: float) -> Solution:
     for f, fd in enumerate(data):
         if fd is None or fd.n == 0:
             continue
-        phi = sensor_basis(fd.z, fd.theta)
+        phi = sensor_basis(fd.z, fd.theta, cols)
         gw = fd.g * fd.w[:, None]
         hpp_blocks[f] = gw.T @ fd.g
         hps[6 * f:6 * f + 6] = gw.T @ phi
@@ -241,7 +245,7 @@ def solve(data: list[FrameData | None], xi_prev: F64, lam: float) -> Solution:
     for f, fd in enumerate(data):
         if fd is None or fd.n == 0:
             continue
-        r = fd.e - sensor_basis(fd.z, fd.theta) @ a - fd.g @ dxi[6 * f:6 * f + 6]
+        r = fd.e - sensor_basis(fd.z, fd.theta, cols) @ a - fd.g @ dxi[6 * f:6 * f + 6]
         chi2 += float(np.sum(fd.w * r * r))
     s2 = chi2 / max(n - 6 * frames - k, 1)
     try:
@@ -249,11 +253,11 @@ def solve(data: list[FrameData | None], xi_prev: F64, lam: float) -> Solution:
     except np.linalg.LinAlgError:
         hss_inv = np.full((k, k), np.nan)
     return Solution(dxi.reshape(frames, 6), a, s2, chol, y, np.asarray(s_inv, dtype=np.float64),
-                    np.asarray(hss_inv, dtype=np.float64), n)
+                    np.asarray(hss_inv, dtype=np.float64), n, cols)
 
 
-def residuals(fd: FrameData, a: F64, dxi: F64) -> F64:
-    return np.asarray(fd.e - sensor_basis(fd.z, fd.theta) @ a - fd.g @ dxi, dtype=np.float64)
+def residuals(fd: FrameData, a: F64, dxi: F64, cols: tuple[int, ...] | None = None) -> F64:
+    return np.asarray(fd.e - sensor_basis(fd.z, fd.theta, cols) @ a - fd.g @ dxi, dtype=np.float64)
 
 
 def trim(data: list[FrameData | None], sol: Solution) -> list[FrameData | None]:
@@ -349,11 +353,12 @@ DEFECT_MIN_M = 0.003   # a patch offset below this is not called a defect
 DEFECT_FRAMES = 3      # seen by at least this many frames
 DEFECT_Z_SPAN_M = 0.2  # from distances at least this far apart: a sensor error would change with them
 DEFECT_SIGMAS = 5.0    # and off the patches' median by this many robust spreads
+DEFECT_U95S = 2.0      # and by twice its U95 (4 sigma: hundreds of patches are tested)
 
 
 def find_patches(data: list[FrameData | None], sol: Solution) -> Patches:
     """Per surface patch the mean point-to-plane residual and its frames-as-clusters U95; a defect
-    when it is larger than DEFECT_MIN_M and its U95, seen by DEFECT_FRAMES frames from distances
+    when it is larger than DEFECT_MIN_M and twice its U95, seen by DEFECT_FRAMES frames from distances
     DEFECT_Z_SPAN_M apart (so that it is the surface, not the camera at one distance)."""
     keys, q, wts, frames, zs = [], [], [], [], []
     cell_of: list[NDArray[np.int64]] = []
@@ -402,7 +407,7 @@ def find_patches(data: list[FrameData | None], sol: Solution) -> Patches:
     typical = float(np.median(mean[seen])) if seen.any() else 0.0
     spread = 1.4826 * float(np.median(np.abs(mean[seen] - typical))) if seen.any() else 0.0
     off = np.abs(mean - typical)
-    defect = seen & (off > np.maximum(DEFECT_MIN_M, u95)) & (off > DEFECT_SIGMAS * spread)
+    defect = seen & (off > np.maximum(DEFECT_MIN_M, DEFECT_U95S * u95)) & (off > DEFECT_SIGMAS * spread)
     return Patches(uk, mean, u95, nf, span, defect)
 
 
