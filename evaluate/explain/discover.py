@@ -196,8 +196,7 @@ def select_table(t: Table, catalogue: Sequence[Candidate], lib: Sequence[Candida
     """Discovery on one table (updates `fits` in place): the catalogue's choice continued with the
     library; if the catalogue chose anything, the same from an empty model too. The path without
     the catalogue's choice wins only if it is better in BIC AND on held-out standpoints, and every
-    catalogue effect it leaves out is no longer significant beside its generic terms (a generic term
-    that spans the effect, or an axis that is a proxy of the effect's, is the same physics unnamed).
+    catalogue effect it leaves out is no longer significant beside its generic terms.
     Returns (terms, catalogue effects dropped, best rejected terms, catalogue effects kept against a
     generic path), each drop and keep with why."""
     start = [f.effect for f in fits.values() if f.selected and f.effect in t.X]
@@ -239,7 +238,8 @@ def _mm(t: Table, x: float) -> str:
 def _catalogue_holds(t: Table, seq: TableResult, uni: TableResult, left_out: list[str]) -> str:
     """Why the catalogue's path stands against a generic path of lower BIC ('' if it does not):
     the generic path must also predict held-out standpoints better, and each catalogue effect it
-    leaves out must lose its significance beside the generic terms (tested jointly)."""
+    leaves out must lose its significance beside the generic terms (tested jointly; where they
+    contain it, it has none of its own)."""
     h_seq, h_uni = heldout_rmse(t, seq.selected), heldout_rmse(t, uni.selected)
     a, b = _rmse_pair(t, h_seq, h_uni)
     generic = ", ".join(x.effect for x in uni.terms) or "none"
@@ -250,8 +250,9 @@ def _catalogue_holds(t: Table, seq: TableResult, uni: TableResult, left_out: lis
     for n in left_out:
         joint = [*uni.selected, n]
         if not _identifiable(t, joint):
-            return (f"the generic terms ({generic}) span {n} (jointly not identifiable): the same physics "
-                    "unnamed; the catalogue effect is kept")
+            # the generic terms contain the effect (a radial distortion inside a quadratic field) and
+            # say more: better in BIC and on held-out standpoints, the larger form stands
+            continue
         p, _, _ = wald_p(t, joint, n)
         if p < WALD_P:
             return (f"{n} stays significant beside the generic terms ({generic}; Wald p {p:.2g} in the joint "
@@ -278,6 +279,7 @@ def _select(t: Table, catalogue: Sequence[Candidate], lib: Sequence[Candidate], 
     if not gen or len(t) < 4:
         return TableResult(selected, terms, fits, [], rejected, bic(t, selected))
     step = max((f.step or 0 for f in fits.values() if f.selected), default=0)
+    proxy_notes: list[dict[str, Any]] = []
     while len(terms) < max_terms:
         base_bic = bic(t, selected)
         base_rmse = heldout_rmse(t, selected)
@@ -319,6 +321,8 @@ def _select(t: Table, catalogue: Sequence[Candidate], lib: Sequence[Candidate], 
             if first_fail is not None:
                 rejected.append({**first_fail, "table": t.name, "quantity": _quantity(t)})
             break
+        if accepted[1].generic:
+            accepted = _proxy_check(t, selected, accepted, trials, base_rmse, by_name, present, proxy_notes)
         d, c, (after, p, b, se) = accepted
         step += 1
         selected.append(c.name)
@@ -354,7 +358,36 @@ def _select(t: Table, catalogue: Sequence[Candidate], lib: Sequence[Candidate], 
                                    f"{_mm(t, a)} with it, {_mm(t, b)} without)"})
     if selected != start:
         _final(t, selected, by_name, terms, fits, present, real)
-    return TableResult(selected, terms, fits, dropped, rejected, bic(t, selected))
+    return TableResult(selected, terms, fits, dropped, rejected + proxy_notes, bic(t, selected))
+
+
+def _proxy_check(t: Table, selected: list[str], accepted: tuple[float, Candidate, Any],
+                 trials: list[tuple[float, Candidate]], base_rmse: float, by_name: dict[str, Candidate],
+                 present: dict[str, dict[str, float]], notes: list[dict[str, Any]]
+                 ) -> tuple[float, Candidate, Any]:
+    """A generic term along a proxy axis (time within a standpoint ~ the frame's position, disparity
+    ~ distance) against the catalogue effects that pass the guards on their own: one that predicts
+    held-out standpoints as well is taken instead (the same physics, with a name); said in `notes`."""
+    d, c, (after, *_rest) = accepted
+    assert c.spec is not None
+    proxies = [a for a in c.spec.axes if a in PROXIES]
+    if not proxies:
+        return accepted
+    named = sorted(((x, y) for x, y in trials if not y.generic and x < BIC_THRESHOLD), key=lambda z: z[0])
+    for dc, cc in named:
+        a2, p2, b2, se2, why = _guards(t, selected, cc.name, base_rmse)
+        if why or negative_variances(t, [*selected, cc.name], by_name, present):
+            continue
+        if a2 <= after:
+            shown = _rmse_pair(t, a2, after)
+            notes.append({"term": c.name, "table": t.name, "quantity": _quantity(t), "delta_bic": float(d),
+                          "why": f"along {', '.join(proxies)} (a proxy of "
+                                 f"{', '.join(PROXIES[x] for x in proxies)}): {cc.name} predicts held-out "
+                                 f"standpoints as well (RMSE {_mm(t, shown[0])} against "
+                                 f"{_mm(t, shown[1])}) and is "
+                                 "taken instead"})
+            return dc, cc, (a2, p2, b2, se2)
+    return accepted
 
 
 def _quantity(t: Table) -> str:
