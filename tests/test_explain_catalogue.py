@@ -15,7 +15,10 @@ from typing import Any
 import numpy as np
 
 from depthstation.evaluate.explain.discover import TableResult, _catalogue_holds
+from depthstation.evaluate.explain.library import library
+from depthstation.evaluate.explain.locate import default_groups
 from depthstation.evaluate.explain.mixed_model import bic
+from depthstation.evaluate.explain.samples import Samples, concat, session_clock, without_clock
 from depthstation.evaluate.explain.tables import Table
 
 FB = 640.0 * 0.095   # f B of a D455-like camera at 640 px (px m)
@@ -55,3 +58,37 @@ def test_a_generic_term_that_truly_is_better_replaces_the_catalogue() -> None:
     seq, uni = _path(t, ["disparity_offset"]), _path(t, ["term_bias_time_poly2"])
     assert uni.bic < seq.bic
     assert _catalogue_holds(t, seq, uni, ["disparity_offset"]) == ""
+
+
+def _samples(stamps_ns: list[list[int]]) -> Samples:
+    """One small board per standpoint, its frames at the given stamps (written here, not read)."""
+    rng = np.random.default_rng(3)
+    parts = []
+    names = [f"sp{k}" for k in range(len(stamps_ns))]
+    v, u = np.mgrid[40:80, 60:120].astype(float)
+    t0 = min(min(s) for s in stamps_ns)
+    for k, stamps in enumerate(stamps_ns):
+        for i, ts in enumerate(stamps):
+            parts.append(Samples.build(
+                names=names, fx=200.0, ppx=80.0, ppy=60.0, baseline_m=0.095, standpoint=k, frame=i, u=u, v=v,
+                z_ref_m=1.0 + 0.5 * k, err_m=1e-3 * rng.standard_normal(u.size), inclination_deg=10.0 * k,
+                albedo=np.where(u % 20 < 10, 0.05, 0.85), time_s=(ts - t0) / 1e9))
+    return concat(parts)
+
+
+def test_frames_without_a_session_clock_get_no_time_axis() -> None:
+    """PNG folders stamp k / fps from 0 in every standpoint; bags restarting their stamps overlap:
+    neither is a clock of the session, so no locate family and no library term runs along time."""
+    png = [[round(i * 1e9 / 30) for i in range(5)] for _ in range(4)]
+    session = [[1_700_000_000_000_000_000 + k * 60_000_000_000 + round(i * 1e9 / 30) for i in range(5)]
+               for k in range(4)]
+    restarting = [[1_700_000_000_000_000_000 + round(i * 1e9 / 30) + k for i in range(5)] for k in range(4)]
+    assert not session_clock(png) and not session_clock(restarting) and session_clock(session)
+    timed = _samples(session)
+    bare = without_clock(_samples(png))
+    assert not bare.time_stamps and not np.any(bare.time_s)
+    assert "time" in {g.family for g in default_groups(timed, timed)}
+    assert "time" not in {g.family for g in default_groups(bare, bare)}
+    assert any("time" in (c.spec.axes if c.spec else ()) for c in library(timed))
+    assert not any("time" in (c.spec.axes if c.spec else ()) for c in library(bare))
+    assert concat([bare, bare]).time_stamps is False
