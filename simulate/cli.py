@@ -10,8 +10,7 @@ from depthstation.core.capture.mcap_writer import COLOR_ENCODINGS, SIMULATION_CO
 from depthstation.core.errors import InputError
 from depthstation.core.results import ForceOption, result_folder, write_result_info
 from depthstation.simulate.checkerboard_session import load_truth, simulate_checkerboard
-from depthstation.simulate.model import load_model
-from depthstation.simulate.model import SensorModel
+from depthstation.simulate.model import SensorModel, load_model
 from depthstation.simulate.scan_sequence import simulate_scan
 from depthstation.simulate.units import draw_unit
 

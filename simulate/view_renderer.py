@@ -11,8 +11,8 @@ from numpy.typing import NDArray
 from depthstation.core.camera_model import StreamInfo
 from depthstation.core.frames import FrameSet
 from depthstation.simulate.color_pipeline import ColorNoise, develop
-from depthstation.simulate.effects.color_camera import ColorCamera
 from depthstation.simulate.effects.base import PixelContext
+from depthstation.simulate.effects.color_camera import ColorCamera
 from depthstation.simulate.model import SensorModel
 from depthstation.simulate.scene import Scene
 from depthstation.simulate.scene_render import (

@@ -169,7 +169,7 @@ def model_facts(name: str) -> dict[str, Any] | None:
     """What demo.json records of the demo's camera model: every effect with its parameters, units,
     meaning and source (None in a build without the simulator)."""
     try:
-        from depthstation.simulate.model import load_model   # an optional stage of the build
+        from depthstation.simulate.model import load_model  # an optional stage of the build
     except ImportError:
         return None
     mdl = load_model(name)
