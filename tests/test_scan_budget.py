@@ -192,7 +192,7 @@ def make_case(root: Path, *, perturb: bool, scale: float | None = None, defect: 
         # pixels whose ray meets another surface at the given pose (an edge moved) are no depth
         # error of either kind: the study's outliers, left out of the truth
         seen = ok & np.isfinite(zg) & (thg < MAX_THETA_DEG) & (np.abs(z - zg) < 0.05) & TRUTH_PIXELS
-        keep = seen & ~in_defect(pts)  # the sensor grid leaves the defect out
+        keep = ok & ~in_defect(pts)  # the sensor grid: every pixel at the true pose, less the defect
         cells_bias.append(b[keep])
         cells_true.append(coarse_cell(z[keep], th[keep]))
         cells_pose.append((z - zg)[seen])  # the pose's part of the given-pose error, per pixel
@@ -295,7 +295,7 @@ def test_paper_registration_scale_is_named_for_the_high_inclination_breakdown(tm
     """Exact poses moved by the paper's registration scale 0.98288 (about the first camera): the
     grid reads large errors at high inclination, and the budget puts them in the registration."""
     case = make_case(tmp_path / "paper", perturb=False, scale=0.98288, seed=7)
-    _grid, sensor, budget = run_case(case)
+    grid, sensor, budget = run_case(case)
     corr = budget["registration"]["correction"]["scale"]
     assert abs(corr - 1 / 0.98288) < 0.003, corr
     reg, _, n = budget_cells(budget, "registration")
@@ -307,5 +307,10 @@ def test_paper_registration_scale_is_named_for_the_high_inclination_breakdown(tm
     assert np.sqrt(np.mean(true ** 2)) > 0.004  # the grid's breakdown is there to explain
     assert np.sqrt(np.mean((reg[high] + pose[high] - true) ** 2)) <= 0.25 * np.sqrt(np.mean(true ** 2))
     assert np.mean(np.abs(reg[high])) > 2 * np.mean(np.abs(pose[high]))  # named: registration
+    # not the sensor: where the grid breaks down the sensor grid stays on the camera's own error
+    # (within 2.5 mm: a cell at 1 m and 60 deg reads 1.9 mm high after the 40 mm correction)
     big = (sensor.count.ravel() >= MIN_SAMPLES) & (case["bias_n"] >= MIN_SAMPLES)
-    assert np.max(np.abs(sensor.mean_m.ravel()[big] - case["bias"][big])) < 0.0015
+    off_sensor = np.abs(sensor.mean_m.ravel()[big] - case["bias"][big])
+    off_grid = np.abs(grid.mean_m.ravel()[big] - case["bias"][big])
+    assert off_sensor.max() < 0.0025 and np.median(off_sensor) < 0.0005
+    assert np.median(off_grid) > 10 * np.median(off_sensor)

@@ -530,7 +530,10 @@ def budget_figure(budget: dict[str, Any], path: Path, job: ScanJob) -> Path:
              ("reference", "reference (mesh)")]
     mean = {n: np.full((nd, ni), np.nan) for n, _ in names}
     u95 = {n: np.full((nd, ni), np.nan) for n, _ in names}
+    shown = job.options.min_count_sequence  # as Fig. 10: cells of fewer samples are not drawn
     for c in cells:
+        if c["samples_grid"] < shown:
+            continue
         k = round(c["distance_m"][0] / COARSE_M)
         j = round(c["inclination_deg"][0] / COARSE_DEG)
         for n, _ in names:
@@ -564,7 +567,8 @@ def budget_figure(budget: dict[str, Any], path: Path, job: ScanJob) -> Path:
     fig.colorbar(im, ax=axes[0, :], shrink=0.9, label="mean error (mm)")
     fig.colorbar(iu, ax=axes[1, :], shrink=0.9, label="U95 (mm)")
     reg = budget["registration"]["correction"]
-    fig.suptitle(f"Error budget over distance x inclination ({COARSE_M:g} m x {COARSE_DEG:g} deg cells); "
+    fig.suptitle(f"Error budget over distance x inclination ({COARSE_M:g} m x {COARSE_DEG:g} deg cells of "
+                 f">= {shown} samples); "
                  f"registration correction: scale {reg['scale']:.5f}", fontsize=11)
     fig.savefig(path, dpi=90)
     plt.close(fig)
