@@ -314,3 +314,13 @@ def test_paper_registration_scale_is_named_for_the_high_inclination_breakdown(tm
     off_grid = np.abs(grid.mean_m.ravel()[big] - case["bias"][big])
     assert off_sensor.max() < 0.0025 and np.median(off_sensor) < 0.0005
     assert np.median(off_grid) > 10 * np.median(off_sensor)
+
+
+def test_a_batch_item_asking_for_the_budget_is_refused_not_ignored() -> None:
+    """Batch items run the plain study only: a budget asked there is an error naming the item."""
+    from depthstation.core.errors import InputError
+    from depthstation.evaluate.scan.run import ScanOptions
+
+    with pytest.raises(InputError, match="item 3: budget is not run for batch items"):
+        ScanOptions.from_mapping({"budget": True}, {}, Path("campaign.toml"), "item 3")
+    assert ScanOptions.from_mapping({"budget": False}, {}, Path("campaign.toml"), "item 3").budget is False
