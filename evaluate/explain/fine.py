@@ -295,7 +295,7 @@ def frame_slopes(s: Samples) -> dict[int, tuple[FloatArray, FloatArray]]:
     nf = fsp.size
 
     def tot(w: FloatArray) -> FloatArray:
-        return np.bincount(fi, weights=w, minlength=nf)
+        return np.asarray(np.bincount(fi, weights=w, minlength=nf), dtype=np.float64)
 
     n = tot(np.ones_like(u))
     with np.errstate(invalid="ignore", divide="ignore"):
