@@ -242,8 +242,8 @@ def run_budget(job: ScanJob, result: ChunkResult, runner: ChunkRunner) -> dict[s
                     "separated_from_poses": bool(vif[i] < pr.VIF_LIMIT)}
              for i, name in enumerate(pr.SENSOR_TERMS)}
     patches: pr.Patches = ref["patches"]
-    single = int(np.sum((np.abs(patches.offset_m) > np.maximum(pr.DEFECT_MIN_M, patches.u95_m))
-                        & (patches.z_span_m < pr.DEFECT_Z_SPAN_M))) if patches.keys.size else 0
+    limit = np.maximum(pr.DEFECT_MIN_M, pr.DEFECT_U95S * patches.u95_m)
+    single = int(np.sum((np.abs(patches.offset_m) > limit) & (patches.z_span_m < pr.DEFECT_Z_SPAN_M)))
     surface = job.mesh_info.get("surface_to_points")
     not_separated = [f"sensor term '{n}' ({t['meaning']}): its variance grows "
                      f"{t['variance_inflation_by_poses']:.0f}x "
@@ -402,11 +402,12 @@ def attribute(job: ScanJob, total_grid: Grid, sensor_grid: Grid, ref: dict[str, 
     # and the cell means' sampling (the refinement's pixels, frames as clusters)
     samp = [np.append(_cluster_stats(v, cell, frame, cells, len(first))[3],
                       _cluster_stats(v, np.zeros_like(cell), frame, 1, len(first))[3])
-            for v in (cat["pose"], cat["reg"], cat["pose"] + cat["reg"])]
+            for v in (cat["pose"], cat["reg"])]
     with np.errstate(invalid="ignore"):
         u_pose = np.sqrt((1.96 * np.std(draw_pose, axis=0)) ** 2 + shift[0] ** 2 + samp[0] ** 2)
         u_reg = np.sqrt((1.96 * np.std(draw_reg, axis=0)) ** 2 + shift[1] ** 2 + samp[1] ** 2)
-        u_both = np.sqrt((1.96 * np.std(draw_both, axis=0)) ** 2 + shift[2] ** 2 + samp[2] ** 2)
+        # what moves the sensor grid: the corrected poses' uncertainty, not the parts' sampling
+        u_both = np.sqrt((1.96 * np.std(draw_both, axis=0)) ** 2 + shift[2] ** 2)
 
     def stats(values: F64, which: NDArray[np.int64], count: int) -> tuple[F64, F64, F64, F64]:
         return _cluster_stats(values, which, frame, count, frames)
