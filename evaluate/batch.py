@@ -37,10 +37,10 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from depthstation.core.board import load_board
 from depthstation.core.errors import DepthstationError, EvaluationError, InputError
 from depthstation.core.grid import GRID_FILE, Grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn, progress_bar
+from depthstation.core.protocol import load_board
 from depthstation.core.results import (
     RESULT_FILE,
     RESULT_MARKER,

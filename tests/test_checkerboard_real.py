@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthstation.core.board import load_board
 from depthstation.core.camera_model import deproject
+from depthstation.core.protocol import load_board
 
 
 def test_real_charuco_every_standpoint(charuco_dir: Path) -> None:

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthstation.core.board import Board, load_board
+from depthstation.core.board import Board
 from depthstation.core.camera_model import Extrinsics, Intrinsics, deproject, project
 from depthstation.core.errors import InputError, ProtocolError
 from depthstation.core.geometry import (
@@ -19,7 +19,7 @@ from depthstation.core.geometry import (
     rodrigues,
     rotation_angle_deg,
 )
-from depthstation.core.protocol import PROTOCOL_DIR, load_protocol
+from depthstation.core.protocol import PROTOCOL_DIR, load_board, load_protocol
 
 
 def test_project_deproject_round_trip() -> None:

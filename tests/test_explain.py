@@ -194,7 +194,7 @@ def test_real_d435_runs_end_to_end(charuco_dir: Path, tmp_path: Path) -> None:
 
 def test_workers_give_the_same_real_side(plain_session: Path) -> None:
     """--workers 2 (standpoints evaluated in two processes) gives exactly the figures of one process."""
-    from depthstation.core.board import load_board
+    from depthstation.core.protocol import load_board
     from depthstation.evaluate.explain.attribute import attribute
     from depthstation.evaluate.explain.basis import module_candidates
     from depthstation.evaluate.explain.run import evaluate_real

@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 from console import run_console as _cli
 
-from depthstation.core.board import load_board
 from depthstation.core.camera_model import Intrinsics, StreamInfo, ray_planes
 from depthstation.core.capture.registry import open_recording
 from depthstation.core.capture.ros_bag import transport_base
 from depthstation.core.capture.rosmsgs import is_rectified_topic
+from depthstation.core.protocol import load_board
 from depthstation.core.run_warnings import collecting
 from depthstation.evaluate.checkerboard.mask import board_mask
 

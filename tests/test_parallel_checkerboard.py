@@ -54,7 +54,7 @@ def assert_same_rows(a: list[dict[str, Any]], b: list[dict[str, Any]]) -> None:
 
 def test_checkerboard_table_equal_on_all_paths(standpoints: list[Path], charuco_dir: Path) -> None:
     distributed = pytest.importorskip("distributed")
-    from depthstation.core.board import load_board
+    from depthstation.core.protocol import load_board
 
     board = load_board(charuco_dir / "board.json")
     serial = rows(run_checkerboard(standpoints, board, frames=3))

@@ -22,6 +22,7 @@ from depthstation.core.errors import DepthstationError, InputError
 from depthstation.core.progress import stderr_console
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.core.results import check_out_path, write_json, write_result_info
+from depthstation.simulate.model import load_model
 
 DEMO_PROTOCOL = "demo-d455"
 DEMO_MODEL = "d455"
@@ -165,13 +166,9 @@ def print_report(ctx: DemoContext, outcomes: dict[str, StepOutcome], steps: list
                              soft_wrap=True)
 
 
-def model_facts(name: str) -> dict[str, Any] | None:
+def model_facts(name: str) -> dict[str, Any]:
     """What demo.json records of the demo's camera model: every effect with its parameters, units,
-    meaning and source (None in a build without the simulator)."""
-    try:
-        from depthstation.simulate.model import load_model  # an optional stage of the build
-    except ImportError:
-        return None
+    meaning and source."""
     mdl = load_model(name)
     return {"name": mdl.name, "preset": mdl.camera.name,
             "effects": {e.name: {"params": dict(e.params), "units": dict(e.units), "meaning": e.meaning,

@@ -8,7 +8,6 @@ camera that sees the board's front). The board surface is z = 0; its centre is
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -19,8 +18,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from depthstation.core.errors import InputError
-from depthstation.core.text_files import read_text
-from depthstation.core.tomlcompat import tomllib
 
 BOARD_TYPES = ("checkerboard", "charuco")
 REQUIRED_MEANING = {
@@ -149,30 +146,3 @@ class Board:
                 raise InputError(source, f"board.dictionary '{board.dictionary}' is not an OpenCV ArUco "
                                          f"dictionary{hint}")
         return board
-
-
-def load_board(path: str | Path) -> Board:
-    """A board from a board JSON or from the [board] table of a protocol TOML."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "board file not found")
-    if p.suffix.lower() == ".toml":  # a capture protocol: its [board] table
-        try:
-            data = tomllib.loads(read_text(p, "protocol TOML"))
-            table = data.get("board")
-        except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
-            raise InputError(p, f"not valid TOML ({exc})") from exc
-        if not isinstance(table, dict):
-            raise InputError(p, "has no [board] table")
-        if set(data) - {"board"}:  # a whole protocol: all of it valid, or a typo in its plan passes unseen
-            from depthstation.core.protocol import protocol_from_dict  # (protocol imports this module)
-
-            return protocol_from_dict(data, p).board
-        return Board.from_dict(table, p)
-    try:
-        data = json.loads(read_text(p, "board JSON"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(p, f"not a board JSON ({exc})") from exc
-    if not isinstance(data, dict):
-        raise InputError(p, "not a board JSON (expected an object)")
-    return Board.from_dict(data, p)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import re
 from dataclasses import asdict, dataclass, field
@@ -10,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from depthstation.core.board import Board
-from depthstation.core.errors import ProtocolError
+from depthstation.core.errors import InputError, ProtocolError
 from depthstation.core.text_files import read_text
 from depthstation.core.tomlcompat import tomllib
 
@@ -329,3 +330,28 @@ def load_protocol(path_or_name: str | Path) -> Protocol:
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise ProtocolError(p, f"not valid TOML ({exc})") from exc
     return protocol_from_dict(data, p)
+
+
+def load_board(path: str | Path) -> Board:
+    """A board from a board JSON or from the [board] table of a protocol TOML."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "board file not found")
+    if p.suffix.lower() == ".toml":  # a capture protocol: its [board] table
+        try:
+            data = tomllib.loads(read_text(p, "protocol TOML"))
+            table = data.get("board")
+        except (UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            raise InputError(p, f"not valid TOML ({exc})") from exc
+        if not isinstance(table, dict):
+            raise InputError(p, "has no [board] table")
+        if set(data) - {"board"}:  # a whole protocol: all of it valid, or a typo in its plan passes unseen
+            return protocol_from_dict(data, p).board
+        return Board.from_dict(table, p)
+    try:
+        data = json.loads(read_text(p, "board JSON"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(p, f"not a board JSON ({exc})") from exc
+    if not isinstance(data, dict):
+        raise InputError(p, "not a board JSON (expected an object)")
+    return Board.from_dict(data, p)

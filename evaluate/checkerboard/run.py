@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from depthstation.core.board import Board, load_board
+from depthstation.core.board import Board
 from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import check_distinct_recordings, check_lenses, open_inputs
 from depthstation.core.capture.session import SESSION_FILE, Session
@@ -24,6 +24,7 @@ from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
 from depthstation.core.progress import progress
+from depthstation.core.protocol import load_board
 from depthstation.core.rerun_bridge import RerunTarget, recording
 from depthstation.core.results import result_folder
 from depthstation.core.run_warnings import ensure_collecting, warn

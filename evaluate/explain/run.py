@@ -14,12 +14,13 @@ from typing import Any
 
 import numpy as np
 
-from depthstation.core.board import Board, load_board
+from depthstation.core.board import Board
 from depthstation.core.camera_model import StreamInfo, ray_xy
 from depthstation.core.capture.topics import TopicChoice
 from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.frames import FrameSet
 from depthstation.core.parallel import ChunkRunner
+from depthstation.core.protocol import load_board
 from depthstation.core.rerun_bridge import RerunTarget
 from depthstation.core.results import result_folder
 from depthstation.core.run_warnings import warn
