@@ -222,3 +222,18 @@ def test_a_folder_appearing_meanwhile_keeps_the_result_where_the_error_says(tmp_
     assert (kept / "table.csv").read_text() == "a,b\n1,2\n" and (kept / RESULT_MARKER).is_file()
     assert (out / "theirs.txt").read_text() == "written by another program meanwhile"
     assert not list(tmp_path.glob(".res.partial-*"))
+
+
+def test_write_json_writes_numpy_nan_and_inf_as_null(tmp_path: Path) -> None:
+    """NaN and inf become null whether they come as Python floats, numpy scalars or array entries
+    (a numpy NaN scalar reached json.dumps as NaN and raised)."""
+    import json
+
+    import numpy as np
+
+    from depthstation.core.results import write_json
+
+    path = tmp_path / "x.json"
+    write_json(path, {"a": np.float64("nan"), "b": np.float32(np.inf), "c": np.array([1.0, np.nan]),
+                      "d": float("nan"), "e": [np.float64(2.5)]})
+    assert json.loads(path.read_text()) == {"a": None, "b": None, "c": [1.0, None], "d": None, "e": [2.5]}

@@ -68,9 +68,9 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     if isinstance(obj, np.generic):
-        return obj.item()
+        return _jsonable(obj.item())  # a numpy NaN is a float NaN after .item(): null as well
     if isinstance(obj, np.ndarray):
-        return obj.tolist()
+        return _jsonable(obj.tolist())
     if isinstance(obj, float) and not np.isfinite(obj):
         return None
     return obj
