@@ -27,7 +27,11 @@ def explain(
     real: list[Path] = typer.Argument(..., help="Real captures: sessions, MCAP/.bag/.db3, PNG sets "
                                       "(with --scan: the one sequence)."),
     board: Path | None = typer.Option(None, "--board", help="board.json or a protocol TOML with \\[board]."),
-    model: str = typer.Option("d455", "--model", help="Preset (d455, d435, d415) or a model TOML."),
+    model: str = typer.Option(
+        "d455-ideal", "--model",
+        help="The model to start from: a preset (d455-ideal: the clean camera, the starting point for a "
+             "unit of unknown calibration; d455: the paper's unit; d435, d415 and their -ideal forms) "
+             "or a model TOML."),
     out: Path = typer.Option(..., "--out", help="Result folder (must be new or empty)."),
     frames: int | None = typer.Option(None, "--frames", show_default=False,
                                       help="Frames per standpoint to use [default: up to 30; a standpoint "
