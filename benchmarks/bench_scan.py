@@ -11,6 +11,9 @@ neighbours, memory < 4 GiB. Wall times depend on what else runs on the machine; 
 (this process and its workers) and the ratios between runs of the same invocation do much less.
 
 Run by hand:  .venv/bin/python benchmarks/bench_scan.py [--frames 1334] [--distinct 32] [--cycles 3]
+By mesh size: .venv/bin/python benchmarks/bench_scan.py --triangles 0.3,1,3,10 [--meshes even,uneven]
+(one table: the study against casting alone, memory, nearest neighbour, 1280x720 frame rate;
+docs/scan-study.md "By mesh size"; over 50 minutes on a loaded 2-core box with --frames 200).
 
 `--cycles N` then measures N more times, back to back, Open3D's casting alone, the study in one
 process and the nearest-neighbour baseline, and prints each cycle's two ratios and their medians:
