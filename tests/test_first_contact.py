@@ -382,3 +382,18 @@ def test_every_console_is_built_in_one_place() -> None:
     found = [f"{p.relative_to(repo)}:{k + 1}" for p in sorted(files) if p.resolve() != own
              for k, line in enumerate(p.read_text().splitlines()) if "Console(" in line.split("#")[0]]
     assert found == []
+
+
+def test_a_log_console_is_wide_even_with_columns_in_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """rich takes $COLUMNS as a fixed width at construction: a process that exported COLUMNS=80 cut
+    the log's tables again (seen in the full suite); a width given by the caller is kept."""
+    import io
+
+    from depthstation.core.progress import LOG_WIDTH, StationConsole
+
+    monkeypatch.setenv("COLUMNS", "80")
+    assert StationConsole(file=io.StringIO()).width == LOG_WIDTH
+    assert StationConsole(file=io.StringIO(), width=60).width == 60
+    c = StationConsole(file=io.StringIO())
+    c.width = 70
+    assert c.width == 70

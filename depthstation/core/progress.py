@@ -30,16 +30,32 @@ class StationConsole(Console):
     keep to. In a terminal it is the terminal's width, as rich finds it.
     """
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        # a width the caller gives is kept; one rich took from $COLUMNS is not (a process that
+        # exported COLUMNS=80 would cut a log's tables again)
+        self._given_width = kwargs.get("width") is not None
+        super().__init__(*args, **kwargs)
+
     @property
     def size(self) -> ConsoleDimensions:
         size = Console.size.fget(self)  # type: ignore[attr-defined]
-        if self._width is None and not self.is_terminal:
+        if not self._given_width and not self.is_terminal:
             return ConsoleDimensions(LOG_WIDTH, size.height)
         return size  # type: ignore[no-any-return]
 
     @size.setter
     def size(self, new_size: tuple[int, int]) -> None:
+        self._given_width = True
         Console.size.fset(self, new_size)  # type: ignore[attr-defined]
+
+    @property
+    def width(self) -> int:
+        return self.size.width
+
+    @width.setter
+    def width(self, width: int) -> None:
+        self._given_width = True
+        Console.width.fset(self, width)  # type: ignore[attr-defined]
 
 
 stderr_console = StationConsole(stderr=True)
