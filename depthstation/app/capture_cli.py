@@ -202,15 +202,16 @@ def _write_compact(rec: McapRecording, out: Path, compression: str) -> int:
 
 def _link_new(tmp: Path, out: Path) -> None:
     """Give the finished `tmp` the name `out` without ever replacing a file that appeared meanwhile."""
+    appeared = "appeared while compact was writing; captures are never overwritten"
     try:
         os.link(tmp, out)
     except FileExistsError as exc:
-        raise InputError(out, "appeared while compact was writing; captures are never overwritten") from exc
+        raise InputError(out, appeared) from exc
     except OSError as exc:
         if exc.errno not in (errno.EPERM, errno.EOPNOTSUPP, errno.EXDEV):
             raise
         if out.exists():  # a file system without hard links
-            raise InputError(out, "appeared while compact was writing; captures are never overwritten") from exc
+            raise InputError(out, appeared) from exc
         tmp.rename(out)
     dir_fd = os.open(out.parent, os.O_RDONLY)
     try:
