@@ -34,7 +34,8 @@ def test_guided_session_with_simulated_operator(tmp_path: Path) -> None:
     proto_path.write_text(SIM_TOML.replace("{frames}", "5"))
     proto = load_protocol(proto_path)
     sess = tmp_path / "session"
-    r = subprocess.run([EXE, "acquire", "session", "--camera", "sim:d455-ideal", "--protocol", str(proto_path),
+    r = subprocess.run([EXE, "acquire", "session", "--camera", "sim:d455-ideal",
+                        "--protocol", str(proto_path),
                         "--session", str(sess), "--yes", "--accelerate", "400", "--interval", "15",
                         "--max-guidance", "90", "--seed", "2"], capture_output=True, text=True, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]

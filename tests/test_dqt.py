@@ -122,7 +122,8 @@ def test_study_table_and_roi(tmp_path: Path) -> None:
     from depthstation.simulate.checkerboard_session import simulate_checkerboard
 
     proto = load_protocol("demo-d455")
-    out = simulate_checkerboard(proto, "d455-ideal", tmp_path / "sim", frames=3, standpoints=["standpoint_01"],
+    out = simulate_checkerboard(proto, "d455-ideal", tmp_path / "sim", frames=3,
+                                standpoints=["standpoint_01"],
                                 seed=2)
     rec = open_inputs([out])[0]
     r = evaluate_recording(rec, proto.board, frames=3, roi=0.4)

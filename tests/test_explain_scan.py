@@ -19,7 +19,8 @@ def room(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from depthstation.simulate.scan_sequence import simulate_scan
 
     out = tmp_path_factory.mktemp("room") / "sim"
-    return simulate_scan("room", "walk", "d455-ideal", out, frames=24, width=256, height=144, color=False, seed=5)
+    return simulate_scan("room", "walk", "d455-ideal", out, frames=24, width=256, height=144, color=False,
+                         seed=5)
 
 
 def _conceal(sim: Path, out: Path, c_per_m: float, hidden: Any = None) -> Path:
