@@ -43,11 +43,13 @@ from numpy.typing import NDArray
 from depthstation.core.camera_model import Intrinsics, pixel_rays
 from depthstation.core.lazy_open3d import open3d
 
-CLUSTER_SIZE = 1024  # measured: 64 took 1.3x the CPU per frame, 512 1.03x (docs/scan-study.md, runs 18, 19)
+# measured with benchmarks/bench_raster_constants.py: 64 took 1.3x the CPU per frame, 512 1.03x
+CLUSTER_SIZE = 1024
 TIE_ROOM = 4096  # equal-depth hits a frame may note before it is rendered again with more room
 SMALL_BOX = 16  # triangles whose box holds at most this many pixel centres skip the edge walk
 # a kept cluster's triangles are culled again in blocks of this many (measured: without blocks
-# 1.16x the CPU per frame; blocks of 32-256 within 1 % of each other; docs/scan-study.md, run 20)
+# 1.16x the CPU per frame; blocks of 32-256 within 1 % of each other;
+# benchmarks/bench_raster_constants.py)
 BLOCK_SIZE = 128
 if CLUSTER_SIZE % BLOCK_SIZE or CLUSTER_SIZE // BLOCK_SIZE > 32:  # the blocks kept are bits of an int64
     raise ValueError("BLOCK_SIZE must divide CLUSTER_SIZE into at most 32 blocks")
