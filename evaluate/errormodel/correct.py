@@ -179,8 +179,10 @@ def correct_recording(sequence: Path, model_path: Path, out: Path, *, sigma: boo
                                        "raw depth (the model does not extrapolate); sigma is NaN there"}
         write_json(tmp / CORRECTION_FILE, summary)
         if out.exists() and (not out.is_dir() or any(out.iterdir())):
-            raise InputError(out, "appeared while this run was writing; the corrected recording is left in "
-                                  f"{tmp}")
+            kept = out.parent / f"{out.name}.new-{os.getpid()}"  # as result_folder keeps a result
+            tmp.rename(kept)
+            raise InputError(out, "appeared while this run was writing; the corrected recording is left "
+                                  f"in {kept}")
         if out.exists():
             out.rmdir()
         tmp.rename(out)
