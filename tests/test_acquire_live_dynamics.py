@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +15,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import itertools
 
 import fake_realsense as frs
+import test_acquire_live
 from test_acquire_live import camera, run_take
 
 from depthstation.acquire.guided_capture import LiveState
@@ -23,19 +23,9 @@ from depthstation.core.device import CameraUnsuitable
 from depthstation.core.protocol import Streams
 
 PROTO_STREAMS = Streams(width=640, height=360, fps=30)
+fake = test_acquire_live.fake  # the fixture that injects the double, one definition for both files
 
 
-@pytest.fixture
-def fake(monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
-    """Inject a world with one D455 as `pyrealsense2`; `fake(**unit options)` builds it."""
-
-    def make(**unit: Any) -> tuple[frs.FakeRealSense, frs.FakeUnit]:
-        u = frs.FakeUnit(**unit)
-        world = frs.FakeRealSense(u)
-        monkeypatch.setitem(sys.modules, "pyrealsense2", world.module)
-        return world, u
-
-    yield make
 
 
 @pytest.mark.parametrize("fault", ["unplug", "stall"])
