@@ -17,8 +17,9 @@ from depthstation.app.cli import run_cli
 from depthstation.core.capture import rosmsgs
 from depthstation.core.capture.mcap_reader import mcap_messages
 from depthstation.core.capture.registry import open_recording
+from depthstation.core.errors import InputError
 from depthstation.core.grid import Grid
-from depthstation.evaluate.errormodel.correct import SIGMA_TOPIC
+from depthstation.evaluate.errormodel.correct import SIGMA_TOPIC, correct_recording
 from depthstation.evaluate.errormodel.kernels import Corrector
 from depthstation.evaluate.errormodel.schema import SCHEMA_VERSION, load_model
 
@@ -269,6 +270,28 @@ def test_correct_never_writes_into_an_existing_folder(world: dict[str, Any], tmp
     _one_error_line(capsys, "taken")
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
     assert run_cli(["model", "fit", str(world["root"] / "scan_a"), "--out", str(world["model"])]) == 2
+
+
+def test_a_folder_appearing_while_correct_writes_keeps_the_recording_where_the_error_says(
+        world: dict[str, Any], tmp_path: Path) -> None:
+    """A folder someone fills while `correct` writes is not replaced; the corrected recording is
+    kept under the visible name the error gives (the shared write-then-rename of result folders)."""
+    out = tmp_path / "corrected"
+
+    def meanwhile(i: int, total: int | None) -> None:
+        if i == 0:
+            out.mkdir()
+            (out / "theirs.txt").write_text("written by another program meanwhile")
+
+    with pytest.raises(InputError) as caught:
+        correct_recording(world["seq_b"], world["model"], out, on_frame=meanwhile)
+    assert "appeared while this run was writing" in str(caught.value)
+    kept = Path(str(caught.value).rsplit("left in ", 1)[1])
+    assert kept.is_dir() and not kept.name.startswith(".") and kept.name.startswith("corrected.new-")
+    assert (kept / "sequence.mcap").is_file() and (kept / "correction.json").is_file()
+    assert open_recording(kept / "sequence.mcap").frame_count == FRAMES
+    assert sorted(p.name for p in out.iterdir()) == ["theirs.txt"]
+    assert not list(tmp_path.glob(".corrected.partial-*"))
 
 
 def test_fit_refuses_a_folder_that_is_no_study(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

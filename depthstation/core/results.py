@@ -17,7 +17,7 @@ import os
 import platform
 import shutil
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from contextvars import ContextVar
 from dataclasses import dataclass, field
@@ -303,9 +303,51 @@ def remove_stale_partials(out: Path) -> list[Path]:
 
 
 @contextmanager
+def folder_written_whole(out: Path, *, what: str = "the new result",
+                         replaceable: Callable[[], str | None] | None = None) -> Iterator[Path]:
+    """Yield a hidden `.<name>.partial-PID` folder to write; renamed to `out` once complete.
+
+    Why: one way to write a folder that is never torn nor written over (a result, a corrected
+    recording). An error or a full disk removes the hidden folder (a kill leaves at most it);
+    where `out` holds something when the folder is complete, it is replaced only when
+    `replaceable` (asked then) returns None, else the finished folder is kept under the visible
+    name `NAME.new-PID` that the error gives (`what` names it there), with the reason
+    `replaceable` returned or "appeared while this run was writing". An empty folder at `out`
+    is replaced. The caller checks `out` before the work and holds any lock."""
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        yield tmp
+        problem = None
+        if not (out.is_dir() and not out.is_symlink() and not any(out.iterdir())) and \
+                (out.exists() or out.is_symlink()):
+            problem = "appeared while this run was writing" if replaceable is None else replaceable()
+        if problem is not None:  # the finished folder is kept beside `out` under a visible name
+            kept = out.parent / f"{out.name}.new-{os.getpid()}"
+            tmp.rename(kept)
+            raise InputError(out, f"{problem}; {what} is left in {kept}")
+        old = out.parent / f".{out.name}.replaced-{os.getpid()}"
+        if out.exists() or out.is_symlink():
+            out.rename(old)
+        tmp.rename(out)
+        if old.is_dir() and not old.is_symlink():
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            old.unlink(missing_ok=True)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise disk_error(exc, out) from exc
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+@contextmanager
 def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path] = (),
                   kind: str | None = None) -> Iterator[Path]:
-    """Write a result folder under a temporary name and rename it into place when complete.
+    """Write a result folder under a temporary name and rename it into place when complete
+    (`folder_written_whole`).
 
     Why: results are never overwritten or torn. A non-empty `out` is refused unless `force`
     (then it is replaced only once the new folder is complete, and only when it is an earlier
@@ -329,39 +371,25 @@ def result_folder(out: Path, *, force: bool = False, inputs: Sequence[str | Path
     except OSError as exc:
         raise disk_error(exc, out.parent) from exc
     lock = _FolderLock(out)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+
+    def replaceable() -> str | None:
+        """Why what is now at `out` may not be replaced (None: it may)."""
+        if not force or not out.is_dir():
+            return "appeared while this run was writing"
+        try:
+            check_replaceable(out, inputs, kind)
+        except InputError as exc:
+            return exc.problem
+        return None
+
     try:
-        remove_stale_partials(out)
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir()
-        with ensure_collecting():
-            yield tmp
-        (tmp / RESULT_MARKER).write_text(json.dumps({"kind": kind or _kind_of(tmp),
-                                                     "command_line": COMMAND_LINE.get(),
-                                                     "files": _listing(tmp)}) + "\n")
-        problem = None
-        if _non_empty(out) and not force:
-            problem = "appeared while this run was writing"
-        elif force:
-            try:
-                check_replaceable(out, inputs, kind)
-            except InputError as exc:
-                problem = exc.problem
-        if problem is not None:  # the finished result is kept beside `out` under a visible name
-            kept = out.parent / f"{out.name}.new-{os.getpid()}"
-            tmp.rename(kept)
-            raise InputError(out, f"{problem}; the new result is left in {kept}")
-        old = out.parent / f".{out.name}.replaced-{os.getpid()}"
-        if out.exists():
-            out.rename(old)
-        tmp.rename(out)
-        shutil.rmtree(old, ignore_errors=True)
-    except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise disk_error(exc, out) from exc
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        with folder_written_whole(out, replaceable=replaceable) as tmp:
+            remove_stale_partials(out)
+            with ensure_collecting():
+                yield tmp
+            (tmp / RESULT_MARKER).write_text(json.dumps({"kind": kind or _kind_of(tmp),
+                                                         "command_line": COMMAND_LINE.get(),
+                                                         "files": _listing(tmp)}) + "\n")
     finally:
         lock.release()
 

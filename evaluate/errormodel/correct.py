@@ -11,7 +11,6 @@ on its own topic (NaN where the model has none), which the station's readers ski
 from __future__ import annotations
 
 import os
-import shutil
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -28,7 +27,7 @@ from depthstation.core.capture.recording import Recording
 from depthstation.core.capture.registry import check_lenses, open_recording
 from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet
-from depthstation.core.results import COMMAND_LINE, disk_error, write_json
+from depthstation.core.results import COMMAND_LINE, folder_written_whole, write_json
 from depthstation.core.run_warnings import warn
 from depthstation.evaluate.errormodel.inputs import device_model
 from depthstation.evaluate.errormodel.kernels import Corrector
@@ -130,68 +129,52 @@ def correct_recording(sequence: Path, model_path: Path, out: Path, *, sigma: boo
     enc = str(fmt.get("color_encoding", "rgb8"))
     enc = enc if enc in mw.COLOR_ENCODINGS else "rgb8"
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     stats = CorrectionStats()
     t0 = time.perf_counter()
     try:
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir()
-        w = SigmaWriter(tmp / _out_name(rec), out_info, meta, compression=compression, color_encoding=enc)
-        with w:
-            for name, (times, values) in rec.temperatures().items():
-                for t, v in zip(times, values, strict=True):
-                    w.write_temperature(t, {name: v})
-            def emit(i: int, fs: FrameSet, job: Future[Any]) -> None:
-                depth, sig, _, counts = job.result()
-                w.write(replace(fs, depth=depth))
-                if sigma:
-                    w.write_sigma(fs, sig)
-                stats.frames += 1
-                stats.pixels += int(counts.sum())   # every pixel with depth falls in one count
-                stats.corrected += int(counts[0])
-                stats.outside_domain += int(counts[1])
-                stats.no_normal += int(counts[2])
-                stats.out_of_range += int(counts[3])
-                if on_frame is not None:
-                    on_frame(i, rec.frame_count)
+        with folder_written_whole(out, what="the corrected recording") as tmp:
+            w = SigmaWriter(tmp / _out_name(rec), out_info, meta, compression=compression, color_encoding=enc)
+            with w:
+                for name, (times, values) in rec.temperatures().items():
+                    for t, v in zip(times, values, strict=True):
+                        w.write_temperature(t, {name: v})
+                def emit(i: int, fs: FrameSet, job: Future[Any]) -> None:
+                    depth, sig, _, counts = job.result()
+                    w.write(replace(fs, depth=depth))
+                    if sigma:
+                        w.write_sigma(fs, sig)
+                    stats.frames += 1
+                    stats.pixels += int(counts.sum())   # every pixel with depth falls in one count
+                    stats.corrected += int(counts[0])
+                    stats.outside_domain += int(counts[1])
+                    stats.no_normal += int(counts[2])
+                    stats.out_of_range += int(counts[3])
+                    if on_frame is not None:
+                        on_frame(i, rec.frame_count)
 
-            # the next frame is corrected while this one is written (the kernels release the GIL,
-            # the writer's compression too): reading and writing no longer wait for the kernels
-            with ThreadPoolExecutor(1) as ahead:
-                pending: tuple[int, FrameSet, Future[Any]] | None = None
-                for i, fs in enumerate(rec.frames()):
-                    if fs.depth is None:
-                        raise InputError(rec.path, f"frame {fs.index} has no depth")
-                    job = ahead.submit(corr, fs.depth, sigma)
+                # the next frame is corrected while this one is written (the kernels release the GIL,
+                # the writer's compression too): reading and writing no longer wait for the kernels
+                with ThreadPoolExecutor(1) as ahead:
+                    pending: tuple[int, FrameSet, Future[Any]] | None = None
+                    for i, fs in enumerate(rec.frames()):
+                        if fs.depth is None:
+                            raise InputError(rec.path, f"frame {fs.index} has no depth")
+                        job = ahead.submit(corr, fs.depth, sigma)
+                        if pending is not None:
+                            emit(*pending)
+                        pending = (i, fs, job)
                     if pending is not None:
                         emit(*pending)
-                    pending = (i, fs, job)
-                if pending is not None:
-                    emit(*pending)
-        if stats.frames == 0:
-            raise InputError(rec.path, "holds no frame with depth to correct")
-        stats.seconds = time.perf_counter() - t0
-        summary = {"sequence": str(rec.path), "model": str(model_path), "output": _out_name(rec),
-                   "sigma_topic": SIGMA_TOPIC if sigma else None, "depth_units_m": out_units,
-                   "stats": stats.to_dict(),
-                   "domain": model.domain.to_dict(),
-                   "left_uncorrected": "pixels outside the model's domain or without a normal keep their "
-                                       "raw depth (the model does not extrapolate); sigma is NaN there"}
-        write_json(tmp / CORRECTION_FILE, summary)
-        if out.exists() and (not out.is_dir() or any(out.iterdir())):
-            kept = out.parent / f"{out.name}.new-{os.getpid()}"  # as result_folder keeps a result
-            tmp.rename(kept)
-            raise InputError(out, "appeared while this run was writing; the corrected recording is left "
-                                  f"in {kept}")
-        if out.exists():
-            out.rmdir()
-        tmp.rename(out)
-    except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise disk_error(exc, out) from exc
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+            if stats.frames == 0:
+                raise InputError(rec.path, "holds no frame with depth to correct")
+            stats.seconds = time.perf_counter() - t0
+            summary = {"sequence": str(rec.path), "model": str(model_path), "output": _out_name(rec),
+                       "sigma_topic": SIGMA_TOPIC if sigma else None, "depth_units_m": out_units,
+                       "stats": stats.to_dict(),
+                       "domain": model.domain.to_dict(),
+                       "left_uncorrected": "pixels outside the model's domain or without a normal keep their "
+                                           "raw depth (the model does not extrapolate); sigma is NaN there"}
+            write_json(tmp / CORRECTION_FILE, summary)
     finally:
         corr.close()
     share = stats.outside_domain / max(stats.pixels, 1)
