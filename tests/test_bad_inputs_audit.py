@@ -244,6 +244,9 @@ def test_a_cut_rosbag2_mcap_gives_its_complete_chunks(tmp_path: Path, share: flo
         np.testing.assert_array_equal(fs.depth, original.depth)  # the recovered frames are the first ones
     lines = [w.line() for w in found]
     assert any("cut short" in x and f"recovered {len(got)} depth frames" in x for x in lines), lines
+    # how much of the recording that is, where its metadata.yaml says how much it held
+    listed = f"({len(got)} of the {len(frames)} its metadata.yaml lists)"
+    assert any(listed in x for x in lines) == as_folder, lines
     # the command says it too, with exit 0
     code, _, err = run_console(["capture", "info", str(cut)], capsys)
     assert code == 0, err

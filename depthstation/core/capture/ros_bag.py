@@ -27,6 +27,7 @@ from mcap.stream_reader import StreamReader
 from numpy.typing import NDArray
 from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from ruamel.yaml import YAML, YAMLError
 
 from depthstation.core.camera_model import Extrinsics, Intrinsics, StreamInfo
 from depthstation.core.capture import mcap_writer as mw
@@ -531,6 +532,25 @@ def _cut_short(path: Path) -> bool:
         return fh.read(len(MCAP_MAGIC)) != MCAP_MAGIC
 
 
+METADATA_FILE = "metadata.yaml"
+
+
+def listed_messages(path: Path, topic: str) -> int | None:
+    """How many messages of `topic` a rosbag2 folder's metadata.yaml lists; None for a single file,
+    a folder without it, or one that does not say. Why: a cut bag's warning says how much of the
+    recording it recovered ("N of M"), where the recording said how much it held."""
+    meta = path / METADATA_FILE
+    if not meta.is_file():
+        return None
+    try:
+        doc = YAML(typ="safe", pure=True).load(meta.read_text())
+        topics = doc["rosbag2_bagfile_information"]["topics_with_message_count"]
+        counts = [int(t["message_count"]) for t in topics if t["topic_metadata"]["name"] == topic]
+    except (OSError, YAMLError, KeyError, TypeError, ValueError):
+        return None
+    return sum(counts) if counts else None
+
+
 def cut_mcap_files(path: Path) -> list[Path]:
     """The MCAP files of a rosbag2 recording (file or folder) that are cut short."""
     try:
@@ -628,9 +648,12 @@ def open_ros(path: Path, topics: TopicChoice | None = None) -> RosRecording:
             rec.truncated = True
             rec.recovered_frames = rec.frame_count
             total = sum(f.stat().st_size for f in files)
+            listed = listed_messages(path, rec.streams["depth"].topic)
+            of = (f" ({rec.frame_count} of the {listed} its {METADATA_FILE} lists)"
+                  if listed is not None and listed >= (rec.frame_count or 0) else "")
             warn(f"rosbag2 MCAP cut short ({', '.join(f.name for f in cut)} has no summary): recovered "
-                 f"{rec.frame_count} depth frames from its complete chunks ({total / 1e6:.1f} MB of file); "
-                 "what followed the last complete chunk is lost", str(path), "truncated-input")
+                 f"{rec.frame_count} depth frames{of} from its complete chunks ({total / 1e6:.1f} MB of "
+                 "file); what followed the last complete chunk is lost", str(path), "truncated-input")
             return rec
         with _reader(path, ts) as reader:
             return _open(path, reader, topics)
