@@ -30,6 +30,8 @@ TEST_PARAMS: dict[str, dict[str, float]] = {
     "static_pattern": {"sigma_px": 0.2, "length": 0.05, "pattern_seed": 3.0},
     "slant_scale": {"k": 0.02, "max_deg": 75.0},
     "periodic_bias": {"amplitude_px": 0.05, "period_px": 24.0, "phase_rad": 0.3, "axis": 0.0},
+    "spline_bias": {"axis": 2.0, "lo": 1.0, "hi": 5.0, "knots": 4.0,
+                    "c0": 0.05, "c1": -0.03, "c2": 0.02, "c3": 0.06},
     "color_camera": {"psf_sigma_px": 0.8, "full_well_e": 250.0, "read_noise_e": 4.0},  # leaves depth alone
 }
 FX, PPX, PPY, B = 674.42, 641.8, 358.1, 0.095
@@ -98,7 +100,7 @@ def test_effect_sampler_matches_signature(name: str) -> None:
 
 def test_signatures_have_their_physical_shape() -> None:
     z = np.array([1.0, 2.0, 4.0])
-    ctx = PixelContext(z_m=z, fx=FX, ppx=PPX, ppy=PPY, baseline_m=B)
+    ctx = PixelContext(z_m=z, fx=FX, ppx=PPX, ppy=PPY, baseline_m=B, fx_ref=FX)  # the 1280-wide mode
     fb = FX * B
     off = EFFECTS["disparity_offset"]({"offset_px": 0.1}).bias_m(ctx)
     np.testing.assert_allclose(off, -z**2 * 0.1 / (fb + z * 0.1), rtol=1e-9)  # ~ z^2, + offset = nearer
@@ -154,3 +156,14 @@ def test_model_sample_matches_model_signature(fused: bool) -> None:
     assert np.all(np.abs(np.nanmean(resid, axis=0)) <= 5 * np.sqrt(var_mean) + 2e-5)
     # first-order sum of variances; the effects' interaction (1/d nonlinearity) stays within 5 %
     np.testing.assert_allclose(np.nanvar(resid, axis=0), var, rtol=0.05 + 5 * np.sqrt(2 / n.min()))
+
+
+def test_spline_bias_passes_through_its_knots_and_holds_its_ends() -> None:
+    """The spline's value at each knot is that knot's coefficient (a natural interpolating spline),
+    constant beyond the ends: what explain fitted is what the simulator renders."""
+    c = [0.05, -0.03, 0.02, 0.06]
+    eff = EFFECTS["spline_bias"]({"axis": 0.0, "lo": 100.0, "hi": 400.0, "knots": 4.0,
+                                  **{f"c{k}": v for k, v in enumerate(c)}})
+    u = np.array([100.0, 200.0, 300.0, 400.0, 20.0, 600.0])
+    shift = eff.shift_px(PixelContext(z_m=np.full(6, 2.0), u=u))
+    np.testing.assert_allclose(shift, [*c, c[0], c[-1]], atol=1e-12)

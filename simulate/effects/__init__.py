@@ -21,6 +21,7 @@ from depthstation.simulate.effects.reference_pose_noise import ReferencePoseNois
 from depthstation.simulate.effects.slant_bias import SlantBias
 from depthstation.simulate.effects.slant_noise import SlantNoise
 from depthstation.simulate.effects.slant_scale import SlantScale
+from depthstation.simulate.effects.spline_bias import SplineBias
 from depthstation.simulate.effects.static_pattern import StaticPattern
 from depthstation.simulate.effects.thermal_drift import ThermalDrift
 from depthstation.simulate.effects.window_noise import WindowNoise
@@ -29,7 +30,7 @@ EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (
     DisparityNoise, Quantization, Dropout, DisparityOffset, DepthScale, LrFocalMismatch,
     DistortionResidual, PixelLocking, ThermalDrift, SlantNoise, SlantBias, AlbedoBias, AlbedoNoise,
     FlyingPixels, ReferencePoseNoise, WindowNoise, IncidenceNoise, StaticPattern, ColorCamera, SlantScale,
-    PeriodicBias,
+    PeriodicBias, SplineBias,
 )}
 
 __all__ = ["EFFECTS", "Effect", "PixelContext"]
