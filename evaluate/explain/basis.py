@@ -185,13 +185,13 @@ def own_candidates() -> dict[str, Candidate]:
 
 _BIAS_MAIN = {"disparity_offset": "offset_px", "depth_scale": "scale_error", "lr_focal_mismatch": "ratio",
               "distortion_residual": "coeff_px", "pixel_locking": "amplitude_px",
-              "slant_bias": "offset_px_at_45", "albedo_bias": "offset_px_black"}
+              "slant_bias": "offset_px_at_45", "slant_scale": "k", "albedo_bias": "offset_px_black"}
 # reference_pose_noise is left out: explain simulates the reference error itself (the rendered
 # colour image and the same pose estimate), and what is common to a frame is fitted on the
 # frame-common table, where a disparity shift and a reference jitter are told apart by nothing but
 # their tiny 1/cos(theta) difference (docs/explain.md)
 _VAR_MAIN = {"disparity_noise": "sigma_px", "albedo_noise": "sigma_px_black", "slant_noise": "window_px",
-             "window_noise": "sigma_px"}
+             "window_noise": "sigma_px", "incidence_noise": "sigma_px"}
 
 
 _VAR_REF = {"sigma_px": 0.08, "sigma_px_black": 0.05, "window_px": 2.0, "corner_sigma_px": 0.1}

@@ -120,6 +120,8 @@ def explain_dict(ex: Explanation) -> dict[str, Any]:
         "tests": [t.to_dict() for t in ex.before.tests],
         "time_stamps": ex.real.samples.time_stamps,
         "fine_terms": ex.fine_terms,
+        "pose_spread": ex.pose_spread,
+        "pose_spread_after": ex.pose_spread_after,
     }
 
 
@@ -310,6 +312,10 @@ def report_md(ex: Explanation, data: dict[str, Any], figs: list[str]) -> str:
         lines.append(f"**The simulation differs from the real data** ({len(regions)} regions: "
                      f"{', '.join(kinds)}; standpoints: {', '.join(m['standpoints']) or 'none alone'}; "
                      f"Holm-corrected, alpha {m['alpha']}).")
+        if m.get("heterogeneous_standpoints"):
+            odd = ", ".join(m["heterogeneous_standpoints"])
+            lines.append(f"Standpoint heterogeneity: {odd} (the real-minus-simulated plane is not of the "
+                         "other standpoints' kind: depth off the board pose).")
     else:
         lines.append("No significant difference between simulation and real data (Holm, alpha "
                      f"{m['alpha']}).")
@@ -429,6 +435,7 @@ def _discovered_md(data: dict[str, Any], figs: list[str]) -> list[str]:
         shown = ", ".join(f"{k} = {v:.4g}" for k, v in ft["params"].items())
         lines.append(f"- Found by the {ft['family']} test and written into model.toml: "
                      f"`[effects.{ft['effect']}]` {shown}.")
+    lines += _pose_spread_md(data)
     for kp in disc.get("kept_catalogue", []):
         lines.append(f"- {kp['effect']} is kept against generic terms of lower BIC: {kp['why']}.")
     rest = data.get("remaining_after")
@@ -440,6 +447,22 @@ def _discovered_md(data: dict[str, Any], figs: list[str]) -> list[str]:
             term = f"`{r['term']}`{_fit_note(r)}" if r.get("term") else "none"
             lines.append(f"| {r['family']} | {r['kind']} | {r['label']} | {term} | {r['why_not_selected']} |")
     return lines
+
+
+def _pose_spread_md(data: dict[str, Any]) -> list[str]:
+    """The colour camera's evidence: the reference distance's spread over frames, real against simulated."""
+    ps, after = data.get("pose_spread") or {}, data.get("pose_spread_after") or {}
+    if not ps.get("named"):
+        return []
+    fit = ps["fit"]
+    out = [f"- The board pose scatters more than the model's colour camera gives (reference distance over "
+           f"frames, {len(ps['significant'])} standpoint(s) differ, Holm): `{ps['named']}`, fitted as "
+           f"`reference_pose_noise` corner_sigma_px = {fit['corner_sigma_px']:.3g} +- "
+           f"{fit['corner_sigma_se_px']:.2g} (z^2 / (f L cos) growth, {fit['standpoints']} standpoints)."]
+    if after:
+        out.append(f"- After the refit {len(after.get('significant', []))} standpoint(s) still differ in the "
+                   "reference spread (the re-simulated colour image plus the fitted term).")
+    return out
 
 
 def _fit_note(r: dict[str, Any]) -> str:

@@ -27,6 +27,7 @@ from depthstation.core.run_warnings import warn
 from depthstation.evaluate.checkerboard.chunks import StandpointOptions, run_standpoints
 from depthstation.evaluate.checkerboard.run import check_usable, prepare_checkerboard, say_warnings
 from depthstation.evaluate.checkerboard.study import evaluate_frames
+from depthstation.evaluate.explain import pose_spread
 from depthstation.evaluate.explain.attribute import Attribution, attribute
 from depthstation.evaluate.explain.basis import Candidate, module_candidates
 from depthstation.evaluate.explain.coverage import FillTest, extrapolation_messages, fill_message, fill_tests
@@ -375,6 +376,8 @@ class Explanation:
     remaining: list[dict[str, Any]] | None = None   # regions significant after, and what would explain them
     valid_depth: list[FillTest] = field(default_factory=list)   # fill rates real vs sim per standpoint
     fine_terms: list[dict[str, Any]] = field(default_factory=list)   # ripple / static pattern written
+    pose_spread: dict[str, Any] | None = None         # the board pose's spread (colour), before
+    pose_spread_after: dict[str, Any] | None = None
 
 
 def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, seed: int = 0,
@@ -414,20 +417,33 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
         warn(f"{look['effect']} selected (scale_error {look['scale_error']:+.4f}): {look['also']}", None,
              "reference-lookalike")
     fine = fine_terms(before.tests, present, real.samples.fx)
+    fx_depth, size = real.info.depth_intrinsics.fx, pose_spread.board_size(board)
+    spread = pose_spread.spread_tests(real.figures, sim.figures, _frame_counts(real), _frame_counts(sim),
+                                      pose_spread.added_variance(present.get(pose_spread.TERM), sim.figures,
+                                                                 fx_depth))
+    spread_fit = pose_spread.fit_excess(spread, fx_depth, size)
+    pose_term = pose_spread.pose_term(spread_fit, spread, present)
+    fine = [*fine, *([pose_term] if pose_term is not None else [])]
     new_model = improved_model(model, attr, disc, cands, fine)
     resim = after = None
+    spread_after: list[pose_spread.SpreadTest] = []
     if resimulate:
         resim = simulate_like(real, board, new_model, seed=seed + 1, tick=tick)
         warn_unpaired(real.samples, resim.samples, "re-simulation")
         if tick:
             tick("locate after")
         after = locate(real.samples, resim.samples)
+        spread_after = pose_spread.spread_tests(
+            real.figures, resim.figures, _frame_counts(real), _frame_counts(resim),
+            pose_spread.added_variance(present_effects(new_model).get(pose_spread.TERM), resim.figures,
+                                       fx_depth))
         warn_remaining(after, attr)
     summary = after.summary() if after is not None else None
     rest = (remaining(summary["regions"], attr, lib, disc, FAMILY_AXES, cands, present,
                       summary.get("noise_correlation")) if summary is not None and lib else None)
     return Explanation(real, sim, before, attr, model, new_model, resim, after, cands, disc, lib, rest, fills,
-                       fine)
+                       fine, pose_spread.summary(spread, spread_fit, pose_term),
+                       pose_spread.summary(spread_after, None, None) if resimulate else None)
 
 
 def _frame_counts(side: Side) -> dict[str, int]:
