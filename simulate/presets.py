@@ -59,6 +59,12 @@ class CameraPreset:
         """Depth (= left IR) intrinsics at a resolution; the depth stream has no distortion."""
         return self._intrinsics(self.depth_hfov_deg, self.depth_pp_offset_px, width, height)
 
+    @property
+    def reference_fx(self) -> float:
+        """Depth focal length (px) of the 1280-wide mode: the unit's geometric errors (disparity
+        offset, static pattern, ...) are stated in its px and scaled by fx / reference_fx elsewhere."""
+        return self.depth_intrinsics(1280, 720).fx
+
     def color_intrinsics(self, width: int = 1280, height: int = 720) -> Intrinsics:
         """Colour intrinsics (rendered without lens distortion)."""
         return self._intrinsics(self.color_hfov_deg, self.color_pp_offset_px, width, height)

@@ -46,11 +46,13 @@ class GeometryMaps:
     cos_inc: F32 | None = None  # HxW cosine of the inclination (0 where nothing is hit)
 
     def context(self, baseline_m: float, time_s: float = 0.0, temperature_c: float = 40.0,
-                stereo: Intrinsics | None = None) -> PixelContext:
+                stereo: Intrinsics | None = None, fx_ref: float | None = None) -> PixelContext:
         """Effect context of this view (depth camera).
 
         `stereo`: the stereo imager's own intrinsics when the rendered depth is aligned to another
         camera; pixel positions and the focal length then go to the effects in its pixels.
+        `fx_ref`: the camera's depth focal length in its 1280-wide mode (`CameraPreset.reference_fx`;
+        None: the D455's), what the unit's errors stated in px are scaled against.
         """
         h, w = self.z_m.shape
         v, u = _pixel_grid(h, w)
@@ -64,7 +66,8 @@ class GeometryMaps:
         return PixelContext(z_m=self.z_m, inclination_deg=self.inclination_deg, u=u, v=v,
                             albedo=self.albedo, time_s=time_s, temperature_c=temperature_c,
                             edge_distance_px=edge, fx=i.fx, ppx=i.ppx, ppy=i.ppy,
-                            baseline_m=baseline_m)
+                            baseline_m=baseline_m,
+                            **({} if fx_ref is None else {"fx_ref": float(fx_ref)}))
 
 
 @lru_cache(maxsize=8)

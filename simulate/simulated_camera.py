@@ -375,10 +375,12 @@ class SimulatedCamera:
         if not 0.2 < ground_truth_m < 10.0:
             raise InputError(None, f"tare ground truth must be a distance in metres, got {ground_truth_m}")
         assert self.info is not None
-        fb = self.info.depth_intrinsics.fx * self.base_model.camera.baseline_m
+        fx = self.info.depth_intrinsics.fx
+        fb = fx * self.base_model.camera.baseline_m
+        to_px = fx / self.base_model.camera.reference_fx   # offset_px is stated at 1280 wide
 
         def rel_error(errors: dict[str, dict[str, float]]) -> float:
-            off = errors.get("disparity_offset", {}).get("offset_px", 0.0)
+            off = errors.get("disparity_offset", {}).get("offset_px", 0.0) * to_px
             z = fb / (fb / ground_truth_m + off)
             return (z - ground_truth_m) / ground_truth_m
 

@@ -26,10 +26,11 @@ SPEC: dict[str, tuple[float, float]] = {"d455": (4.0, 0.02), "d435": (2.0, 0.02)
 
 def unit_spread(model: SensorModel) -> tuple[float, float]:
     """1-sigma spread over units of (scale_error, offset_px): half the spec at its distance, split
-    evenly between a scale error and a disparity offset (whose error at z_ref is z_ref offset / (f B))."""
+    evenly between a scale error and a disparity offset (whose error at z_ref is z_ref offset / (f B));
+    the offset in px of the 1280-wide mode, where `disparity_offset.offset_px` is stated."""
     z_ref, frac = SPEC.get(model.camera.name, SPEC["d455"])
     sigma_rel = frac / 2.0 / np.sqrt(2.0)
-    fb = model.camera.depth_intrinsics(1280, 720).fx * model.camera.baseline_m
+    fb = model.camera.reference_fx * model.camera.baseline_m
     return float(sigma_rel), float(sigma_rel * fb / z_ref)
 
 

@@ -128,7 +128,8 @@ class ViewRenderer:
         key = (round(time_s, 3) if needs_time else 0.0, round(temperature_c, 3) if needs_time else 0.0)
         if self._ctx is None or key != self._ctx_key:
             self._ctx = self.geometry.context(self.info.baseline_m or self.model.camera.baseline_m,
-                                              time_s, temperature_c, stereo=self.info.stereo_intrinsics)
+                                              time_s, temperature_c, stereo=self.info.stereo_intrinsics,
+                                              fx_ref=self.model.camera.reference_fx)
             self._ctx_key = key
         return self._ctx
 

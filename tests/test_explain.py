@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from depthstation.evaluate.explain.samples import Samples
+from depthstation.simulate.presets import PRESETS
 
 sys.path.insert(0, str(Path(__file__).parent))
 from explain_cases import conceal, wide_protocol
@@ -62,7 +63,10 @@ def test_concealed_disparity_offset(wide_session: Path, tmp_path: Path) -> None:
     top = data["candidates"][0]
     assert top["effect"] == "disparity_offset" and top["selected"] and top["role"] == "missing_physics"
     assert data["selected"] == ["disparity_offset"] and data["discovered"] == []
-    assert top["params"]["offset_px"]["value"] == pytest.approx(-c * _fb(wide_session), rel=0.25)
+    # offset_px is stated in px of the D455's 1280-wide mode (simulate.effects.disparity_offset)
+    fx = json.loads((wide_session / "truth.json").read_text())["stream_info"]["depth_intrinsics"]["fx"]
+    assert top["params"]["offset_px"]["value"] == pytest.approx(
+        -c * _fb(wide_session) * PRESETS["d455"].reference_fx / fx, rel=0.25)
     assert top["heldout_rmse_after_m"] < top["heldout_rmse_before_m"]
     scale = next(x for x in data["candidates"] if x["effect"] == "depth_scale")
     assert not scale["selected"]

@@ -21,6 +21,7 @@ from depthstation.evaluate.explain.locate import compare_groups, default_groups,
 from depthstation.evaluate.explain.run import warn_unpaired
 from depthstation.evaluate.explain.samples import Samples, concat
 from depthstation.evaluate.explain.tables import frame_blocks
+from depthstation.simulate.effects.base import PixelContext
 
 W, H, FX, B = 160, 90, 124.8, 0.095
 PPX, PPY = (W - 1) / 2, (H - 1) / 2
@@ -53,8 +54,9 @@ def session(seed: int, hidden: Callable[..., Any] | None = None, n_frames: int =
 
 CASES = {
     # name: (hidden in the disparity domain, effect, parameter, expected value)
+    # the catalogue states a unit's offset in px of the D455's 1280-wide mode (x fx / fx_ref here)
     "disparity_offset": (lambda d, z, u, b, T: FB / (FB / d + 1.5e-3 * z ** 2), "disparity_offset",
-                         "offset_px", -1.5e-3 * FB),
+                         "offset_px", -1.5e-3 * FB * PixelContext.fx_ref / FX),
     "lr_focal_mismatch": (lambda d, z, u, b, T: d + 0.0015 * (u - PPX), "lr_focal_mismatch", "ratio", 0.0015),
     "albedo_bias": (lambda d, z, u, b, T: FB / (FB / d + np.where(b, 3e-3 * z ** 2, 0.0)), "albedo_bias",
                     "offset_px_black", -3e-3 * FB),

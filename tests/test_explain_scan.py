@@ -10,6 +10,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from depthstation.simulate.presets import PRESETS
+
 ROOT = Path(__file__).resolve().parents[1]
 EXE = ROOT / ".venv" / "bin" / "depthstation"
 
@@ -75,7 +77,10 @@ def test_scan_concealed_disparity_offset(room: Path, tmp_path: Path) -> None:
     assert data["mismatch"]["significant"]
     top = data["candidates"][0]
     assert top["effect"] == "disparity_offset" and top["selected"] and top["role"] == "missing_physics"
-    assert top["params"]["offset_px"]["value"] == pytest.approx(-c * fb, rel=0.25)
+    # offset_px is stated in px of the D455's 1280-wide mode (simulate.effects.disparity_offset)
+    fx_ref = PRESETS["d455"].reference_fx
+    assert top["params"]["offset_px"]["value"] == pytest.approx(
+        -c * fb * fx_ref / info["depth_intrinsics"]["fx"], rel=0.25)
     assert top["heldout_rmse_after_m"] < top["heldout_rmse_before_m"]
     assert data["selected"] == ["disparity_offset"]
     assert data["discovered"] == []

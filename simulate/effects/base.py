@@ -22,7 +22,8 @@ from depthstation.core.errors import SimulationError
 Array = NDArray[Any]
 T = TypeVar("T")
 
-# D455 depth camera at 1280x720 (see simulate/presets.py): used only as defaults of PixelContext.
+# D455 depth camera at 1280x720 (see simulate/presets.py): used only as defaults of PixelContext
+# (fx_ref: also the D435's, whose depth field of view is the same 87 deg).
 _D455_FX = 640.0 / np.tan(np.radians(87.0 / 2.0))
 
 
@@ -34,6 +35,11 @@ class PixelContext:
     coordinates (pixel centres at integers); albedo: IR reflectance 0 (black) .. 1 (white);
     time_s: since stream start; temperature_c: device temperature; edge_distance_px: distance to
     the nearest depth edge (inf if none); fx, ppx, ppy, baseline_m: scalars of the depth camera.
+    fx_ref: the same camera's focal length (px) in its full-width 1280 mode (`CameraPreset.
+    reference_fx`): a unit's geometric errors (disparity offset, static pattern, distortion residual)
+    are angles, stated in px of that mode and scaled by `reference_scale` = fx / fx_ref in any other
+    (a 0.1 px offset at 1280x720 is 0.06 px at 640x480, the same depth bias). The matcher's errors
+    (noise, slant, albedo, quantisation, pixel locking) are in px of the image being matched.
     """
 
     z_m: Any
@@ -48,6 +54,12 @@ class PixelContext:
     ppx: float = 639.5
     ppy: float = 359.5
     baseline_m: float = 0.095
+    fx_ref: float = float(_D455_FX)
+
+    @property
+    def reference_scale(self) -> float:
+        """fx / fx_ref: px of this image per px of the camera's 1280-wide mode (1 at 1280x720)."""
+        return float(self.fx / self.fx_ref)
 
     @property
     def focal_baseline(self) -> float:

@@ -40,17 +40,20 @@ class StaticPattern(DisparityShift):
     paper's 150 frames per standpoint average the noise 12x down, and its accuracy still reads
     3-4x the per-frame noise). Modelled as a smooth Gaussian random field over the normalised image
     (x = (u - ppx)/fx, y = (v - ppy)/fx) with correlation length `length` and RMS `sigma_px`;
-    `pattern_seed` is the unit (one field per seed, the same at every resolution).
+    `pattern_seed` is the unit (one field per seed, the same at every resolution). The field is fixed
+    to the unit's optics, so it is an angle too: `sigma_px` is in px of the 1280-wide mode and scaled
+    by fx / fx_ref in the others, and the depth error it makes is the same at every resolution.
     """
 
     name: ClassVar[str] = "static_pattern"
     meaning: ClassVar[str] = ("fixed, spatially correlated disparity error of the unit (does not average "
-                              "over frames)")
+                              "over frames; px at 1280 wide)")
     source: ClassVar[str] = ("emitter dot pattern fixed to the unit; lens/rectification residuals; "
                              "Intel D4xx projector and tuning white papers (fixed-pattern error); "
                              "paper Section 5.1 (accuracy 3-4x the noise after 150 frames)")
     PARAMS: ClassVar[dict[str, tuple[float, str, str]]] = {
-        "sigma_px": (0.0, "px", "RMS of the fixed disparity error over the image"),
+        "sigma_px": (0.0, "px at 1280 wide", "RMS of the fixed disparity error over the image, px of the "
+                                             "1280-wide mode (x fx / fx_ref in others)"),
         "length": (0.05, "1", "correlation length, normalised image units (0.05 = 34 px, D455 at 1280)"),
         "pattern_seed": (0.0, "1", "the unit: which field (an integer)"),
     }
@@ -78,7 +81,7 @@ class StaticPattern(DisparityShift):
     def shift_px(self, ctx: PixelContext) -> Array:
         if self.params["sigma_px"] == 0:
             return np.zeros(ctx.shape())
-        return np.broadcast_to(self.params["sigma_px"] * self.field(ctx), ctx.shape())
+        return np.broadcast_to(self.params["sigma_px"] * ctx.reference_scale * self.field(ctx), ctx.shape())
 
 
 def _bilinear(grid: NDArray[np.float32], gx: Array, gy: Array) -> Array:

@@ -12,7 +12,10 @@ from depthstation.simulate.effects.base import Array, DisparityShift, PixelConte
 class ThermalDrift(DisparityShift):
     """d_meas = d + coeff_px_per_c (T - reference_c): the imagers' relative yaw changes with T.
 
-    The reason the paper warms the camera up for an hour before measuring.
+    The reason the paper warms the camera up for an hour before measuring. The yaw is an angle, but
+    unlike the unit's offset `coeff_px_per_c` stays in px of the rendered image: explain fits thermal
+    drift with its own column form (-z^2 / (f B) per px of the data's mode), and a parameter it writes
+    must render as it was fitted.
     """
 
     name: ClassVar[str] = "thermal_drift"
