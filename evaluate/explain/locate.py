@@ -108,11 +108,14 @@ class LocateResult:
     def summary(self) -> dict[str, Any]:
         """`mismatch` block of explain.json: flag, differing standpoints, differing regions."""
         sig = self.significant
-        standpoints = sorted({t.label for t in sig if t.family == "standpoint"})
+        standpoints = sorted({t.label for t in sig if t.family in ("standpoint", "heterogeneity")})
         regions = [{"family": t.family, "kind": t.kind, "label": t.label, "axes": list(t.axes), **t.coords,
                     "diff": t.diff, "se": t.se, "p_adj": t.p_adj}
-                   for t in sorted(sig, key=lambda t: t.p) if t.family != "standpoint"]
-        out: dict[str, Any] = {"significant": bool(sig), "standpoints": standpoints, "regions": regions,
+                   for t in sorted(sig, key=lambda t: t.p) if t.family not in ("standpoint", "heterogeneity")]
+        # a standpoint whose real-minus-sim plane is not of the others' kind (heterogeneity_tests)
+        odd = sorted({t.label for t in sig if t.family == "heterogeneity"})
+        out: dict[str, Any] = {"significant": bool(sig), "standpoints": standpoints,
+                               "heterogeneous_standpoints": odd, "regions": regions,
                                "tests": len(self.tests), "alpha": ALPHA, "correction": "holm"}
         if self.heterogeneity is not None:
             out["standpoint_heterogeneity"] = self.heterogeneity.to_dict()
@@ -217,8 +220,12 @@ def _frame_planes(s: Samples) -> dict[int, tuple[FloatArray, FloatArray, int]]:
     return out
 
 
-def heterogeneity(real: Samples, sim: Samples) -> Heterogeneity:
-    """Between-standpoint variance of the real-minus-sim disparity planes (moments, after covariates)."""
+def _plane_rows(real: Samples, sim: Samples) -> tuple[list[int], FloatArray, FloatArray, list[FloatArray]]:
+    """Per paired standpoint: its index, real-minus-sim plane (a, b, c), the plane's sampling variance
+    and the covariate columns per component (offset: 1, disparity, temperature if it varies; the
+    slopes: 1). The offset may follow distance (scale, offset) and temperature (drift): only what
+    they do not explain is heterogeneity; the slopes are the same for every standpoint under any
+    pixel effect."""
     pr, ps = _frame_planes(real), _frame_planes(sim)
     to_sim = standpoint_map(sim, real)
     rows = []
@@ -227,30 +234,86 @@ def heterogeneity(real: Samples, sim: Samples) -> Heterogeneity:
         if i in pr and j >= 0 and j in ps:
             m = real.standpoint == i
             temp = real.temperature_c[m]
-            rows.append((pr[i][0] - ps[j][0], pr[i][1] / pr[i][2] + ps[j][1] / ps[j][2],
+            rows.append((i, pr[i][0] - ps[j][0], pr[i][1] / pr[i][2] + ps[j][1] / ps[j][2],
                          float(np.mean(real.disparity_px[m])),
                          float(np.nanmean(temp)) if np.isfinite(temp).any() else 0.0))
     n = len(rows)
+    d = np.array([r[1] for r in rows]).reshape(n, 3)
+    v = np.array([r[2] for r in rows]).reshape(n, 3)
+    disp = np.array([r[3] for r in rows])
+    temp = np.array([r[4] for r in rows])
+    cov_a = [np.ones(n), disp] + ([temp] if n and np.ptp(temp) > 0.5 else [])
+    designs = [np.stack(cols, axis=1) for cols in (cov_a, [np.ones(n)], [np.ones(n)])]
+    return [r[0] for r in rows], d, v, designs
+
+
+def _tau2(d: FloatArray, v: FloatArray, X: FloatArray) -> tuple[float, int]:
+    """Moment estimate of the variance beyond sampling around a regression on X, and its dof."""
+    n, p = X.shape
+    if n - p < 2:
+        return 0.0, 0
+    H = X @ np.linalg.pinv(X)
+    r = d - H @ d
+    return max(0.0, float((r ** 2).sum() - ((1 - np.diag(H)) * v).sum()) / (n - p)), n - p
+
+
+def heterogeneity(real: Samples, sim: Samples) -> Heterogeneity:
+    """Between-standpoint variance of the real-minus-sim disparity planes (moments, after covariates)."""
+    _, d, v, designs = _plane_rows(real, sim)
+    n = len(d)
     if n < 4:
         return Heterogeneity(np.zeros(3), float("inf"), n)
-    d = np.array([r[0] for r in rows])
-    v = np.array([r[1] for r in rows])
-    disp = np.array([r[2] for r in rows])
-    temp = np.array([r[3] for r in rows])
-    # the offset may follow distance (scale, offset) and temperature (drift): only what they do not
-    # explain is heterogeneity; the slopes are the same for every standpoint under any pixel effect
-    cov_a = [np.ones(n), disp] + ([temp] if np.ptp(temp) > 0.5 else [])
     tau2, dofs = np.zeros(3), []
-    for k, cols in enumerate((cov_a, [np.ones(n)], [np.ones(n)])):
-        X = np.stack(cols, axis=1)
-        p = X.shape[1]
-        if n - p < 2:
-            continue
-        H = X @ np.linalg.pinv(X)
-        r = d[:, k] - H @ d[:, k]
-        tau2[k] = max(0.0, float((r ** 2).sum() - ((1 - np.diag(H)) * v[:, k]).sum()) / (n - p))
-        dofs.append(n - p)
+    for k, X in enumerate(designs):
+        tau2[k], dof = _tau2(d[:, k], v[:, k], X)
+        if dof:
+            dofs.append(dof)
     return Heterogeneity(tau2, float(min(dofs)) if dofs else float("inf"), n)
+
+
+def heterogeneity_tests(real: Samples, sim: Samples) -> list[GroupTest]:
+    """One test per standpoint: is its real-minus-sim plane (offset, slopes) one of the others' kind?
+
+    Each standpoint's plane is predicted from the OTHER standpoints (their regression on the
+    covariates and their heterogeneity beyond sampling), and its deviation is tested against the
+    prediction's spread (its own sampling variance + the others' tau^2 + the prediction's variance;
+    t with the others' dof), the three components combined (Sidak). A standpoint whose depth
+    disagrees with its board pose far beyond the scatter of the others (a board moved between the
+    colour and the depth frames, a pose from a wrong corner) is flagged; in the other tests it only
+    widens the heterogeneity that every standpoint's SE carries."""
+    idx, d, v, designs = _plane_rows(real, sim)
+    n = len(idx)
+    out: list[GroupTest] = []
+    if n < 5:
+        return out
+    for a, i in enumerate(idx):
+        keep = np.arange(n) != a
+        best: tuple[float, int, float, float, float, float] | None = None
+        for k, X in enumerate(designs):
+            Xo = X[keep]
+            tau2, dof = _tau2(d[keep, k], v[keep, k], Xo)
+            if dof < 2:
+                continue
+            wts = 1.0 / (v[keep, k] + tau2)
+            cov = np.linalg.pinv((Xo * wts[:, None]).T @ Xo)
+            beta = cov @ (Xo * wts[:, None]).T @ d[keep, k]
+            pred = float(X[a] @ beta)
+            var = float(v[a, k] + tau2 + X[a] @ cov @ X[a])
+            t = (d[a, k] - pred) / np.sqrt(var) if var > 0 else 0.0
+            p = float(2 * stdtr(dof, -abs(t)))
+            if best is None or p < best[0]:
+                best = (p, k, float(d[a, k]), pred, float(np.sqrt(var)), float(dof))
+        if best is None:
+            continue
+        p_min, k_min, real_k, pred_k, se, dof_k = best
+        p_all = float(1.0 - (1.0 - p_min) ** len(designs))
+        name = real.names[i]
+        out.append(GroupTest("heterogeneity", "bias", name,
+                             {"standpoint": name, "component": ("offset", "slope_u", "slope_v")[k_min],
+                              "plane_px": real_k, "others_predict_px": pred_k},
+                             real_k, pred_k, real_k - pred_k, se, (real_k - pred_k) / se if se > 0 else 0.0,
+                             dof_k, p_all, int((real.standpoint == i).sum()), 0, axes=[]))
+    return out
 
 
 def compare_groups(real: Samples, sim: Samples, groups: Groups, kind: str,
@@ -393,7 +456,7 @@ FAMILY_AXES: dict[str, tuple[str, ...]] = {
     "temperature": ("temperature",), "edge": ("edge",), "frame_common": ("frame",),
     "correlation_u": ("u",), "correlation_v": ("v",),
     "periodic_u": ("u",), "periodic_v": ("v",), "gradient_u": ("u",), "gradient_v": ("v",),
-    "static": ("tile",),
+    "static": ("tile",), "heterogeneity": (),
 }
 
 
@@ -553,6 +616,7 @@ def locate(real: Samples, sim: Samples, alpha: float = ALPHA, groups: list[Group
     tests += _correlation_tests(real, sim, st_r, st_s)
     window = st_r.corr.window_px if st_r.corr.fraction > 0.2 else 9.0
     tests += [GroupTest(**t) for t in fine_tests(real, sim, window)]
+    tests += heterogeneity_tests(real, sim)
     adj, rej = holm(np.array([t.p for t in tests]), alpha)
     for t, a, r in zip(tests, adj, rej, strict=True):
         t.p_adj, t.significant = float(a), bool(r)

@@ -52,6 +52,7 @@ from depthstation.evaluate.explain.samples import (
     unpaired_standpoints,
     without_clock,
 )
+from depthstation.evaluate.explain.spline import spline_term
 from depthstation.evaluate.explain.structure import decompose
 from depthstation.simulate.checkerboard_session import DepthTally
 from depthstation.simulate.effects import PixelContext
@@ -433,6 +434,17 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
         if tick:
             tick("locate after")
         after = locate(real.samples, resim.samples)
+        # a bias still located along u, v, distance or inclination: the spline along that axis (kept
+        # only where it predicts held-out standpoints better), rendered and checked once more
+        spline = spline_term(after.significant, real.samples, resim.samples)
+        if spline is not None:
+            new_model = new_model.with_effect(spline["effect"], **spline["params"])
+            fine = [*fine, spline]
+            resim = simulate_like(real, board, new_model, seed=seed + 2, tick=tick)
+            warn_unpaired(real.samples, resim.samples, "re-simulation")
+            if tick:
+                tick("locate after the spline")
+            after = locate(real.samples, resim.samples)
         spread_after = pose_spread.spread_tests(
             real.figures, resim.figures, _frame_counts(real), _frame_counts(resim),
             pose_spread.added_variance(present_effects(new_model).get(pose_spread.TERM), resim.figures,
