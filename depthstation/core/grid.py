@@ -176,6 +176,9 @@ class Grid:
     # frame-clustered moments for the standard error of the cell means; None where frames are
     # not known (grids of single samples, coarsened display grids, old files)
     moments: FrameMoments | None = field(default=None, compare=False)
+    # per cell, the standard uncertainty of the reference itself (a cloud's fitted planes), shared
+    # by the cell's pixels and so not averaged down: added to u95_m in quadrature (None: a mesh)
+    reference_u_m: NDArray[np.float64] | None = field(default=None, compare=False)
 
     @classmethod
     def empty(cls, distance_bin_m: float = DEFAULT_DISTANCE_BIN_M,
@@ -353,9 +356,13 @@ class Grid:
         size (tests/test_grid.py); without frame moments, 1.96 stderr (an underestimate)."""
         feff = self.effective_frames
         if feff is None:
-            return 1.96 * self.stderr
-        dof = np.maximum(np.nan_to_num(feff, nan=2.0) - 1.0, 1.0)
-        return np.asarray(stdtrit(dof, 0.975) * self.se_m, dtype=np.float64)
+            u = 1.96 * self.stderr
+        else:
+            dof = np.maximum(np.nan_to_num(feff, nan=2.0) - 1.0, 1.0)
+            u = np.asarray(stdtrit(dof, 0.975) * self.se_m, dtype=np.float64)
+        if self.reference_u_m is not None:  # the reference's own error, one per cell (k = 1.96)
+            u = np.sqrt(u * u + (1.96 * np.nan_to_num(self.reference_u_m)) ** 2)
+        return np.asarray(u, dtype=np.float64)
 
     @property
     def design_effect(self) -> NDArray[np.float64]:
@@ -415,10 +422,15 @@ class Grid:
                 "median_frames": _weighted_median(fm.frames[ok].astype(np.float64), w),
                 "median_design_effect": _weighted_median(self.design_effect[ok], w),
                 "median_u95_m": _weighted_median(self.u95_m[ok], w),
+                **({"median_reference_u_m": _weighted_median(self.reference_u_m[ok], w)}
+                   if self.reference_u_m is not None else {}),
                 "rule": "medians over the samples (cells weighted by their counts) of the cells seen by "
                         "two frames or more; frames as clusters (CR1); u95_m = t(0.975, effective frames "
                         "- 1) se_m; the design effect (se_m / (std / sqrt(count)))^2 is how many pixels "
-                        "count as one independent sample"}
+                        "count as one independent sample"
+                        + ("; a cloud reference's own uncertainty per cell (reference_u_m) is added in "
+                           "quadrature: u95_m = sqrt(u95^2 + (1.96 reference_u_m)^2)"
+                           if self.reference_u_m is not None else "")}
 
     # -- files ----------------------------------------------------------------------------------
     def save(self, path: Path, compressed: bool = True) -> Path:
@@ -436,6 +448,8 @@ class Grid:
             fm = self.moments
             arrays |= {"frames": fm.frames, "se_m": self.se_m, "u95_m": self.u95_m, "frame_n2": fm.n2,
                        "frame_n2_mean": fm.n2_mean, "frame_n2_mean2": fm.n2_mean2}
+        if self.reference_u_m is not None:
+            arrays["reference_u_m"] = self.reference_u_m
         saver(tmp, **arrays)
         tmp.replace(path)
         return path
@@ -474,6 +488,8 @@ class Grid:
                                    data["frame_n2_mean2"].astype(np.float64))
         g = cls(data["distance_edges_m"].astype(np.float64),
                 data["inclination_edges_deg"].astype(np.float64), count, mean, m2, moments)
+        if "reference_u_m" in data and data["reference_u_m"].shape == count.shape:
+            g.reference_u_m = data["reference_u_m"].astype(np.float64)
         if count.shape != g.shape:
             raise InputError(path, f"count shape {count.shape} does not match the edges {g.shape}")
         for name, e in (("distance", g.distance_edges_m), ("inclination", g.inclination_edges_deg)):

@@ -28,6 +28,7 @@ from depthstation.core.errors import InputError
 from depthstation.core.frames import FrameSet, FrameSource
 from depthstation.core.grid import PackedGrid, pack_grid, unpack_grid
 from depthstation.core.parallel import ChunkRunner, ProgressFn
+from depthstation.evaluate.scan.point_reference import PointFitRenderer, ReferenceCells, with_point_fits
 from depthstation.evaluate.scan.rasterise import MeshRasteriser, make_renderer
 from depthstation.evaluate.scan.raycast import FrameRenderer
 from depthstation.evaluate.scan.reference import load_unmeasured
@@ -101,7 +102,8 @@ def renderer_for(mesh: str | Path, intr: Intrinsics, config: StudyConfig) -> Fra
     report's figure frame) of this process: the mesh is loaded and prepared once (again when the
     file changed)."""
     key = (_file_key(mesh), intr, config.nthreads, config.renderer,
-           None if config.unmeasured is None else _file_key(config.unmeasured))
+           None if config.unmeasured is None else _file_key(config.unmeasured),
+           None if config.point_fits is None else _file_key(config.point_fits))
     if _CACHE.caster is None or _CACHE.mesh_key != key:
         _CACHE.caster = None
         _CACHE.caster = new_renderer(mesh, intr, config)
@@ -114,6 +116,8 @@ def new_renderer(mesh: str | Path, intr: Intrinsics, config: StudyConfig) -> Fra
     renderer = make_renderer(config.renderer, Path(mesh), intr, config.nthreads)
     if config.unmeasured is not None:
         renderer.mark_unmeasured(load_unmeasured(Path(config.unmeasured), renderer.n_triangles))
+    if config.point_fits is not None:  # a cloud measured against its points (point_reference)
+        return with_point_fits(renderer, Path(config.point_fits))
     return renderer
 
 
@@ -144,14 +148,17 @@ class PackedScanResult:
     used: list[int]
     no_pose: list[int]
     no_depth: list[int]
+    reference_u: ReferenceCells | None = None
 
 
 def pack_scan_result(res: ChunkResult) -> PackedScanResult:
-    return PackedScanResult(pack_grid(res.grid), res.stats, res.used, res.no_pose, res.no_depth)
+    return PackedScanResult(pack_grid(res.grid), res.stats, res.used, res.no_pose, res.no_depth,
+                            res.reference_u)
 
 
 def unpack_scan_result(p: PackedScanResult) -> ChunkResult:
-    return ChunkResult(unpack_grid(p.grid), p.stats, p.used, p.no_pose, p.no_depth)
+    return ChunkResult(unpack_grid(p.grid), p.stats, p.used, p.no_pose, p.no_depth,
+                       reference_u=p.reference_u)
 
 
 def merge_scan_results(a: ChunkResult, b: ChunkResult) -> ChunkResult:
@@ -323,7 +330,8 @@ def _run_here(source: FrameSource, mesh: str | Path, chunks: list[ScanChunk], co
     base = renderer_for(mesh, intr, config)
     renderers.put(base)
     for _ in range(n - 1):
-        renderers.put(base.sibling() if isinstance(base, MeshRasteriser)
+        renderers.put(base.sibling() if isinstance(base, MeshRasteriser) or (
+            isinstance(base, PointFitRenderer) and isinstance(base.inner, MeshRasteriser))
                       else new_renderer(mesh, intr, config))
     frames = iter(source.frames())
     spare: Queue[ChunkCells] = Queue()  # accumulators drained by `fold`, for the next chunks

@@ -89,6 +89,12 @@ def scan(
                                              "scanned points' planes are surface nobody measured: they still "
                                              "hide what lies behind them, but the pixels that see them are "
                                              "left out of the grid. 0 keeps them."),
+    reference_mode: str = typer.Option("points", "--reference-mode",
+                                       help="A cloud reference: 'points' (each pixel's reference depth "
+                                            "from a plane fitted to the scanned points around the surface "
+                                            "its ray meets; pixels the points do not support are left out and "
+                                            "counted) or 'mesh' (the cloud's Poisson mesh itself). A mesh "
+                                            "reference is always used as it is."),
     depth_topic: DepthTopic = None,
     color_topic: ColorTopic = None,
     infrared_topic: InfraredTopic = None,
@@ -116,7 +122,7 @@ def scan(
                        min_count_sequence=min_count_sequence, figure_frame=figure_frame,
                        intrinsics=intrinsics, poisson_depth=poisson_depth,
                        density_quantile=density_quantile, poisson_threads=poisson_threads,
-                       surface_gap_m=surface_gap_m, poses_of=poses_of,
+                       surface_gap_m=surface_gap_m, reference_mode=reference_mode, poses_of=poses_of,
                        pose_convention=pose_convention, force=force, depth_topic=depth_topic,
                        color_topic=color_topic, infrared_topic=infrared_topic, renderer=renderer,
                        budget=budget,

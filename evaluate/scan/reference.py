@@ -28,6 +28,7 @@ from depthstation.core.errors import EvaluationError, InputError
 from depthstation.core.lazy_open3d import open3d
 from depthstation.core.mesh_checks import check_mesh, check_mesh_file
 from depthstation.core.run_warnings import warn
+from depthstation.evaluate.scan.point_reference import POINT_FITS, PointParams, fit_triangles
 from depthstation.evaluate.scan.tls import Scans, check_las, open_e57, read_e57, read_las
 from depthstation.evaluate.scan.trajectory import LOCAL_SHIFT_ABOVE_M, local_shift
 
@@ -328,10 +329,13 @@ def _shift_geometry(geom: Any, kind: str) -> np.ndarray:
 
 
 def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = PoissonParams(),
-                   viewpoints: np.ndarray | None = None) -> tuple[Any, Path, dict[str, Any]]:
+                   viewpoints: np.ndarray | None = None,
+                   points: PointParams | None = None) -> tuple[Any, Path, dict[str, Any]]:
     """The mesh to cast against and the file it lives in (the input, or the cache for a cloud or a
     shifted mesh); `info['local_shift_m']` is what was subtracted from the reference's coordinates.
     `viewpoints`: camera centres in the reference's frame, to orient a cloud's normals by.
+    `points`: for a cloud, also fit every triangle's plane to the points around it
+    (`point_reference`, kept in `reference_points.npz`; `info['point_fits']`).
 
     The cache (`reference_mesh.ply` + `.json`) is reused when source path, size, mtime and Poisson
     parameters match, since Poisson on millions of points takes minutes.
@@ -345,7 +349,8 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
            "local_shift_above_m": LOCAL_SHIFT_ABOVE_M,
            "tls_in_metres": True,  # meshes cached before LAS/LAZ units were converted are made again
            "viewpoints": None if viewpoints is None else hashlib.sha1(
-               np.round(np.asarray(viewpoints, dtype=np.float64), 2).tobytes()).hexdigest()}
+               np.round(np.asarray(viewpoints, dtype=np.float64), 2).tobytes()).hexdigest(),
+           "points": None if points is None else points.to_dict()}
     if cache_dir is not None:
         cached = Path(cache_dir) / MESH_CACHE
         meta = cached.with_suffix(".json")
@@ -356,7 +361,9 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
                 stored = {}
             info_kept = stored.get("info", {})
             mask_kept = unmeasured_file(cached, info_kept)
-            if stored.get("key") == key and (mask_kept is None or mask_kept.is_file()):
+            fits_kept = (points is None or info_kept.get("kind") != "cloud"
+                         or (Path(cache_dir) / POINT_FITS).is_file())
+            if stored.get("key") == key and (mask_kept is None or mask_kept.is_file()) and fits_kept:
                 mesh = o3d.io.read_triangle_mesh(str(cached))
                 say_coordinates(info_kept.get("coordinates"), path)
                 return mesh, cached, {**info_kept, "cached": True}
@@ -384,6 +391,20 @@ def reference_mesh(path: Path, cache_dir: Path | None, params: PoissonParams = P
     else:
         mesh, info, unmeasured = poisson_mesh(geom, params, scans, local_views, str(path))
         info = {"kind": "cloud", "points": len(geom.points), **info}
+        if points is not None:
+            fits, fit_info = fit_triangles(np.asarray(mesh.vertices), np.asarray(mesh.triangles),
+                                           np.asarray(geom.points), points,
+                                           unmeasured if params.surface_gap_m > 0 else None)
+            if cache_dir is None:
+                raise EvaluationError("a reference cloud needs a folder to keep its point fits")
+            Path(cache_dir).mkdir(parents=True, exist_ok=True)
+            fits.save(Path(cache_dir) / POINT_FITS)
+            info["point_fits"] = {"file": POINT_FITS, "params": points.to_dict(), **fit_info}
+            if fit_info["supported"] == 0:
+                raise InputError(path, f"the scanned points support none of the {fit_info['triangles']} "
+                                       "triangles of their mesh (too few points near each, no plane through "
+                                       "them, or the mesh far from them): no surface to measure a camera "
+                                       "against (random points, or a cloud far too sparse)")
         if coordinates:
             info["coordinates"] = coordinates
     info.update({"local_shift_m": shift.tolist(), "appearance": look})
@@ -451,12 +472,18 @@ def appearance_image(mesh: Any, intr: Intrinsics, pose: np.ndarray) -> np.ndarra
     return out.reshape(intr.height, intr.width, 3)
 
 
-def measured_part(mesh: Any, unmeasured: Path | None) -> Any:
+def measured_part(mesh: Any, unmeasured: Path | None, source: Path | None = None) -> Any:
     """The mesh without its triangles of surface nobody scanned (`unmeasured_file`), for the
-    registration: fitted to Poisson's own surface, a pose would move every pixel of the study."""
+    registration: fitted to Poisson's own surface, a pose would move every pixel of the study.
+    None of it scanned (a random cloud): bad input naming `source`."""
     if unmeasured is None:
         return mesh
     mask = load_unmeasured(unmeasured, len(mesh.triangles))
+    if mask is not None and mask.all():
+        raise InputError(source, f"every one of the {len(mask)} triangles meshed from the cloud lies off "
+                                 "its points (a vertex beyond --surface-gap-m from the points' planes): the "
+                                 "cloud shows no surface to measure a camera against (random points, or far "
+                                 "too sparse)")
     part = copy.deepcopy(mesh)
     part.remove_triangles_by_mask(mask)
     part.remove_unreferenced_vertices()

@@ -14,6 +14,7 @@ from depthstation.core.results import SUMMARY_FILE, inside, write_json, write_re
 from depthstation.core.run_warnings import warn
 from depthstation.evaluate.scan.chunks import renderer_for
 from depthstation.evaluate.scan.figures import frame_figure, grid_figure
+from depthstation.evaluate.scan.point_reference import PIXEL_NAMES, REASONS, reference_u_into
 from depthstation.evaluate.scan.reference import appearance_image
 from depthstation.evaluate.scan.study import ChunkResult, StudyConfig, evaluate_chunk, frame_images
 
@@ -33,6 +34,7 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
     opt, out, source = job.options, job.out, job.source
     t0 = time.perf_counter()
     grid = result.grid
+    reference_u_into(grid, result.reference_u)  # a cloud's own uncertainty into each cell's u95
     grid.save(out / GRID_FILE)
     figures: dict[str, str] = {}
     fig_index = (opt.figure_frame if opt.figure_frame is not None
@@ -63,7 +65,13 @@ def write_scan(job: ScanJob, result: ChunkResult) -> dict[str, Any]:
                                            f"Fig. 10: {source.name} ({stream}, {len(result.used)} frames); "
                                            f"{job.registration.caption()}").name
     unmeasured, in_range = int(result.stats[5]), int(result.stats[4] + result.stats[5])
-    if in_range and unmeasured > UNMEASURED_PIXELS * in_range:
+    if in_range and unmeasured > UNMEASURED_PIXELS * in_range and job.config.point_fits is not None:
+        split = ", ".join(f"{r.replace('_', ' ')} {int(result.stats[6 + i])}" for i, r in enumerate(REASONS))
+        warn(f"{100 * unmeasured / in_range:.1f} % of the pixels within the grid's range ({unmeasured} of "
+             f"{in_range}) saw reference surface the scanned points do not support ({split}; "
+             f"summary: pixels.{', pixels.'.join(PIXEL_NAMES)}): left out of the grid, so its cells miss "
+             "those distances and inclinations", str(job.reference), "unmeasured-surface")
+    elif in_range and unmeasured > UNMEASURED_PIXELS * in_range:
         warn(f"{100 * unmeasured / in_range:.1f} % of the pixels within the grid's range ({unmeasured} of "
              f"{in_range}) saw reference triangles with a vertex more than {1000 * opt.surface_gap_m:.0f} mm "
              "off the scanned surface (surface Poisson made up, and its borders): left out of the grid, so "

@@ -38,6 +38,7 @@ from depthstation.evaluate.scan.chunks import (
     scan_chunks,
     split_last,
 )
+from depthstation.evaluate.scan.point_reference import REFERENCE_MODES, PointParams
 from depthstation.evaluate.scan.rasterise import DEFAULT_RENDERER, check_renderer
 from depthstation.evaluate.scan.reference import (
     SURFACE_GAP_M,
@@ -107,6 +108,7 @@ class ScanOptions:
     density_quantile: float = 0.05
     poisson_threads: int = 1
     surface_gap_m: float = SURFACE_GAP_M
+    reference_mode: str = "points"  # a cloud: 'points' (planes fitted to them) or 'mesh' (its Poisson mesh)
     poses_of: str = "depth"  # the camera the trajectory describes: 'depth' or 'color' (RGB-D SLAM)
     pose_convention: str = "tum"  # how the pose file's lines are meant (trajectory.POSE_CONVENTIONS)
     depth_topic: str | None = None      # ROS recordings: topics (None: the realsense-ros layout)
@@ -157,6 +159,9 @@ class ScanOptions:
             raise InputError(None, "--poisson-threads must be 0 (all cores) or more, "
                                    f"not {self.poisson_threads}")
         check_renderer(self.renderer)
+        if self.reference_mode not in REFERENCE_MODES:
+            raise InputError(None, f"--reference-mode must be one of {', '.join(REFERENCE_MODES)}, "
+                                   f"not '{self.reference_mode}'")
 
     @property
     def register_mode(self) -> str:
@@ -254,7 +259,8 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     mesh, mesh_path, mesh_info = reference_mesh(
         Path(reference), out, PoissonParams(depth=opt.poisson_depth, density_quantile=opt.density_quantile,
                                          threads=opt.poisson_threads, surface_gap_m=opt.surface_gap_m),
-        viewpoints=camera_centres(depth_poses, similarity, pass_points))
+        viewpoints=camera_centres(depth_poses, similarity, pass_points),
+        points=PointParams(gap_m=opt.surface_gap_m) if opt.reference_mode == "points" else None)
     say_meshing(mesh_info, Path(reference))
     # far-away coordinates (survey frames) are shifted before anything is registered or cast
     centres = depth_poses.poses[:, :3, 3]
@@ -263,7 +269,8 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
     traj = depth_poses.translated(-local.trajectory_m)
     t_mesh = time.perf_counter()
     unmeasured = unmeasured_file(mesh_path, mesh_info)
-    scanned = measured_part(mesh, unmeasured)  # fitted to, and its fit measured on, what was scanned
+    scanned = measured_part(mesh, unmeasured, Path(reference))  # fitted to, and checked on, what was scanned
+    point_fits = mesh_path.parent / mesh_info["point_fits"]["file"] if "point_fits" in mesh_info else None
     try:
         reg = register(source, traj, scanned, sample_reference_points(scanned), mode=opt.register_mode,
                        similarity=similarity, pass_points=pass_points, band_m=opt.icp_band_m,
@@ -279,7 +286,8 @@ def prepare_scan(sequence: Path, poses: Path, reference: Path, out: Path,
                          every=opt.every, max_frames=opt.frames, tolerance_s=opt.tolerance_s,
                          nthreads=0 if in_process else 1,
                          per_frame_dir=out / PER_FRAME_DIR if opt.per_frame_grids else None,
-                         renderer=opt.renderer, unmeasured=unmeasured)
+                         renderer=opt.renderer, unmeasured=None if point_fits else unmeasured,
+                         point_fits=point_fits)
     renderer = renderer_for(mesh_path, source.info.depth_intrinsics, config)
     sample = fit_sample(source)  # read once: every reading of the poses below is checked on it
     fit = fit_check(renderer, source, posed, tolerance_s=opt.tolerance_s, sample=sample)
@@ -447,7 +455,9 @@ def say_meshing(mesh_info: dict[str, Any], reference: Path) -> None:
         return
     um = mesh_info.get("unmeasured")
     triangles = int(um.get("triangles", 0)) if isinstance(um, dict) else 0
-    effect = (f"its {triangles} triangles are kept as occluders, and the pixels that see them are left "
+    effect = ("the study measures against planes fitted to the points, and the pixels whose triangle the "
+              "points do not support are left out (summary: pixels.reference_*)" if "point_fits" in mesh_info
+              else f"its {triangles} triangles are kept as occluders, and the pixels that see them are left "
               "out of the grid (summary: pixels.unmeasured_surface; --surface-gap-m 0 keeps them)"
               if triangles else
               "pixels that see it compare with a surface nobody measured, and their cells' u95 does not "

@@ -22,10 +22,12 @@ from numpy.typing import NDArray
 from depthstation.core.errors import EvaluationError
 from depthstation.core.frames import FrameSource
 from depthstation.core.grid import FrameMoments, Grid
+from depthstation.evaluate.scan.point_reference import PIXEL_NAMES, ReferenceCells
 from depthstation.evaluate.scan.raycast import STAT_NAMES, CellAccumulator, FrameImages, FrameRenderer
 from depthstation.evaluate.scan.trajectory import Trajectory
 
 PER_FRAME_DIR = "frame_grids"
+PIXEL_STATS = STAT_NAMES + PIXEL_NAMES  # the pass's counts, then a cloud's pixels left out by reason
 
 
 @dataclass(frozen=True)
@@ -45,6 +47,7 @@ class StudyConfig:
     per_frame_dir: Path | None = None
     renderer: str = "raster"
     unmeasured: Path | None = None  # per-triangle mask of reference surface nobody scanned (.npy)
+    point_fits: Path | None = None  # a cloud's per-triangle planes fitted to its points (point_reference)
 
     def empty_grid(self) -> Grid:
         return Grid.empty(self.distance_bin_m, self.inclination_bin_deg, self.distance_max_m,
@@ -80,14 +83,19 @@ class ChunkResult:
     on reused `ChunkCells` keeps them in `cells` (its grid lives there) until merged."""
 
     grid: Grid
-    stats: NDArray[np.int64] = field(default_factory=lambda: np.zeros(len(STAT_NAMES), np.int64))
+    stats: NDArray[np.int64] = field(default_factory=lambda: np.zeros(len(PIXEL_STATS), np.int64))
     used: list[int] = field(default_factory=list)
     no_pose: list[int] = field(default_factory=list)
     no_depth: list[int] = field(default_factory=list)
     cells: ChunkCells | None = None
+    reference_u: ReferenceCells | None = None  # a cloud's reference sigma per cell (points mode)
 
     def merge(self, other: ChunkResult) -> ChunkResult:
         self.grid.merge(other.grid)
+        if other.reference_u is not None:
+            if self.reference_u is None:
+                self.reference_u = ReferenceCells.zeros(other.reference_u.shape)
+            self.reference_u.merge(other.reference_u)
         self.stats += other.stats
         self.used += other.used
         self.no_pose += other.no_pose
@@ -97,7 +105,7 @@ class ChunkResult:
     def summary(self) -> dict[str, Any]:
         return {"frames_used": len(self.used), "frames_skipped_no_pose": len(self.no_pose),
                 "frames_skipped_no_depth": len(self.no_depth),
-                "pixels": {k: int(v) for k, v in zip(STAT_NAMES, self.stats, strict=True)},
+                "pixels": {k: int(v) for k, v in zip(PIXEL_STATS, self.stats, strict=True)},
                 "grid": self.grid.summary()}
 
 
@@ -148,6 +156,8 @@ def evaluate_chunk(caster: FrameRenderer, source: FrameSource, trajectory: Traje
             on_frame(pos, res.stats - before)
     res.grid = cells.to_grid() if reuse is None else cells.take_grid(reuse.grid)
     res.grid.moments = moments
+    take = getattr(caster, "take_reference_cells", None)
+    res.reference_u = take() if take is not None else None
     return res
 
 
