@@ -52,8 +52,10 @@ INTERPRETATION: dict[tuple[str, tuple[str, ...]], tuple[str, ...]] = {
         "in depth), a differential one -f dk x r^2 [derived; Herrera et al. 2012]",
         "vignetting-linked SNR falling towards the corners (an isotropic r^2 that scales like z^2)"),
     ("bias", ("tile",)): (
-        "fixed-pattern rectification residuals and distortion-model mismatch: a smooth disparity field "
-        "fixed in pixel coordinates (Smisek et al. 2011; Herrera et al. 2012; CLAMS, Teichman et al. 2013)",
+        "the unit's static pattern (catalogue `static_pattern`): fixed-pattern rectification residuals, "
+        "distortion-model mismatch and the emitter's dot pattern fixed to the unit, a smooth disparity field "
+        "fixed in pixel coordinates that frames do not average away (Smisek et al. 2011; Herrera et al. "
+        "2012; CLAMS, Teichman et al. 2013)",
         "relative pitch (x y saddle) or differential tangential distortion p1, p2"),
     ("bias", ("distance",)): (
         "convexity of z = fB/d: zero-mean disparity noise biases the mean depth by z^3 sigma_d^2/(fB)^2 "
