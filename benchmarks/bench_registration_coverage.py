@@ -63,20 +63,22 @@ def one_walk(root: Path, seed: int, error: float, args: argparse.Namespace) -> d
     want = np.linalg.inv(offset)  # slam frame -> reference frame
     s_true, r_true, t_true = decompose_similarity(want)
     s, r, t = decompose_similarity(reg.given_matrix)
-    bands = reg.bands()
     row: dict[str, Any] = {"seed": seed, "error": error, "frames": reg.icp.get("frames"),
                            "scale": s, "scale_true": s_true}
     rot_err = np.degrees(_rotvec(r @ r_true.T))
     tr_err = t - t_true
-    if bands is None:
-        return {**row, "band": False}
-    lo, hi = bands.get("scale_band95", (np.nan, np.nan))
-    row.update({"band": True, "scale_lo": lo, "scale_hi": hi})
-    for k, ax in enumerate("xyz"):
-        row[f"rot_{ax}_err_deg"] = rot_err[k]
-        row[f"rot_{ax}_u95_deg"] = bands["rotation_u95_deg"][k]
-        row[f"t_{ax}_err_m"] = tr_err[k]
-        row[f"t_{ax}_u95_m"] = bands["translation_u95_m"][k]
+    for pre, bands in (("", reg.bands()),):
+        if bands is None:
+            row[f"{pre}band"] = False
+            continue
+        lo, hi = bands.get("scale_band95", (np.nan, np.nan))
+        row.update({f"{pre}band": True, f"{pre}scale_lo": lo, f"{pre}scale_hi": hi,
+                    f"{pre}scale_dof": bands.get("dof", {}).get("scale", np.nan)})
+        for k, ax in enumerate("xyz"):
+            row[f"rot_{ax}_err_deg"] = rot_err[k]
+            row[f"{pre}rot_{ax}_u95_deg"] = bands["rotation_u95_deg"][k]
+            row[f"t_{ax}_err_m"] = tr_err[k]
+            row[f"{pre}t_{ax}_u95_m"] = bands["translation_u95_m"][k]
     return row
 
 
@@ -92,27 +94,43 @@ def _share(held: list[bool]) -> str:
     return f"{100 * p:5.1f} % ({100 * (centre - half):.0f}-{100 * (centre + half):.0f} %, n={n})"
 
 
-def table(rows: list[dict[str, Any]]) -> list[str]:
+def table(rows: list[dict[str, Any]], pre: str = "") -> list[str]:
+    """Per truth and pooled over the truths: the share of walks whose band (`pre`: which band)
+    holds the truth, the estimates' mean error and spread, and the band's mean half width."""
     lines = ["| truth e | quantity | band holds the truth | mean error | error spread | mean U95 |",
              "|---|---|---|---|---|---|"]
-    for e in sorted({r["error"] for r in rows}):
-        mine = [r for r in rows if r["error"] == e and r["band"]]
+    errors = sorted({r["error"] for r in rows})
+    for e in [*errors, None] if len(errors) > 1 else errors:
+        mine = [r for r in rows if (e is None or r["error"] == e) and r.get(f"{pre}band")]
         if not mine:
             continue
+        label = "all" if e is None else f"{100 * e:+.0f} %"
         # the scale as the depth-scale error it stands for, in %
         err = np.array([100 * (1 / r["scale"] - 1 / r["scale_true"]) for r in mine])
-        u95 = np.array([100 * (1 / r["scale_lo"] - 1 / r["scale_hi"]) / 2 for r in mine])
-        held = [r["scale_lo"] <= r["scale_true"] <= r["scale_hi"] for r in mine]
-        lines.append(f"| {100 * e:+.0f} % | depth-scale error (%) | {_share(held)} | {err.mean():+.4f} | "
+        u95 = np.array([100 * (1 / r[f"{pre}scale_lo"] - 1 / r[f"{pre}scale_hi"]) / 2 for r in mine])
+        held = [r[f"{pre}scale_lo"] <= r["scale_true"] <= r[f"{pre}scale_hi"] for r in mine]
+        lines.append(f"| {label} | depth-scale error (%) | {_share(held)} | {err.mean():+.4f} | "
                      f"{err.std(ddof=1):.4f} | {u95.mean():.4f} |")
         for name, unit, scale in (("rot", "deg", 1.0), ("t", "mm", 1e3)):
             for ax in "xyz":
-                e_ = np.array([r[f"{name}_{ax}_err_{'deg' if name == 'rot' else 'm'}"] for r in mine]) * scale
-                u_ = np.array([r[f"{name}_{ax}_u95_{'deg' if name == 'rot' else 'm'}"] for r in mine]) * scale
-                label = f"rotation about {ax} ({unit})" if name == "rot" else f"translation {ax} ({unit})"
-                lines.append(f"| {100 * e:+.0f} % | {label} | {_share(list(np.abs(e_) <= u_))} | "
+                key = "deg" if name == "rot" else "m"
+                e_ = np.array([r[f"{name}_{ax}_err_{key}"] for r in mine]) * scale
+                u_ = np.array([r[f"{pre}{name}_{ax}_u95_{key}"] for r in mine]) * scale
+                what = f"rotation about {ax} ({unit})" if name == "rot" else f"translation {ax} ({unit})"
+                lines.append(f"| {label} | {what} | {_share(list(np.abs(e_) <= u_))} | "
                              f"{e_.mean():+.4f} | {e_.std(ddof=1):.4f} | {u_.mean():.4f} |")
     return lines
+
+
+def write_rows(path: Path, rows: list[dict[str, Any]]) -> None:
+    """Every walk as a CSV row (replaced whole: written beside, then renamed)."""
+    keys = sorted({key for r in rows for key in r})
+    tmp = path.with_name(path.name + ".part")
+    with tmp.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    tmp.replace(path)
 
 
 def main() -> None:
@@ -136,12 +154,8 @@ def main() -> None:
             for e in errors:
                 rows.append(one_walk(Path(tmp), args.seed0 + k, e, args))
             print(f"{k + 1}/{args.walks} walks per truth, {time.perf_counter() - t0:.0f} s", flush=True)
-    if args.out is not None:
-        keys = sorted({key for r in rows for key in r})
-        with args.out.open("w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=keys)
-            w.writeheader()
-            w.writerows(rows)
+            if args.out is not None:  # after every round: a long run stopped early keeps its walks
+                write_rows(args.out, rows)
     print(f"{len(rows)} walks ({args.frames} frames of {args.width}x{args.width * 9 // 16}, registered on "
           f"every {args.every}th, --register {args.mode}) in {time.perf_counter() - t0:.0f} s")
     print("\n".join(table(rows)))

@@ -9,16 +9,18 @@
 Why `none` by default: the study measures depth error, and a scale fitted on the depth pixels
 swallows exactly the depth-scale error it exists to measure (a scale of 0.98288 absorbs a
 +1.74 % depth error: 52 mm at 3 m). A scale, wherever it comes from, is therefore reported as the
-depth-scale error it absorbs, with its 95 % band from a block jackknife over the frames (each block
-of consecutive frames left out in turn and the fit redone): frames, not points, are what vary
-independently (a frame's noise is correlated over its window and its pose), so a band from point
-subsets was too narrow (+0.061 to +0.099 % round a truth of 0).
+depth-scale error it absorbs, with its 95 % band: from the fit's own residuals, blocks of
+consecutive frames as clusters (a frame's noise is correlated over its window and its pose, so
+frames, not points, vary independently), see `cluster_covariance`. The refinement picks its pixels
+by the reference's depth and matches each along its ray, so that neither depends on the pixel's
+own noise (`reference_band`, `refine_on_mesh`).
 """
 
 from __future__ import annotations
 
 import csv
 import io
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,9 +46,10 @@ F64 = NDArray[np.float64]
 
 
 REGISTER_MODES = ("none", "rigid", "similarity", "pass-points")
-# Blocks of consecutive frames the band's jackknife leaves out in turn (fewer with fewer frames; a
-# fit from one frame has no band). More blocks cost more refits; ten gave coverage within the
-# benchmark's resolution (benchmarks/bench_registration_coverage.py).
+# Blocks of consecutive frames taken as the band's clusters (fewer with fewer frames; a fit from one
+# frame has no band): a block holds what its frames share (a SLAM trajectory's drift over a few
+# frames); t with blocks - 1 degrees of freedom keeps few blocks honest
+# (benchmarks/bench_registration_coverage.py)
 BAND_BLOCKS = 10
 
 
@@ -67,8 +70,8 @@ class Registration:
     median_c2m_m: float | None = None
     scale_band95: tuple[float, float] | None = None  # of an estimated scale (None: given or 1)
     local: LocalFrames | None = None
-    # the fits with each block of frames left out (local frames), from which every band comes
-    replicates: list[F64] | None = None
+    # the fit's covariance from its residuals, blocks of frames as clusters: every band comes from it
+    step_covariance: StepCovariance | None = None
 
     @property
     def scale(self) -> float:
@@ -111,22 +114,26 @@ class Registration:
 
     def bands(self) -> dict[str, Any] | None:
         """U95 of the fitted rotation (deg, about each axis of the reference frame) and translation
-        (m, each axis), frames as given, and the scale's 95 % band: block jackknife over the frames
-        (`jackknife_u95`). None when no fit was redone without a block (given, pass points, or
-        too few frames)."""
-        if not self.replicates:
+        (m, each axis), frames as given, and the scale's 95 % band, from the fit's cluster-robust
+        covariance (`cluster_covariance`) and t with blocks - 1 degrees of freedom. None when no
+        covariance was found (given, pass points, or fewer than 2 frames)."""
+        sc = self.step_covariance
+        if sc is None:
             return None
-        given = [self.local.to_given(r) if self.local is not None else r for r in self.replicates]
-        _, r0, _ = decompose_similarity(self.given_matrix)
-        parts = [decompose_similarity(g) for g in given]
-        rot = np.array([np.degrees(_rotvec(r @ r0.T)) for _, r, _ in parts])
+        jac = sc.jacobian(self.matrix, self.local)
+        sd = np.sqrt(np.maximum(np.diag(jac @ sc.cov @ jac.T), 0.0))
+        dof = np.array([sc.dof(row) for row in jac])
+        k = np.asarray(stdtrit(dof, 0.975), dtype=np.float64)
+        s = self.scale
         out: dict[str, Any] = {
-            "method": f"block jackknife over the frames ({len(given)} blocks of consecutive frames)",
-            "blocks": len(given),
-            "rotation_u95_deg": jackknife_u95(rot).tolist(),
-            "translation_u95_m": jackknife_u95(np.array([t for _, _, t in parts])).tolist()}
-        if self.scale_band95 is not None:
-            out["scale_band95"] = list(self.scale_band95)
+            "method": f"cluster-robust (CR2) covariance of the fit, {sc.blocks} blocks of consecutive frames "
+                      "as clusters, t with Bell and McCaffrey's degrees of freedom",
+            "blocks": sc.blocks,
+            "rotation_u95_deg": np.degrees(k[1:4] * sd[1:4]).tolist(),
+            "translation_u95_m": (k[4:7] * sd[4:7]).tolist(),
+            "dof": {"scale": dof[0], "rotation": dof[1:4].tolist(), "translation": dof[4:7].tolist()}}
+        if sc.with_scale:
+            out["scale_band95"] = [s - k[0] * sd[0], s + k[0] * sd[0]]
         return out
 
     def to_dict(self) -> dict[str, Any]:
@@ -228,11 +235,37 @@ class NoPosedFrame(EvaluationError):
         self.nearest_s = nearest_s
 
 
-def depth_band_frames(source: FrameSource, trajectory: Trajectory, *,
-                      band_m: tuple[float, float] = (0.5, 2.0), tolerance_s: float = 0.01, every: int = 10,
-                      stride: int = 4,
-                      max_frames: int | None = None) -> list[F64]:
-    """Per frame, its depth pixels within the band, back-projected and posed into the trajectory frame.
+@dataclass
+class BandFrame:
+    """One registered frame's depth pixels: posed into the trajectory frame, with the camera's
+    centre there and each pixel's measured depth (what the reference-depth selection needs)."""
+
+    points: F64
+    centre: F64
+    z: F64
+
+    def within(self, band_m: tuple[float, float]) -> F64:
+        """The points whose measured depth lies in the band."""
+        return self.points[(self.z >= band_m[0]) & (self.z <= band_m[1])]
+
+
+# The measured depths collected beyond the band on either side, so that the pixels whose reference
+# depth lies in the band are all there whatever their noise (at 2 m the D455's noise is 0.5-1.3 %
+# of the depth at 640-256 px wide)
+BAND_MARGIN = 0.25
+# Pixels the mesh refinement fits at most (every k-th of each frame beyond): each step casts them
+# all, and the band's refits repeat that per block
+MAX_FIT_POINTS = 200_000
+# A refinement step below this (rad, m, relative scale) is the float32 surface query's own noise
+# (5e-8 at a few metres): the fit has converged
+RESOLVED_STEP = 2e-7
+
+
+def band_frames(source: FrameSource, trajectory: Trajectory, *,
+                band_m: tuple[float, float] = (0.5, 2.0), tolerance_s: float = 0.01, every: int = 10,
+                stride: int = 4, max_frames: int | None = None) -> list[BandFrame]:
+    """Per frame, its depth pixels within the band widened by `BAND_MARGIN`, back-projected and
+    posed into the trajectory frame.
 
     Every `every`-th frame and every `stride`-th pixel: registration needs coverage, not density.
     """
@@ -241,6 +274,7 @@ def depth_band_frames(source: FrameSource, trajectory: Trajectory, *,
     xs, ys = ray_planes(intr)   # through the lens, when the stream has one
     x = np.ascontiguousarray(xs[::stride, ::stride]).ravel()
     y = np.ascontiguousarray(ys[::stride, ::stride]).ravel()
+    lo, hi = band_m[0] / (1.0 + BAND_MARGIN), band_m[1] * (1.0 + BAND_MARGIN)
     parts = []
     posed = 0
     nearest = np.inf
@@ -254,9 +288,10 @@ def depth_band_frames(source: FrameSource, trajectory: Trajectory, *,
             continue
         posed += 1
         z = fs.depth[::stride, ::stride].astype(np.float64).ravel() * info.depth_units_m
-        ok = (z >= band_m[0]) & (z <= band_m[1])
+        ok = (z >= lo) & (z <= hi)
         p = np.stack([x[ok] * z[ok], y[ok] * z[ok], z[ok]], axis=-1)
-        parts.append(p @ pose[:3, :3].T + pose[:3, 3])
+        parts.append(BandFrame(p @ pose[:3, :3].T + pose[:3, 3], np.array(pose[:3, 3], dtype=np.float64),
+                               z[ok]))
         if max_frames is not None and len(parts) >= max_frames:
             break
     if posed == 0 and np.isfinite(nearest) and every > 1:  # the frames between the sampled ones
@@ -267,7 +302,61 @@ def depth_band_frames(source: FrameSource, trajectory: Trajectory, *,
                 nearest = min(nearest, trajectory.gap_s(fs.timestamp_ns * 1e-9))
     if posed == 0 and np.isfinite(nearest):
         raise NoPosedFrame(tolerance_s, float(nearest))
-    return [p for p in parts if len(p)]
+    return [f for f in parts if len(f.z)]
+
+
+def thin_frames(frames: list[BandFrame], max_points: int) -> list[BandFrame]:
+    """Every k-th pixel of each frame, k the least that keeps the total within `max_points`."""
+    total = sum(len(f.z) for f in frames)
+    k = -(-total // max_points)
+    if k <= 1:
+        return frames
+    return [BandFrame(f.points[::k], f.centre, f.z[::k]) for f in frames]
+
+
+def depth_band_frames(source: FrameSource, trajectory: Trajectory, *,
+                      band_m: tuple[float, float] = (0.5, 2.0), tolerance_s: float = 0.01, every: int = 10,
+                      stride: int = 4, max_frames: int | None = None) -> list[F64]:
+    """Per frame, its depth pixels whose measured depth lies within the band, posed into the
+    trajectory frame (`band_frames`, cut to the band)."""
+    frames = band_frames(source, trajectory, band_m=band_m, tolerance_s=tolerance_s, every=every,
+                         stride=stride, max_frames=max_frames)
+    return [p for p in (f.within(band_m) for f in frames) if len(p)]
+
+
+def reference_band(frames: list[BandFrame], scene: Any, m: F64,
+                   band_m: tuple[float, float]) -> list[BandFrame]:
+    """Per frame, its pixels whose *reference* depth lies in the band, the reference cast along
+    each pixel's ray with the trajectory moved by `m` (frames left with no pixel dropped).
+
+    Why not the measured depth: a band cut on the noisy depth keeps, at its far edge, the pixels
+    whose noise made them short and drops those it made long, so the floor seen at 2 m came out
+    too high (+1.4 mm along the vertical on the simulated D455 at 256x144); the reference's depth
+    does not depend on the pixel's noise.
+    """
+    out = []
+    s = decompose_similarity(m)[0]
+    for f in frames:
+        c = m[:3, :3] @ f.centre + m[:3, 3]
+        hit, _, rng = _cast(scene, np.broadcast_to(c, f.points.shape), f.points @ m[:3, :3].T + m[:3, 3])
+        z_ref = hit * f.z / rng  # the depth the camera would measure there, in its own units
+        keep = np.isfinite(z_ref) & (z_ref >= band_m[0] * s) & (z_ref <= band_m[1] * s)
+        if keep.any():
+            out.append(BandFrame(f.points[keep], f.centre, f.z[keep]))
+    return out
+
+
+def _cast(scene: Any, c: F64, p: F64) -> tuple[F64, F64, F64]:
+    """Along the rays from the camera centres `c` through the points `p` (reference frame): the
+    distance to the reference surface (inf where none), its unit normal, and the points' range."""
+    o3d = open3d()
+    v = p - c
+    rng = np.linalg.norm(v, axis=1)
+    rays = np.concatenate([c, v / np.maximum(rng, 1e-12)[:, None]], axis=1).astype(np.float32)
+    ans = scene.cast_rays(o3d.core.Tensor(rays))
+    n = ans["primitive_normals"].numpy().astype(np.float64)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return ans["t_hit"].numpy().astype(np.float64), n, rng
 
 
 def voxel_cloud(parts: list[F64], voxel_m: float = 0.01) -> F64:
@@ -312,34 +401,35 @@ def icp_with_scale(points: F64, target: Any, init: F64, *,
                "translation_change_m": float(np.linalg.norm(t1 - t0))}
 
 
-def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float = 0.05,
-                   iterations: int = 50, tol: float = 1e-8, with_scale: bool = True,
-                   scene: Any | None = None) -> tuple[F64, dict[str, Any]]:
+def refine_on_mesh(points: F64, mesh: Any, init: F64, *, centres: F64 | None = None,
+                   max_distance_m: float = 0.05, iterations: int = 50, tol: float = 1e-8,
+                   with_scale: bool = True, scene: Any | None = None) -> tuple[F64, dict[str, Any]]:
     """Point-to-plane ICP against the exact surface (Gauss-Newton on a similarity, or without
-    scale on a rigid motion).
+    scale on a rigid motion), each step halved until the sum of squared surface distances (each
+    capped at `max_distance_m`) falls.
 
-    Why: point-to-point ICP against sampled reference points converges to where the samples
-    happen to lie (cm spacing). Against the mesh, residuals are the distances along the hit
-    triangle's normal; the Jacobian is taken at the closest surface point, not at the noisy
-    measured point, so depth noise does not shrink the scale (errors-in-variables attenuation,
-    which Umeyama on noisy points shows as ~0.1 % at D455 noise levels). `scene`: the mesh's
-    raycasting scene when the caller refits many times.
+    Why against the mesh: point-to-point ICP against sampled reference points converges to where
+    the samples happen to lie (cm spacing). The residual is the distance along the surface's
+    normal; the Jacobian is taken on the surface, not at the noisy measured point, so depth noise
+    does not shrink the scale (errors in variables: ~0.1 % with Umeyama at D455 noise levels).
+    With `centres` (each point's camera centre, trajectory frame) a point is matched where its
+    pixel's ray meets the surface: a point that depends on the pose only. The closest surface
+    point (without centres) moves with the point's own noise (along the floor, round the table),
+    and the fit came out +0.13 % in scale on the simulated D455 at 256x144 (white noise only;
+    noise-free depth: -0.006 +- 0.013 %). Why the halving: where few surfaces hold a motion (a
+    round table's facets and a floor for a turn about the vertical), the full step jumped back and
+    forth (0.3 mm, 0.003 deg) and the fit ended wherever its last step left it. `scene`: the
+    mesh's raycasting scene when the caller refits many times.
     """
-    o3d = open3d()
     if scene is None:
         scene = mesh_scene(mesh)
     pts = np.asarray(points, dtype=np.float64)
+    cen = None if centres is None else np.asarray(centres, dtype=np.float64)
     m = np.asarray(init, dtype=np.float64).copy()
+    q, n, d, ok, cost = _surface_fit(scene, pts, cen, m, max_distance_m)
     used = 0
     it = 0
     for it in range(iterations):  # noqa: B007 - reported below
-        p = pts @ m[:3, :3].T + m[:3, 3]
-        ans = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
-        q = ans["points"].numpy().astype(np.float64)
-        n = ans["primitive_normals"].numpy().astype(np.float64)
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        d = ((p - q) * n).sum(1)
-        ok = np.linalg.norm(p - q, axis=1) < max_distance_m
         used = int(ok.sum())
         if used < 10:
             raise NoStart(f"fewer than 10 of its depth points lie within {max_distance_m:g} m of the "
@@ -347,16 +437,53 @@ def refine_on_mesh(points: F64, mesh: Any, init: F64, *, max_distance_m: float =
         qc = q[ok] - q[ok].mean(0)  # centred: better conditioned scale/translation
         cols = [np.cross(qc, n[ok]), n[ok]] + ([(n[ok] * qc).sum(1)] if with_scale else [])
         a = np.column_stack(cols)
-        x, *_ = np.linalg.lstsq(a, -d[ok], rcond=None)
-        omega, tau, eps = x[:3], x[3:6], float(x[6]) if with_scale else 0.0
-        step = np.eye(4)
-        step[:3, :3] = (1.0 + eps) * rodrigues(omega)
+        # normal equations: a has 6-7 well scaled columns (centred), and numpy's lstsq on a tall
+        # matrix cost 20-40 ms a step on a busy machine (threads), the 7 x 7 one 0.2 ms
+        x = np.linalg.lstsq(a.T @ a, -(a.T @ d[ok]), rcond=None)[0]  # a plane alone: minimum norm
         c = q[ok].mean(0)
-        step[:3, 3] = c - step[:3, :3] @ c + tau
+        for _ in range(8 if cen is None else 1):
+            omega, tau, eps = x[:3], x[3:6], float(x[6]) if with_scale else 0.0
+            step = np.eye(4)
+            step[:3, :3] = (1.0 + eps) * rodrigues(omega)
+            step[:3, 3] = c - step[:3, :3] @ c + tau
+            trial = _surface_fit(scene, pts, cen, step @ m, max_distance_m)
+            if cen is not None or trial[4] <= cost:
+                break
+            x = x / 2.0
+        else:
+            break  # no step lowers the sum: converged as far as the float32 surface query resolves
         m = step @ m
-        if max(np.abs(omega).max(), abs(eps), np.abs(tau).max()) < tol:
+        q, n, d, ok, cost = trial
+        if np.abs(x).max() < max(tol, RESOLVED_STEP):
             break
-    return m, {"mesh_refine_iterations": it + 1, "mesh_refine_points": used}
+    return m, {"mesh_refine_iterations": it + 1, "mesh_refine_points": used,
+               "mesh_refine_match": "closest surface point" if cen is None else "along the pixel's ray"}
+
+
+def _surface_fit(scene: Any, pts: F64, centres: F64 | None, m: F64,
+                 max_distance_m: float) -> tuple[F64, F64, F64, NDArray[np.bool_], float]:
+    """The moved points' surface matches (closest, or along their rays from `centres`), unit
+    normals there, the signed distances along them, the points within `max_distance_m`, and the
+    sum of squared distances each capped there (a ray that misses counts as capped)."""
+    p = pts @ m[:3, :3].T + m[:3, 3]
+    if centres is None:
+        o3d = open3d()
+        ans = scene.compute_closest_points(o3d.core.Tensor(p.astype(np.float32)))
+        q = ans["points"].numpy().astype(np.float64)
+        n = ans["primitive_normals"].numpy().astype(np.float64)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        d = ((p - q) * n).sum(1)
+        dist2 = ((p - q) ** 2).sum(1)
+    else:
+        c = centres @ m[:3, :3].T + m[:3, 3]
+        hit, n, rng = _cast(scene, c, p)
+        q = c + (p - c) * (hit / np.maximum(rng, 1e-12))[:, None]
+        with np.errstate(invalid="ignore"):
+            d = np.where(np.isfinite(hit), ((p - q) * n).sum(1), np.inf)
+        q = np.where(np.isfinite(q), q, p)
+        dist2 = d * d
+    ok = dist2 < max_distance_m**2
+    return q, n, d, ok, float(np.minimum(dist2, max_distance_m**2).sum())
 
 
 def mesh_scene(mesh: Any) -> Any:
@@ -414,7 +541,8 @@ def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any
                   and similarity is None else None)
     if local is not None:
         init = local.to_local(init)
-    parts = depth_band_frames(source, trajectory, band_m=band_m, tolerance_s=tolerance_s, every=every)
+    frames = band_frames(source, trajectory, band_m=band_m, tolerance_s=tolerance_s, every=every)
+    parts = [p for p in (f.within(band_m) for f in frames) if len(p)]
     info: dict[str, Any] = {"band_m": list(band_m), "frames": len(parts)}
     m = init
     if not parts:  # no posed depth in the band: nothing to fit, nor to measure the fit by
@@ -424,7 +552,7 @@ def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any
         info["note"] = f"no posed depth in {band_m[0]:g}-{band_m[1]:g} m: cloud-to-mesh not measured"
         return Registration(m, method, None, None, info, mode, None, scale_band95=scale_band, local=local)
     points = voxel_cloud(parts)
-    replicates = None
+    step_cov = None
     if mode in ("rigid", "similarity"):
         scaled = mode == "similarity"
         m, icp_info = icp_with_scale(points, target, init, with_scale=scaled)
@@ -432,46 +560,131 @@ def register(source: FrameSource, trajectory: Trajectory, mesh: Any, target: Any
         method += "+icp"
         if mesh is not None:
             scene = mesh_scene(mesh)
-            m, refine_info = refine_on_mesh(points, mesh, m, with_scale=scaled, scene=scene)
+            fit_frames = thin_frames(frames, MAX_FIT_POINTS)
+            for _ in range(2):  # the band by the reference depth, cast from the ICP fit, then the refined
+                chosen = reference_band(fit_frames, scene, m, band_m)
+                if not chosen:
+                    raise NoStart(f"no depth pixel's ray meets the reference within {band_m[0]:g}-"
+                                  f"{band_m[1]:g} m, so the fit has nothing to start from")
+                pts, cen = _fit_points(chosen)
+                m, refine_info = refine_on_mesh(pts, mesh, m, centres=cen, with_scale=scaled, scene=scene)
             info.update(refine_info)
+            info["refine_band"] = "reference depth along each pixel's ray"
+            info["refine_frames"] = len(chosen)
             method += "+mesh"
-            replicates = block_replicates(parts, mesh, m, scaled, scene)
-            if scaled and replicates is not None:
-                s = float(decompose_similarity(m)[0])
-                half = float(jackknife_u95(np.array([decompose_similarity(r)[0] for r in replicates])))
-                scale_band = (s - half, s + half)
+            step_cov = cluster_covariance(chosen, scene, m, scaled)
     c2c, c2m, c2m_median = fit_distances(points, m, target, mesh)
-    return Registration(m, method, c2c, c2m, info, mode, c2m_median, scale_band95=scale_band, local=local,
-                        replicates=replicates)
+    reg = Registration(m, method, c2c, c2m, info, mode, c2m_median, scale_band95=scale_band, local=local,
+                       step_covariance=step_cov)
+    bands = reg.bands()
+    if bands is not None and "scale_band95" in bands:
+        reg.scale_band95 = (float(bands["scale_band95"][0]), float(bands["scale_band95"][1]))
+    return reg
 
 
-def block_replicates(parts: list[F64], mesh: Any, m: F64, with_scale: bool, scene: Any,
-                     blocks: int = BAND_BLOCKS) -> list[F64] | None:
-    """The mesh refinement redone with each block of consecutive frames left out (min(frames,
-    `blocks`) blocks), started from the full fit `m`; None with fewer than 2 frames or when a
-    refit has nothing to start from (then no band is claimed)."""
-    g = min(len(parts), blocks)
+def _fit_points(parts: Sequence[BandFrame | F64]) -> tuple[F64, F64 | None]:
+    """What the refinement fits: frames' pixels with their camera centres (matched along their
+    rays), or bare point sets (voxel-thinned, matched to the closest surface point)."""
+    if parts and isinstance(parts[0], BandFrame):
+        frames = [f for f in parts if isinstance(f, BandFrame)]
+        return (np.concatenate([f.points for f in frames]),
+                np.concatenate([np.broadcast_to(f.centre, f.points.shape) for f in frames]))
+    return voxel_cloud([p for p in parts if isinstance(p, np.ndarray)]), None
+
+
+@dataclass
+class StepCovariance:
+    """Covariance of a refinement step about the converged fit: rotation vector (rad), translation
+    (m) and, with scale, the relative scale change, the step taken about `centre` (local frame), as
+    `refine_on_mesh` parametrises it; `blocks` clusters gave it."""
+
+    cov: F64
+    centre: F64
+    blocks: int
+    with_scale: bool
+    bread: F64 | None = None  # (A'A)^-1 of the step's Jacobian A
+    # per block: T = W' S V' (A_b = U S V', W the eigenvectors of its leverage) and 1 / sqrt(1 - eigenvalues)
+    leverage: list[tuple[F64, F64]] = field(default_factory=list)
+
+    def dof(self, c: F64) -> float:
+        """Bell and McCaffrey's degrees of freedom of the variance of c' step (Satterthwaite, under
+        independent equal errors): blocks - 1 when the blocks' leverages are alike, fewer when a few
+        blocks alone hold c (a side of the room seen by one block of frames)."""
+        if self.bread is None or not self.leverage:
+            return float(self.blocks - 1)
+        norms, vs = [], []
+        for t, gain in self.leverage:
+            f = gain * (t @ (self.bread @ c))
+            norms.append(float(f @ f))
+            vs.append(t.T @ f)
+        v = np.array(vs)
+        gtg = np.diag(norms) - v @ self.bread @ v.T
+        tr = float(np.trace(gtg))
+        ff = float(np.sum(gtg * gtg))
+        return float(np.clip(tr * tr / ff, 1.0, self.blocks - 1)) if ff > 0 else float(self.blocks - 1)
+
+    def jacobian(self, m: F64, local: LocalFrames | None) -> F64:
+        """d(scale, rotation vector about the reference axes, translation as given) / d(step)."""
+        _, r0, _ = decompose_similarity(m)
+
+        def reading(x: F64) -> F64:
+            step = np.eye(4)
+            step[:3, :3] = (1.0 + (x[6] if self.with_scale else 0.0)) * rodrigues(x[:3])
+            step[:3, 3] = self.centre - step[:3, :3] @ self.centre + x[3:6]
+            mm = step @ m
+            g = local.to_given(mm) if local is not None else mm
+            s, r, t = decompose_similarity(g)
+            return np.concatenate([[s], _rotvec(r @ r0.T), t])
+
+        k = self.cov.shape[0]
+        h = 1e-6
+        cols = []
+        for j in range(k):
+            e = np.zeros(7)
+            e[j] = h
+            cols.append((reading(e) - reading(-e)) / (2 * h))
+        return np.column_stack(cols)
+
+
+def cluster_covariance(frames: list[BandFrame], scene: Any, m: F64, with_scale: bool, *,
+                       max_distance_m: float = 0.05, blocks: int = BAND_BLOCKS) -> StepCovariance | None:
+    """The fit's covariance from its own residuals, blocks of consecutive frames as clusters
+    (cluster-robust sandwich with Bell and McCaffrey's CR2 leverage correction).
+
+    Why: a frame's pixels share its errors (the matching window's noise, its pose), so pixels are
+    not independent but blocks of frames are; the sandwich takes the residuals' correlation
+    within a block as it is. CR2 divides out each block's leverage: without it a block that alone
+    holds a direction (one side of the table) shows a too small residual there. None with fewer
+    than 2 blocks."""
+    g = min(len(frames), blocks)
     if g < 2:
         return None
-    out = []
-    for block in np.array_split(np.arange(len(parts)), g):
-        left = set(block.tolist())
-        rest = [p for j, p in enumerate(parts) if j not in left]
-        try:
-            mj, _ = refine_on_mesh(voxel_cloud(rest), mesh, m, with_scale=with_scale, scene=scene)
-        except EvaluationError:
-            return None
-        out.append(mj)
-    return out
-
-
-def jackknife_u95(values: F64) -> F64:
-    """Half width of the 95 % interval from delete-one-block jackknife replicates (rows): the
-    jackknife standard error sqrt((g - 1) / g sum (v - mean)^2) times t(0.975, g - 1)."""
-    v = np.asarray(values, dtype=np.float64)
-    g = v.shape[0]
-    se = np.sqrt((g - 1) / g * np.sum((v - v.mean(axis=0)) ** 2, axis=0))
-    return np.asarray(float(stdtrit(g - 1, 0.975)) * se, dtype=np.float64)
+    pts, cen = _fit_points(frames)
+    assert cen is not None
+    group = np.concatenate([np.full(len(frames[i].z), b) for b, idx in
+                            enumerate(np.array_split(np.arange(len(frames)), g)) for i in idx])
+    q, n, d, ok, _ = _surface_fit(scene, pts, cen, m, max_distance_m)
+    centre = q[ok].mean(0)
+    qc = q - centre
+    a = np.column_stack([np.cross(qc, n), n] + ([(n * qc).sum(1)] if with_scale else []))
+    bread = np.linalg.pinv(a[ok].T @ a[ok])
+    meat = np.zeros_like(bread)
+    leverage: list[tuple[F64, F64]] = []
+    for b in range(g):
+        rows = ok & (group == b)
+        if not rows.any():
+            continue
+        ab, db = a[rows], d[rows]
+        u, sv, vt = np.linalg.svd(ab, full_matrices=False)
+        kk = (sv[:, None] * vt) @ bread @ (vt.T * sv)
+        lam, w = np.linalg.eigh((kk + kk.T) / 2)
+        uw = u @ w
+        gain = 1.0 / np.sqrt(1.0 - np.clip(lam, 0.0, 0.99))
+        dt = db + uw @ ((gain - 1.0) * (uw.T @ db))
+        score = ab.T @ dt
+        meat += np.outer(score, score)
+        leverage.append((w.T @ (sv[:, None] * vt), gain))
+    return StepCovariance(bread @ meat @ bread, centre, g, with_scale, bread, leverage)
 
 
 def _rotvec(r: F64) -> F64:
