@@ -24,6 +24,7 @@ _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-
 # beyond it.
 OUTLIER_FLOOR_PX = 0.5
 OUTLIER_SIGMAS = 8.0
+UNCONFIRMED = "off the plane of the others"  # in every rejection of a frame for an unconfirmed corner
 
 
 @dataclass(frozen=True)
@@ -120,6 +121,11 @@ def corner_outliers(image_points: NDArray[np.float64], object_points: NDArray[np
     return np.asarray(np.isfinite(res) & (res > outlier_bound(res)), dtype=bool)
 
 
+def unconfirmed(status: str) -> bool:
+    """Whether a frame's status says it was dropped for a corner no detector confirmed."""
+    return UNCONFIRMED in status
+
+
 def charuco_legacy(board: Board) -> bool:
     """OpenCV's legacy ChArUco pattern flag that gives `board.first_square_black`.
 
@@ -207,8 +213,8 @@ class BoardDetector:
             if worst < 0 or res[worst] <= outlier_bound(res):
                 self._last = attempt.image_points.astype(np.float32)
                 return Detection(fitted, attempt.object_points, attempt.ids)
-            self.rejection = (f"board corner {worst} lies {res[worst]:.1f} px off the plane of the "
-                              "others; no detection confirmed it")
+            self.rejection = (f"board corner {worst} lies {res[worst]:.1f} px {UNCONFIRMED}; "
+                              "no detection confirmed it")
         return None
 
     def _search_sb(self, gray: NDArray[np.uint8], like: Detection) -> Detection | None:
@@ -318,8 +324,7 @@ class BoardDetector:
         if np.any(bad):
             idx, pts = idx[~bad], pts[~bad]
             if len(idx) < 6:
-                self.rejection = (f"{int(bad.sum())} ChArUco corners lie off the plane of the others; "
-                                  f"{len(idx)} left")
+                self.rejection = f"{int(bad.sum())} ChArUco corners lie {UNCONFIRMED}; {len(idx)} left"
                 return None
         return Detection(pts, self._corners[idx], idx, markers)
 

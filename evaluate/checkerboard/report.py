@@ -120,9 +120,10 @@ def summary(results: list[StandpointResult], board: Board, inputs: list[str],
                        "distance to the reference plane, positive = behind it (too far).",
         "expanded_uncertainty": "<figure>_u95 = k u_c, k = t(0.975, frames - 1) (GUM): distance and "
                                 "inclination from the pose's random corner noise (corner_random_px, "
-                                "averaged over the frames) and a static corner error (corner_static_px "
-                                "from the mean residuals, at least 0.01 px) through the Jacobian of "
-                                "the corners seen (each weighted by the frames that saw it); "
+                                "averaged over the frames; at least the frames' own scatter of the "
+                                "pose, also for the reference plane) and a static corner error "
+                                "(corner_static_px from the mean residuals, at least 0.01 px) through "
+                                "the Jacobian of the corners seen (each weighted by the frames that saw it); "
                                 "inclination near 0 deg as a folded magnitude (Rayleigh bound); "
                                 "noise from the frames' scatter plus 0.4 % for the estimator; "
                                 "accuracy from the frames' scatter plus the reference plane's offset "

@@ -35,6 +35,7 @@ from depthstation.evaluate.checkerboard.chunks import (
     StandpointOptions,
     run_standpoints,
 )
+from depthstation.evaluate.checkerboard.detection import unconfirmed
 from depthstation.evaluate.checkerboard.dqt import EXPECTED_SUBPIXEL_PX
 from depthstation.evaluate.checkerboard.figures import preload_plotting
 from depthstation.evaluate.checkerboard.frame import FrameResult
@@ -226,6 +227,8 @@ def say_warnings(results: list[StandpointResult]) -> None:
             warn(w.message, w.where, w.code)
         if r.usable:  # some frames were rejected; the standpoint stands on the others
             for status, n in sorted(r.rejected.items()):
+                if unconfirmed(status):  # said with what it means for the pose (corner-unconfirmed)
+                    continue
                 code = "board-not-found" if status == "board not found" else "frames-rejected"
                 warn(f"{status} in {n} of {r.frames_read} frames", r.name, code)
     read = [r.frames_read for r in results if r.frames_requested is None]
@@ -237,12 +240,13 @@ def say_warnings(results: list[StandpointResult]) -> None:
 
 
 def finish_checkerboard(job: CheckerboardJob, results: list[StandpointResult],
-                        out: Path) -> list[dict[str, Any]]:
-    """Write the result folder of finished standpoints; the rows of standpoints.csv."""
+                        out: Path, *, figures: bool = True) -> list[dict[str, Any]]:
+    """Write the result folder of finished standpoints (`figures`: with its PNGs); the rows of
+    standpoints.csv."""
     say_warnings(results)
     check_usable(job, results)
     write_study(out, results, job.board, [str(p) for p in job.inputs], job.parameters, job.device,
-                caption=job.caption(results))
+                figures=figures, caption=job.caption(results))
     return [standpoint_row(x) for x in results]
 
 
@@ -250,9 +254,9 @@ def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames:
                      reference: str = "auto", target: RerunTarget | None = None,
                      collect_samples: bool = False, workers: int = 1,
                      cluster: str | None = None, force: bool = False, topics: TopicChoice | None = None,
-                     roi_pct: float | None = None) -> list[dict[str, Any]]:
+                     roi_pct: float | None = None, figures: bool = True) -> list[dict[str, Any]]:
     """The checkerboard study (paper Section 3.1) of every standpoint in `inputs` into `out`
-    (written whole or not at all; a non-empty `out` only with `force`).
+    (written whole or not at all; a non-empty `out` only with `force`; `figures`: with its PNGs).
 
     With `workers > 1` or a Dask `cluster`, standpoints go out as tasks (each read by the worker
     that evaluates it); the per-frame rerun stream then shows standpoints, not frames.
@@ -263,16 +267,17 @@ def run_checkerboard(inputs: list[Path], board_path: Path, out: Path, *, frames:
     with ensure_collecting():  # what preparing the job warns (the board) is the run's too
         job = prepare_checkerboard(inputs, board_path, options)
         with result_folder(out, force=force, inputs=[*inputs, board_path], kind="checkerboard") as tmp:
-            return _run(job, tmp, (target or RerunTarget()).within(out, tmp), workers, cluster)
+            return _run(job, tmp, (target or RerunTarget()).within(out, tmp), workers, cluster, figures)
 
 
 def _run(job: CheckerboardJob, out: Path, target: RerunTarget, workers: int,
-         cluster: str | None) -> list[dict[str, Any]]:
+         cluster: str | None, figures: bool = True) -> list[dict[str, Any]]:
     frames = job.options.frames or DEFAULT_FRAMES
     recs = job.recordings
     # the figures' plotting library loads while the standpoints are evaluated (their threads
     # spend their time in native code), not after them
-    threading.Thread(target=preload_plotting, daemon=True).start()
+    if figures:
+        threading.Thread(target=preload_plotting, daemon=True).start()
     blueprint = rerun_log.study_blueprint() if target.enabled else None  # rerun loads only when used
     with ChunkRunner(workers, cluster) as runner, \
             recording("depthstation_checkerboard", target, blueprint, rerun_log.DESCRIPTION) as rec, \
@@ -303,4 +308,4 @@ def _run(job: CheckerboardJob, out: Path, target: RerunTarget, workers: int,
                                   on_standpoint=lambda i, r: rerun_log.log_standpoint(rec, i, r),
                                   progress=on_chunks)
         rerun_log.log_table(rec, [standpoint_row(x) for x in results])
-    return finish_checkerboard(job, results, out)
+    return finish_checkerboard(job, results, out, figures=figures)

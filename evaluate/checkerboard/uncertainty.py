@@ -146,7 +146,21 @@ def propagate(board_to_color: F64, depth_to_color: F64, board: Board, cov: F64) 
         jac[:, i] = (np.array([d, *t, o]) - np.array([d0, *t0, o0])) / eps
     c = jac @ cov @ jac.T
     return {"distance_var": float(c[0, 0]), "tilt_cov": c[1:3, 1:3], "offset_var": float(c[3, 3]),
-            "tilt": t0}
+            "tilt": t0, "basis": basis}
+
+
+def pose_spread(boards_to_depth: list[F64], board: Board, basis: tuple[F64, F64]) -> dict[str, Any]:
+    """The frames' own scatter of distance, tilt (2x2, in `basis`) and plane offset: the variances
+    of one frame's pose. Why: the Cramer-Rao figures above hold the corners' noise only; whatever
+    else moves the pose from frame to frame (a corner that comes and goes, a detector switching
+    between solutions, vibration) shows here, and the mean of n frames varies by this / n."""
+    geo = [_geometry(p, board, basis) for p in boards_to_depth]
+    if len(geo) < 2:
+        nan = float("nan")
+        return {"distance_var": nan, "tilt_cov": np.full((2, 2), nan), "offset_var": nan}
+    return {"distance_var": float(np.var([g[0] for g in geo], ddof=1)),
+            "tilt_cov": np.atleast_2d(np.cov(np.array([g[1] for g in geo]).T, ddof=1)),
+            "offset_var": float(np.var([g[2] for g in geo], ddof=1))}
 
 
 def folded_angle(tilt: F64, tilt_cov: F64, k: float) -> tuple[float, float]:
