@@ -36,11 +36,14 @@ def checkerboard(
     color_topic: ColorTopic = None,
     infrared_topic: InfraredTopic = None,
     force: ForceOption = False,
+    no_figures: bool = typer.Option(False, "--no-figures",
+                                    help="Skip the PNG figures (the tables, summary and result.json are "
+                                         "written as ever; the figures take most of a small study's time)."),
 ) -> None:
     """The checkerboard study (paper Section 3.1): noise and accuracy per standpoint, with Intel's
     Depth Quality Tool metrics (dqt_* columns) beside them."""
     rows = run_checkerboard(inputs, board, out, frames=frames, reference=reference,
                             target=RerunTarget(rrd, spawn, serve, force), workers=workers, cluster=cluster,
                             force=force, topics=topic_choice(depth_topic, color_topic, infrared_topic),
-                            roi_pct=roi)
+                            roi_pct=roi, figures=not no_figures)
     typer.echo(f"{len(rows)} standpoints -> {out / 'standpoints.csv'}")
