@@ -124,6 +124,8 @@ def run_item(item: BatchItem, runner: ChunkRunner, progress: ProgressFn | None =
         else:
             result = runner.map(job.fn, job.chunks, progress=prog, encode=job.encode, decode=job.decode)
         grid_name = job.finish(result)
+        if job.after is not None:
+            job.after(result, runner)
         if not (tmp / RESULT_FILE).is_file():
             raise EvaluationError(f"{item.name}: the {item.kind} evaluation wrote no {RESULT_FILE}")
     grid_path = None if grid_name is None else item.out / Path(grid_name).name

@@ -27,6 +27,7 @@ from depthstation.core.protocol import load_board
 from depthstation.evaluate.checkerboard.chunks import REFERENCES, StandpointOptions, checkerboard_chunk
 from depthstation.evaluate.checkerboard.run import finish_checkerboard, prepare_checkerboard
 from depthstation.evaluate.checkerboard.study import StandpointResult
+from depthstation.evaluate.scan.budget import run_budget
 from depthstation.evaluate.scan.chunks import (
     merge_scan_results,
     pack_scan_result,
@@ -74,6 +75,9 @@ class ItemJob:
     encode: Callable[[Any], Any] | None = None
     decode: Callable[[Any], Any] | None = None
     description: str = ""
+    # work after `finish` that needs the batch's runner again (a scan item's --budget: its
+    # refinement's frames and its second study go to the same workers as the item's chunks)
+    after: Callable[[Any, Any], None] | None = None
 
 
 #: kind -> function preparing the job of an item (runs in this process: loads what is small,
@@ -231,8 +235,11 @@ def _prepare_scan(item: BatchItem) -> ItemJob:
         write_scan(job, res)
         return GRID_FILE
 
+    def budget(res: ChunkResult, runner: Any) -> None:  # as `evaluate scan --budget` runs it
+        run_budget(job, res, runner)
+
     return ItemJob(scan_chunk, job.chunks, finish, merge=merge_scan_results, encode=pack_scan_result,
-                   decode=unpack_scan_result, description="frames")
+                   decode=unpack_scan_result, description="frames", after=budget if options.budget else None)
 
 
 CHECKERBOARD_OPTIONS = {"frames": int, "reference": str}

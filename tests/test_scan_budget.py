@@ -81,23 +81,23 @@ def cast(pose: F64) -> tuple[F64, F64, F64]:
     return t, np.degrees(np.arccos(np.clip(cos, 0.0, 1.0))), o + t[..., None] * d
 
 
-def true_poses() -> list[F64]:
+def true_poses(frames: int = FRAMES) -> list[F64]:
     """A walk round the room's centre, looking sideways and down (walls and floor in view)."""
     out = []
-    for k in range(FRAMES):
-        phi = np.radians(20.0 + 300.0 * k / FRAMES)
+    for k in range(frames):
+        phi = np.radians(20.0 + 300.0 * k / frames)
         eye = np.array([3.0 + 1.1 * np.cos(phi), 2.5 + 1.1 * np.sin(phi), 1.4])
         yaw = phi + np.radians(60.0)
         out.append(look_at(eye, eye + np.array([np.cos(yaw), np.sin(yaw), -0.4])))
     return out
 
 
-def smooth_errors(seed: int) -> F64:
+def smooth_errors(seed: int, frames: int = FRAMES) -> F64:
     """(FRAMES, 6) SLAM-like pose errors (rotation vector, translation; camera frame): sums of slow
     sinusoids (periods 1-3 s: drift), scaled to 0.3 deg and 15 mm RMS (vector norms)."""
     rng = np.random.default_rng(seed)
-    t = np.arange(FRAMES) / FPS
-    out = np.zeros((FRAMES, 6))
+    t = np.arange(frames) / FPS
+    out = np.zeros((frames, 6))
     for c in range(6):
         for _ in range(3):
             out[:, c] += rng.normal() * np.sin(2 * np.pi * t / rng.uniform(1.0, 3.0) + rng.uniform(0, 6.3))
@@ -162,13 +162,13 @@ def coarse_cell(z: F64, theta: F64) -> NDArray[np.int64]:
 
 
 def make_case(root: Path, *, perturb: bool, scale: float | None = None, defect: bool = False,
-              seed: int = 3) -> dict[str, Any]:
+              seed: int = 3, frames: int = FRAMES) -> dict[str, Any]:
     """Write sequence, poses (perturbed or scaled about the first camera, as a registration fitted
     on the camera's own depth would), mesh; return what each coarse cell truly holds."""
     root.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
-    truth = true_poses()
-    xi = smooth_errors(seed + 100) if perturb else np.zeros((FRAMES, 6))
+    truth = true_poses(frames)
+    xi = smooth_errors(seed + 100, frames) if perturb else np.zeros((frames, 6))
     given = [moved(p, -x) for p, x in zip(truth, xi, strict=True)]  # truth = given @ exp(xi)
     if scale is not None:
         c0 = truth[0][:3, 3].copy()
@@ -314,13 +314,3 @@ def test_paper_registration_scale_is_named_for_the_high_inclination_breakdown(tm
     off_grid = np.abs(grid.mean_m.ravel()[big] - case["bias"][big])
     assert off_sensor.max() < 0.0025 and np.median(off_sensor) < 0.0005
     assert np.median(off_grid) > 10 * np.median(off_sensor)
-
-
-def test_a_batch_item_asking_for_the_budget_is_refused_not_ignored() -> None:
-    """Batch items run the plain study only: a budget asked there is an error naming the item."""
-    from depthstation.core.errors import InputError
-    from depthstation.evaluate.scan.run import ScanOptions
-
-    with pytest.raises(InputError, match="item 3: budget is not run for batch items"):
-        ScanOptions.from_mapping({"budget": True}, {}, Path("campaign.toml"), "item 3")
-    assert ScanOptions.from_mapping({"budget": False}, {}, Path("campaign.toml"), "item 3").budget is False

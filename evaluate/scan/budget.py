@@ -13,7 +13,6 @@ joint problem; frames as clusters), and says what the data could not separate.
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 from dataclasses import replace
@@ -23,16 +22,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.core.camera_model import Intrinsics
+from depthstation.core.frames import FrameSource
 from depthstation.core.grid import Grid
 from depthstation.core.lazy_open3d import open3d
 from depthstation.core.parallel import ChunkRunner
 from depthstation.core.progress import progress
 from depthstation.core.results import write_json
 from depthstation.core.run_warnings import warn
+from depthstation.evaluate.scan import budget_frames as bf
 from depthstation.evaluate.scan import pose_refine as pr
 from depthstation.evaluate.scan.chunks import run_scan_chunks
-from depthstation.evaluate.scan.raycast import FrameRenderer, MeshCaster
 from depthstation.evaluate.scan.reference import load_unmeasured
 from depthstation.evaluate.scan.study import ChunkResult
 from depthstation.evaluate.scan.trajectory import Trajectory, write_tum
@@ -49,125 +48,88 @@ BUDGET_FIGURE = "fig_budget.png"
 DEFECT_MASK = "budget_excluded_triangles.npy"
 COARSE_M = 0.25
 COARSE_DEG = 5.0
-SAMPLE_PIXELS = 2500   # pixels per frame the refinement renders (the frame subsampled to about this)
 ITERATIONS = 4         # Gauss-Newton renders: at the given poses, then three times at the corrected ones
 DRAWS = 40             # posterior draws for the U95s of the parts
 CONFUSION_LIMIT_M = 0.0015  # a cell whose sensor mean moves this much with the poses' uncertainty
 
 
-def small_intrinsics(intr: Intrinsics, step: int, ox: int = 0, oy: int = 0) -> Intrinsics:
-    """Every `step`-th pixel of a view from (ox, oy) as a view of its own (pixel centres coincide:
-    u = ox + step u'); a lens's coefficients act on normalised coordinates and stay as they are."""
-    return replace(intr, width=len(range(ox, intr.width, step)), height=len(range(oy, intr.height, step)),
-                   fx=intr.fx / step, fy=intr.fy / step, ppx=(intr.ppx - ox) / step,
-                   ppy=(intr.ppy - oy) / step)
+class _Clusters:
+    """Samples grouped by cell and by (cell, frame): the grouping sorted once, for every part."""
+
+    def __init__(self, cell: NDArray[np.int64], frame: NDArray[np.int64], cells: int, frames: int) -> None:
+        self.cell, self.cells = cell, cells
+        self.n = np.bincount(cell, minlength=cells).astype(np.float64)
+        uk, self.inv = np.unique(cell * frames + frame, return_inverse=True)
+        self.nf = np.bincount(self.inv).astype(np.float64)
+        self.c = uk // frames
+        self.fcount = np.bincount(self.c, minlength=cells).astype(np.float64)
+
+    def stats(self, values: F64) -> tuple[F64, F64, F64, F64]:
+        """Per cell: count, mean, std and the frames-as-clusters U95 of the mean."""
+        n, cell, cells = self.n, self.cell, self.cells
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.bincount(cell, values, minlength=cells) / n
+            ss = np.bincount(cell, values * values, minlength=cells)
+            std = np.sqrt(np.maximum(ss / n - mean * mean, 0.0) * n / np.maximum(n - 1, 1))
+            mf = np.bincount(self.inv, values) / self.nf
+            dev = self.nf * (mf - mean[self.c])
+            var = (np.bincount(self.c, dev * dev, minlength=cells) / (n * n)
+                   * self.fcount / np.maximum(self.fcount - 1, 1))
+            u95 = 1.96 * np.sqrt(var)
+        return n, mean, std, u95
 
 
-def pixel_offset(frame: int, step: int) -> tuple[int, int]:
-    """Where frame `frame`'s subsample starts: it walks the step x step offsets frame by frame, so
-    that over the frames every pixel position is sampled. Why: with one fixed subsample a thin band
-    of a distance x inclination cell (a floor at grazing view) is hit in some frames and missed in
-    others, and the cell's mean of a per-frame part (the pose's) is off by that aliasing."""
-    k = frame % (step * step)
-    return k % step, (k // step + 2 * (k % step)) % step
+def refine_chunks(job: ScanJob, used: list[int], runner: ChunkRunner, step: int) -> list[bf.RefineChunk]:
+    """The refinement's frames in chunks of `--chunk-frames` (descriptors: positions, no pixels);
+    the first step matches their poses from the trajectory on the worker."""
+    opt = job.options
+    size = max(1, opt.chunk_frames)
+    unmeasured = None if job.config.unmeasured is None else str(job.config.unmeasured)
+    sequence: str | FrameSource = job.source if runner.in_process else str(job.sequence)
+    return [bf.RefineChunk(sequence, str(job.mesh_path), unmeasured,
+                           None if opt.intrinsics is None else str(opt.intrinsics), opt.topics,
+                           tuple(used[s:s + size]), s, step, opt.distance_max_m, None, job.posed,
+                           opt.tolerance_s, job.config.nthreads)
+            for s in range(0, len(used), size)]
 
 
-class SampledRenderers:
-    """Ray casters of the subsampled views, one per pixel offset, on one ray-casting scene."""
-
-    def __init__(self, job: ScanJob, step: int) -> None:
-        self.intr = job.source.info.depth_intrinsics
-        self.step = step
-        self.base = MeshCaster(job.mesh_path, small_intrinsics(self.intr, step), 0)
-        if job.config.unmeasured is not None:
-            self.base.mark_unmeasured(load_unmeasured(job.config.unmeasured, self.base.n_triangles))
-        self.views: dict[tuple[int, int], MeshCaster] = {(0, 0): self.base}
-
-    def view(self, offset: tuple[int, int]) -> MeshCaster:
-        if offset not in self.views:
-            other = copy.copy(self.base)  # the same scene and unmeasured mask, other rays
-            FrameRenderer.__init__(other, small_intrinsics(self.intr, self.step, *offset))
-            other.unmeasured, other._unmeasured_ids = self.base.unmeasured, self.base._unmeasured_ids
-            other._rays_t = open3d().core.Tensor.from_numpy(other.rays)
-            self.views[offset] = other
-        return self.views[offset]
-
-
-def sample_step(intr: Intrinsics, pixels: int = SAMPLE_PIXELS) -> int:
-    return max(1, round(math.sqrt(intr.width * intr.height / pixels)))
-
-
-def _cluster_stats(values: F64, cell: NDArray[np.int64], frame: NDArray[np.int64], cells: int,
-                   frames: int) -> tuple[F64, F64, F64, F64]:
-    """Per cell: count, mean, std and the frames-as-clusters U95 of the mean."""
-    n = np.bincount(cell, minlength=cells).astype(np.float64)
-    s = np.bincount(cell, values, minlength=cells)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = s / n
-        ss = np.bincount(cell, values * values, minlength=cells)
-        std = np.sqrt(np.maximum(ss / n - mean * mean, 0.0) * n / np.maximum(n - 1, 1))
-        key = cell * frames + frame
-        uk, inv = np.unique(key, return_inverse=True)
-        nf = np.bincount(inv).astype(np.float64)
-        mf = np.bincount(inv, values) / nf
-        c = uk // frames
-        dev = nf * (mf - mean[c])
-        fcount = np.bincount(c, minlength=cells).astype(np.float64)
-        var = np.bincount(c, dev * dev, minlength=cells) / (n * n) * fcount / np.maximum(fcount - 1, 1)
-        u95 = 1.96 * np.sqrt(var)
-    return n, mean, std, u95
-
-
-def refine(job: ScanJob, used: list[int]) -> dict[str, Any]:
-    """Read the used frames once (subsampled), then the Gauss-Newton iterations of `pose_refine`."""
-    source, opt = job.source, job.options
-    intr = source.info.depth_intrinsics
-    step = sample_step(intr)
-    renderers = SampledRenderers(job, step)
-    units = source.info.depth_units_m
-    fb = intr.fx * (source.info.baseline_m or 0.05)
-    want = set(used)
-    stamps: list[float] = []
-    poses: list[F64] = []
-    depths: list[NDArray[Any]] = []
-    positions: list[int] = []
+def refine(job: ScanJob, used: list[int], runner: ChunkRunner) -> dict[str, Any]:
+    """The Gauss-Newton iterations of `pose_refine`: each step renders every frame's subsampled
+    view at the current poses on the runner (`budget_frames`), then solves here."""
+    intr = job.source.info.depth_intrinsics
+    step = bf.sample_step(intr)
+    chunks = refine_chunks(job, used, runner, step)
+    frames = len(used)
+    xi = np.zeros((frames, 6))
+    given = np.zeros((frames, 4, 4))
+    stamps = np.zeros(frames)
+    patches = pr.Patches()
+    first: list[pr.FrameData | None] = []
+    lam = pr.LAMBDAS[len(pr.LAMBDAS) // 2]
+    noise = 1.0
+    cv: list[dict[str, float]] = []
+    sol: pr.Solution | None = None
+    steps: list[dict[str, float]] = []  # each Gauss-Newton step's size: the convergence, shown
     with progress() as bar:
-        task = bar.add_task("budget: read", total=len(used), status="")
-        for pos, fs in enumerate(source.frames()):
-            if pos > max(used):
-                break
-            if pos not in want or fs.depth is None:
-                continue
-            pose = job.posed.match(fs.timestamp_ns * 1e-9, opt.tolerance_s)
-            if pose is None:
-                continue
-            stamps.append(fs.timestamp_ns * 1e-9)
-            poses.append(np.asarray(pose, dtype=np.float64))
-            ox, oy = pixel_offset(len(positions), step)
-            depths.append(np.ascontiguousarray(fs.depth[oy::step, ox::step]))
-            positions.append(pos)
-            bar.update(task, advance=1)
-        given = np.stack(poses)
-        frames = len(positions)
-        xi = np.zeros((frames, 6))
-        patches = pr.Patches()
-        first: list[pr.FrameData | None] = []
-        lam = pr.LAMBDAS[len(pr.LAMBDAS) // 2]
-        noise = 1.0
-        cv: list[dict[str, float]] = []
-        sol: pr.Solution | None = None
-        task = bar.add_task("budget: refine", total=ITERATIONS * frames, status="")
+        task = bar.add_task("budget: refine", total=ITERATIONS * len(chunks), status="")
         for it in range(ITERATIONS):
-            current = pr.corrected(given, xi)
-            data: list[pr.FrameData | None] = []
-            for f in range(frames):
-                renderer = renderers.view(pixel_offset(f, step))
-                t_hit, normals = renderer.cast(current[f])
-                fd = pr.frame_data(t_hit, normals, renderer.dirs, current[f], depths[f], units, fb,
-                                   opt.distance_max_m)
-                data.append(fd if fd.n >= 12 else None)
-                bar.update(task, advance=1, status=f"iteration {it + 1}")
-            if it == 0:  # the pixels' noise level from the data: then the prior weighs right against them
+            if it == 0:
+                todo = chunks
+            else:
+                current = pr.corrected(given, xi)
+                todo = [replace(c, poses=current[c.first:c.first + len(c.positions)], trajectory=None)
+                        for c in chunks]
+            done = it * len(chunks)
+
+            def advance(d: int, n: int, done: int = done, it: int = it) -> None:
+                bar.update(task, completed=done + d, status=f"iteration {it + 1}")
+
+            parts = runner.map(bf.refine_frames, todo, progress=advance)
+            data: list[pr.FrameData | None] = [fd for part in parts for fd in part.data]
+            if it == 0:
+                stamps = np.concatenate([part.stamps for part in parts])
+                given = np.concatenate([part.poses for part in parts])
+                # the pixels' noise level from the data: then the prior weighs right against them
                 noise = pr.solve(pr.trim(data, pr.solve(data, xi, lam)), xi, lam).s2
             data = [None if fd is None else replace(fd, w=fd.w / noise) for fd in data]
             if it == 0:
@@ -180,6 +142,9 @@ def refine(job: ScanJob, used: list[int]) -> dict[str, Any]:
             # the surface's own errors, from the errors as measured (gross ones out), at these poses:
             # left out of the next step, and found again at the last one's poses for the budget
             patches = pr.find_patches(data, sol)
+            ms = np.mean(sol.dxi ** 2, axis=0)  # RMS over the frames of the vectors' norms
+            steps.append({"rotation_rms_deg": float(np.degrees(np.sqrt(ms[:3].sum()))),
+                          "translation_rms_m": float(np.sqrt(ms[3:].sum()))})
             if it < ITERATIONS - 1:
                 xi = xi + sol.dxi
     assert sol is not None
@@ -188,10 +153,10 @@ def refine(job: ScanJob, used: list[int]) -> dict[str, Any]:
     reduced = pr.solve(use, xi, lam, pr.REDUCED_TERMS)
     xi_reduced = xi + reduced.dxi
     xi = xi + sol.dxi
-    return {"step": step, "stamps": np.array(stamps), "positions": positions, "given": given, "xi": xi,
+    return {"step": step, "stamps": stamps, "positions": list(used), "given": given, "xi": xi,
             "a": sol.a, "solution": sol, "lambda": lam, "cv": cv, "first": first, "patches": patches,
             "xdraws": xdraws, "adraws": adraws, "samples": sol.samples,
-            "xi_reduced": xi_reduced}
+            "xi_reduced": xi_reduced, "steps": steps}
 
 
 def _defect_mask(job: ScanJob, patches: pr.Patches, out: Path) -> tuple[Path | None, int]:
@@ -217,7 +182,7 @@ def run_budget(job: ScanJob, result: ChunkResult, runner: ChunkRunner) -> dict[s
     t0 = time.perf_counter()
     out = job.out
     opt = job.options
-    ref = refine(job, sorted(result.used))
+    ref = refine(job, sorted(result.used), runner)
     t_ref = time.perf_counter()
     given, xi = ref["given"], ref["xi"]
     xreg, reg_params = pr.split_registration(given, xi)
@@ -279,6 +244,7 @@ def run_budget(job: ScanJob, result: ChunkResult, runner: ChunkRunner) -> dict[s
                                  "the sensor grid itself is measured, not this model"},
         "pose_refinement": {"pixels_per_frame_step": ref["step"], "frames": len(ref["positions"]),
                             "samples": ref["samples"], "iterations": ITERATIONS,
+                            "step_rms": ref["steps"],
                             "second_difference_weight": ref["lambda"], "cross_validation": ref["cv"],
                             "prior": {"rotation_deg": math.degrees(pr.SIGMA_ROT_RAD),
                                       "translation_m": pr.SIGMA_TRANS_M, "ridge": pr.RIDGE},
@@ -359,69 +325,49 @@ def attribute(job: ScanJob, total_grid: Grid, sensor_grid: Grid, ref: dict[str, 
     frame = cat["frame"].astype(np.int64)
     frames = len(first)
     cells = nd * ni
-    # posterior draws: the pose and registration parts' cell means under each draw
-    draw_pose = np.empty((len(xdraws), cells + 1))
-    draw_reg = np.empty((len(xdraws), cells + 1))
-    draw_both = np.empty((len(xdraws), cells + 1))
-    pooled_cell = np.full(cell.shape, cells)
     n_cell = np.bincount(cell, minlength=cells).astype(np.float64)
-    for d, xd in enumerate(xdraws):
-        xr, _ = pr.split_registration(given, xd)
-        pp, rr = [], []
-        for f in frames_of:
-            fd = first[f]
-            assert fd is not None
-            gx = fd.g.astype(np.float64)
-            pp.append(gx @ (xd[f] - xr[f]))
-            rr.append(gx @ xr[f])
-        p, r = np.concatenate(pp), np.concatenate(rr)
+    # the parts are linear in the corrections: with the pixels' g summed per (cell, frame), a set of
+    # corrections' cell means is one product, not a pass over every pixel (40 draws, two models)
+    upair, pinv = np.unique(cell * frames + frame, return_inverse=True)
+    gcat = np.concatenate([fd.g for fd in first if fd is not None])
+    gsum = np.stack([np.bincount(pinv, gcat[:, j], minlength=upair.size) for j in range(6)], axis=1)
+    del gcat
+    pcell, pframe = upair // frames, upair % frames
+    total_n = float(cell.size)
+
+    def means(x: F64) -> F64:
+        """Cell means (and the pooled one, last) of g . x_f over the refinement's pixels."""
+        v = np.einsum("pj,pj->p", gsum, x[pframe])
         with np.errstate(invalid="ignore", divide="ignore"):
-            draw_pose[d, :cells] = np.bincount(cell, p, minlength=cells) / n_cell
-            draw_reg[d, :cells] = np.bincount(cell, r, minlength=cells) / n_cell
-            draw_both[d, :cells] = np.bincount(cell, p + r, minlength=cells) / n_cell
-        draw_pose[d, cells] = p.mean()
-        draw_reg[d, cells] = r.mean()
-        draw_both[d, cells] = (p + r).mean()
+            return np.append(np.bincount(pcell, v, minlength=cells) / n_cell, v.sum() / total_n)
+
+    def pose_reg(x: F64, xr: F64) -> F64:
+        """(pose, registration, both) x (cells + pooled) of corrections x with registration part xr."""
+        mp, mr = means(x - xr), means(xr)
+        return np.stack([mp, mr, mp + mr])
+
+    # posterior draws: the pose and registration parts' cell means under each draw
+    drawn = np.stack([pose_reg(xd, pr.split_registration(given, xd)[0]) for xd in xdraws])
+    draw_pose, draw_reg, draw_both = drawn[:, 0], drawn[:, 1], drawn[:, 2]
     # the sensor model's share: the parts' cell means with the poses of the smaller model
-    xr_red, _ = pr.split_registration(given, ref["xi_reduced"])
-    model = []
-    for xx in (xi, ref["xi_reduced"]):
-        xr = xreg if xx is xi else xr_red
-        pp, rr = [], []
-        for f in frames_of:
-            fd = first[f]
-            assert fd is not None
-            gx = fd.g.astype(np.float64)
-            pp.append(gx @ (xx[f] - xr[f]))
-            rr.append(gx @ xr[f])
-        p, r = np.concatenate(pp), np.concatenate(rr)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            model.append(np.stack([np.append(np.bincount(cell, v, minlength=cells) / n_cell, v.mean())
-                                   for v in (p, r, p + r)]))
+    xi_red = ref["xi_reduced"]
+    model = [pose_reg(xi, xreg), pose_reg(xi_red, pr.split_registration(given, xi_red)[0])]
     shift = np.abs(model[0] - model[1])  # (pose, registration, both) x (cells + pooled)
     # and the cell means' sampling (the refinement's pixels, frames as clusters)
-    samp = [np.append(_cluster_stats(v, cell, frame, cells, len(first))[3],
-                      _cluster_stats(v, np.zeros_like(cell), frame, 1, len(first))[3])
-            for v in (cat["pose"], cat["reg"])]
+    by_cell = _Clusters(cell, frame, cells, frames)
+    by_all = _Clusters(np.zeros_like(cell), frame, 1, frames)
+    samp = [np.append(by_cell.stats(v)[3], by_all.stats(v)[3]) for v in (cat["pose"], cat["reg"])]
     with np.errstate(invalid="ignore"):
         u_pose = np.sqrt((1.96 * np.std(draw_pose, axis=0)) ** 2 + shift[0] ** 2 + samp[0] ** 2)
         u_reg = np.sqrt((1.96 * np.std(draw_reg, axis=0)) ** 2 + shift[1] ** 2 + samp[1] ** 2)
         # what moves the sensor grid: the corrected poses' uncertainty, not the parts' sampling
         u_both = np.sqrt((1.96 * np.std(draw_both, axis=0)) ** 2 + shift[2] ** 2)
 
-    def stats(values: F64, which: NDArray[np.int64], count: int) -> tuple[F64, F64, F64, F64]:
-        return _cluster_stats(values, which, frame, count, frames)
-
-    tot = stats(cat["e"], cell, cells)
-    pose = stats(cat["pose"], cell, cells)
-    reg = stats(cat["reg"], cell, cells)
-    refr = stats(cat["refr"], cell, cells)
-    sens_res = stats(cat["e"] - cat["pose"] - cat["reg"] - cat["refr"], cell, cells)
-    ptot = stats(cat["e"], pooled_cell * 0, 1)
-    ppose = stats(cat["pose"], pooled_cell * 0, 1)
-    preg = stats(cat["reg"], pooled_cell * 0, 1)
-    prefr = stats(cat["refr"], pooled_cell * 0, 1)
-    psens = stats(cat["e"] - cat["pose"] - cat["reg"] - cat["refr"], pooled_cell * 0, 1)
+    rest = cat["e"] - cat["pose"] - cat["reg"] - cat["refr"]
+    tot, pose, reg, refr, sens_res = (by_cell.stats(v) for v in (cat["e"], cat["pose"], cat["reg"],
+                                                                   cat["refr"], rest))
+    ptot, ppose, preg, prefr, psens = (by_all.stats(v) for v in (cat["e"], cat["pose"], cat["reg"],
+                                                                   cat["refr"], rest))
     factors = _factors(total_grid)
     tg = total_grid.coarsened(*factors) if factors else None
     sg = sensor_grid.coarsened(*factors) if factors else None
@@ -463,11 +409,11 @@ def attribute(job: ScanJob, total_grid: Grid, sensor_grid: Grid, ref: dict[str, 
                                    "u95_m": math.sqrt(float(tot[3][c]) ** 2 + su ** 2 + u_pose[c] ** 2
                                                       + u_reg[c] ** 2 + float(refr[3][c]) ** 2)},
             })
+    t_sum, s_sum = total_grid.summary(), sensor_grid.summary()
     pooled = {
         "samples_refinement": int(ptot[0][0]),
-        "total": {"mean_m": total_grid.summary().get("mean_m"), "std_m": total_grid.summary().get("std_m"),
-                  "u95_m": float(ptot[3][0])},
-        "sensor": {"mean_m": sensor_grid.summary().get("mean_m"), "std_m": sensor_grid.summary().get("std_m"),
+        "total": {"mean_m": t_sum.get("mean_m"), "std_m": t_sum.get("std_m"), "u95_m": float(ptot[3][0])},
+        "sensor": {"mean_m": s_sum.get("mean_m"), "std_m": s_sum.get("std_m"),
                    "u95_m": math.hypot(float(psens[3][0]), float(u_both[cells])),
                    "pose_u95_m": float(u_both[cells])},
         "poses": {"mean_m": float(ppose[1][0]), "std_m": float(ppose[2][0]), "u95_m": float(u_pose[cells])},

@@ -16,6 +16,9 @@ not absorb the camera's error; the sensor grid itself is measured afresh with th
 Uncertainty: the posterior of the whole problem (Schur complement for the sensor terms, banded
 Cholesky for the frames), sampled, so every figure derived from it carries the correlation
 between the sensor terms and the poses (what the data cannot separate shows as a wide band).
+The banded Cholesky is this module's own (numba, one thread): LAPACK's through a threaded BLAS
+took 0.9 s instead of 16 ms for 1334 frames on a loaded 2-core box, and its rounding followed the
+CPU's BLAS kernels.
 """
 
 from __future__ import annotations
@@ -23,10 +26,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.linalg import cho_solve_banded, cholesky_banded, solve_banded
 
 F64 = NDArray[np.float64]
 
@@ -100,10 +103,14 @@ class FrameData:
     w: F64            # 1 / sigma^2 of the pixel's depth noise
     c: F64            # n_c . d (point-to-plane over depth)
     key: NDArray[np.int64]  # surface patch of the hit (world voxel and normal direction)
+    phi: F64          # (n, len(SENSOR_TERMS)) the sensor basis at (z, theta): computed once
 
     def take(self, keep: NDArray[np.bool_]) -> FrameData:
         return FrameData(self.e[keep], self.z[keep], self.theta[keep], self.g[keep], self.w[keep],
-                         self.c[keep], self.key[keep])
+                         self.c[keep], self.key[keep], self.phi[keep])
+
+    def basis(self, cols: tuple[int, ...] | None = None) -> F64:
+        return self.phi if cols is None else self.phi[:, list(cols)]
 
     @property
     def n(self) -> int:
@@ -167,7 +174,7 @@ def frame_data(t_hit: NDArray[Any], normals: NDArray[Any], dirs: NDArray[Any], p
     g = -np.concatenate([np.cross(p, nc), nc], axis=1) / c[:, None]
     sigma2 = NOISE_FLOOR_M ** 2 + (z * z * SUBPIXEL_PX / fb) ** 2
     world = p @ rot.T + pose[:3, 3]
-    return FrameData(e, z, theta, g, 1.0 / sigma2, c, patch_keys(world, nc @ rot.T))
+    return FrameData(e, z, theta, g, 1.0 / sigma2, c, patch_keys(world, nc @ rot.T), sensor_basis(z, theta))
 
 
 @dataclass
@@ -177,7 +184,7 @@ class Solution:
     dxi: F64          # (F, 6)
     a: F64            # (K,)
     s2: float         # reduced chi^2 (residual scale)
-    chol: F64         # banded Cholesky of the frames' block (upper form)
+    chol: F64         # banded Cholesky factor L of the frames' block (H = L L^T; lower band form)
     y: F64            # H_pp^-1 H_ps
     s_inv: F64        # Schur complement's inverse (unscaled)
     hss_inv: F64      # H_ss^-1 (the sensor terms' covariance with the poses known)
@@ -198,15 +205,83 @@ def _prior(frames: int, lam: float) -> sp.csr_matrix:
     return sp.csr_matrix(prior)
 
 
-BAND = 17  # upper bandwidth of the frames' block: blocks of 6 and the second difference's reach of 2
+BAND = 17  # bandwidth of the frames' block: blocks of 6 and the second difference's reach of 2
 
 
 def _banded(h: sp.csr_matrix) -> F64:
+    """Lower band form: ab[i - j, j] = h[i, j] for j <= i <= j + BAND."""
     n = h.shape[0]
     ab = np.zeros((BAND + 1, n))
     for k in range(BAND + 1):
-        ab[BAND - k, k:] = h.diagonal(k)
+        ab[k, :n - k] = h.diagonal(-k)
     return ab
+
+
+@numba.njit(cache=True, nogil=True)
+def _chol_band(ab: F64) -> F64:  # pragma: no cover - compiled
+    """L of H = L L^T, both in lower band form (ab[i - j, j]); H symmetric positive definite."""
+    p = ab.shape[0] - 1
+    n = ab.shape[1]
+    lb = np.zeros_like(ab)
+    for j in range(n):
+        s = ab[0, j]
+        for k in range(max(0, j - p), j):
+            s -= lb[j - k, k] * lb[j - k, k]
+        if s <= 0.0:
+            raise ValueError("the frames' block is not positive definite")
+        d = np.sqrt(s)
+        lb[0, j] = d
+        for i in range(j + 1, min(n, j + p + 1)):
+            s = ab[i - j, j]
+            for k in range(max(0, i - p), j):
+                s -= lb[i - k, k] * lb[j - k, k]
+            lb[i - j, j] = s / d
+    return lb
+
+
+@numba.njit(cache=True, nogil=True)
+def _forward(lb: F64, b: F64) -> F64:  # pragma: no cover - compiled
+    """y with L y = b (b: (n, m))."""
+    p = lb.shape[0] - 1
+    n, m = b.shape
+    y = b.copy()
+    for i in range(n):
+        for k in range(max(0, i - p), i):
+            f = lb[i - k, k]
+            for c in range(m):
+                y[i, c] -= f * y[k, c]
+        for c in range(m):
+            y[i, c] /= lb[0, i]
+    return y
+
+
+@numba.njit(cache=True, nogil=True)
+def _backward(lb: F64, y: F64) -> F64:  # pragma: no cover - compiled
+    """x with L^T x = y (y: (n, m))."""
+    p = lb.shape[0] - 1
+    n, m = y.shape
+    x = y.copy()
+    for i in range(n - 1, -1, -1):
+        for k in range(i + 1, min(n, i + p + 1)):
+            f = lb[k - i, i]
+            for c in range(m):
+                x[i, c] -= f * x[k, c]
+        for c in range(m):
+            x[i, c] /= lb[0, i]
+    return x
+
+
+def chol_solve(lb: F64, b: F64) -> F64:
+    """H^-1 b from H's band factor (b: (n,) or (n, m))."""
+    b2 = np.ascontiguousarray(b, dtype=np.float64)
+    out = _backward(lb, _forward(lb, b2.reshape(b2.shape[0], -1)))
+    return np.asarray(out.reshape(b2.shape), dtype=np.float64)
+
+
+def chol_sample(lb: F64, z: F64) -> F64:
+    """L^-T z: N(0, H^-1) for z ~ N(0, I)."""
+    z2 = np.ascontiguousarray(z, dtype=np.float64)
+    return np.asarray(_backward(lb, z2.reshape(-1, 1)).ravel(), dtype=np.float64)
 
 
 def solve(data: list[FrameData | None], xi_prev: F64, lam: float,
@@ -224,7 +299,7 @@ def solve(data: list[FrameData | None], xi_prev: F64, lam: float,
     for f, fd in enumerate(data):
         if fd is None or fd.n == 0:
             continue
-        phi = sensor_basis(fd.z, fd.theta, cols)
+        phi = fd.basis(cols)
         gw = fd.g * fd.w[:, None]
         hpp_blocks[f] = gw.T @ fd.g
         hps[6 * f:6 * f + 6] = gw.T @ phi
@@ -235,17 +310,17 @@ def solve(data: list[FrameData | None], xi_prev: F64, lam: float,
     prior = _prior(frames, lam)
     gp -= prior @ xi_prev.ravel()
     hpp = (sp.block_diag(list(hpp_blocks), format="csr") + prior).tocsr()
-    chol = cholesky_banded(_banded(hpp), lower=False)
-    y = cho_solve_banded((chol, False), hps)
+    chol = _chol_band(_banded(hpp))
+    y = chol_solve(chol, hps)
     schur = hss - hps.T @ y
     s_inv = np.linalg.inv(schur)
     a = s_inv @ (gs - y.T @ gp)
-    dxi = cho_solve_banded((chol, False), gp - hps @ a)
+    dxi = chol_solve(chol, gp - hps @ a)
     chi2 = 0.0
     for f, fd in enumerate(data):
         if fd is None or fd.n == 0:
             continue
-        r = fd.e - sensor_basis(fd.z, fd.theta, cols) @ a - fd.g @ dxi[6 * f:6 * f + 6]
+        r = fd.e - fd.basis(cols) @ a - fd.g @ dxi[6 * f:6 * f + 6]
         chi2 += float(np.sum(fd.w * r * r))
     s2 = chi2 / max(n - 6 * frames - k, 1)
     try:
@@ -257,25 +332,20 @@ def solve(data: list[FrameData | None], xi_prev: F64, lam: float,
 
 
 def residuals(fd: FrameData, a: F64, dxi: F64, cols: tuple[int, ...] | None = None) -> F64:
-    return np.asarray(fd.e - sensor_basis(fd.z, fd.theta, cols) @ a - fd.g @ dxi, dtype=np.float64)
+    return np.asarray(fd.e - fd.basis(cols) @ a - fd.g @ dxi, dtype=np.float64)
 
 
 def trim(data: list[FrameData | None], sol: Solution) -> list[FrameData | None]:
     """Drop samples whose whitened residual exceeds TRIM_SIGMAS robust sigmas (edges, occluders)."""
-    whitened = [residuals(fd, sol.a, sol.dxi[f]) * np.sqrt(fd.w) for f, fd in enumerate(data)
-                if fd is not None and fd.n]
-    if not whitened:
+    whitened = [None if fd is None or fd.n == 0 else residuals(fd, sol.a, sol.dxi[f]) * np.sqrt(fd.w)
+                for f, fd in enumerate(data)]
+    live = [rw for rw in whitened if rw is not None]
+    if not live:
         return data
-    allw = np.concatenate(whitened)
+    allw = np.concatenate(live)
     scale = 1.4826 * float(np.median(np.abs(allw - np.median(allw)))) or 1.0
-    out: list[FrameData | None] = []
-    for f, fd in enumerate(data):
-        if fd is None or fd.n == 0:
-            out.append(fd)
-            continue
-        rw = residuals(fd, sol.a, sol.dxi[f]) * np.sqrt(fd.w)
-        out.append(fd.take(np.abs(rw) <= TRIM_SIGMAS * scale))
-    return out
+    return [fd if fd is None or rw is None else fd.take(np.abs(rw) <= TRIM_SIGMAS * scale)
+            for fd, rw in zip(data, whitened, strict=True)]
 
 
 def cross_validate(data: list[FrameData | None], xi_prev: F64,
@@ -319,7 +389,7 @@ def draws(sol: Solution, xi_prev: F64, count: int = 40,
     s = np.sqrt(sol.s2)
     for i in range(count):
         da = la @ rng.standard_normal(k)
-        eta = solve_banded((0, BAND), sol.chol, rng.standard_normal(frames * 6))
+        eta = chol_sample(sol.chol, rng.standard_normal(frames * 6))
         dx = -sol.y @ da + s * eta  # the frames move with the sensor terms (their correlation)
         as_[i] = sol.a + da
         xs[i] = xi_prev + sol.dxi + dx.reshape(frames, 6)
@@ -359,47 +429,49 @@ DEFECT_U95S = 2.0      # and by twice its U95 (4 sigma: hundreds of patches are 
 def find_patches(data: list[FrameData | None], sol: Solution) -> Patches:
     """Per surface patch the mean point-to-plane residual and its frames-as-clusters U95; a defect
     when it is larger than DEFECT_MIN_M and twice its U95, seen by DEFECT_FRAMES frames from distances
-    DEFECT_Z_SPAN_M apart (so that it is the surface, not the camera at one distance)."""
-    keys, q, wts, frames, zs = [], [], [], [], []
-    cell_of: list[NDArray[np.int64]] = []
-    for f, fd in enumerate(data):
-        if fd is None or fd.n == 0:
-            continue
-        r = residuals(fd, sol.a, sol.dxi[f])
-        cell_of.append((fd.z / 0.25).astype(np.int64) * 100 + (fd.theta / 5.0).astype(np.int64))
-        keys.append(fd.key)
-        q.append(r)
-        wts.append(fd.w / (fd.c * fd.c))
-        frames.append(np.full(fd.n, f))
-        zs.append(fd.z)
-    if not keys:
+    DEFECT_Z_SPAN_M apart (so that it is the surface, not the camera at one distance). Summed per
+    frame first (a few hundred patches each), then over the frames: no sort of every sample."""
+    live = [(f, fd) for f, fd in enumerate(data) if fd is not None and fd.n]
+    if not live:
         return Patches()
-    key = np.concatenate(keys)
-    rr, ww, ff, zz = np.concatenate(q), np.concatenate(wts), np.concatenate(frames), np.concatenate(zs)
-    cc = np.concatenate([fd.c for fd in data if fd is not None and fd.n])
+    res = [residuals(fd, sol.a, sol.dxi[f]) for f, fd in live]
     # the camera's own error beyond the smooth model is a function of distance x inclination: taken
     # out by each 0.25 m x 5 deg cell's mean residual, so that what stays is the surface's
-    _, cinv = np.unique(np.concatenate(cell_of), return_inverse=True)
-    wd = np.concatenate([fd.w for fd in data if fd is not None and fd.n])
-    cell_mean = np.bincount(cinv, wd * rr) / np.bincount(cinv, wd)
-    qq = (rr - cell_mean[cinv]) * cc
-    uk, inv = np.unique(key, return_inverse=True)
-    sw = np.bincount(inv, ww)
-    mean = np.bincount(inv, ww * qq) / sw
-    # frames as clusters: per (patch, frame) weighted sums
-    pf = inv.astype(np.int64) * (len(data) + 1) + ff
-    upf, pinv = np.unique(pf, return_inverse=True)
-    pw = np.bincount(pinv, ww)
-    pm = np.bincount(pinv, ww * qq) / pw
-    patch_of = upf // (len(data) + 1)
-    nf = np.bincount(patch_of, minlength=uk.size)
-    dev = pw * (pm - mean[patch_of])
-    var = np.bincount(patch_of, dev * dev, minlength=uk.size) / (sw * sw) * nf / np.maximum(nf - 1, 1)
+    cells = [(fd.z / 0.25).astype(np.int64) * 100 + (fd.theta / 5.0).astype(np.int64) for _, fd in live]
+    call = np.concatenate(cells)
+    wd = np.concatenate([fd.w for _, fd in live])
+    rr = np.concatenate(res)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cell_mean = np.bincount(call, wd * rr) / np.bincount(call, wd)
+    pk, pf, pw, pq, pz0, pz1 = [], [], [], [], [], []
+    for (f, fd), r, cell in zip(live, res, cells, strict=True):
+        qq = (r - cell_mean[cell]) * fd.c
+        ww = fd.w / (fd.c * fd.c)
+        uk, inv = np.unique(fd.key, return_inverse=True)
+        zmin = np.full(uk.size, np.inf)
+        zmax = np.full(uk.size, -np.inf)
+        np.minimum.at(zmin, inv, fd.z)
+        np.maximum.at(zmax, inv, fd.z)
+        pk.append(uk)
+        pf.append(np.full(uk.size, f))
+        pw.append(np.bincount(inv, ww, minlength=uk.size))
+        pq.append(np.bincount(inv, ww * qq, minlength=uk.size))
+        pz0.append(zmin)
+        pz1.append(zmax)
+    keys = np.concatenate(pk)
+    fw, fq = np.concatenate(pw), np.concatenate(pq)
+    uk, inv = np.unique(keys, return_inverse=True)
+    sw = np.bincount(inv, fw, minlength=uk.size)
+    mean = np.bincount(inv, fq, minlength=uk.size) / sw
+    # frames as clusters: the per (patch, frame) means about the patch's
+    nf = np.bincount(inv, minlength=uk.size)
+    dev = fw * (fq / fw - mean[inv])
+    var = np.bincount(inv, dev * dev, minlength=uk.size) / (sw * sw) * nf / np.maximum(nf - 1, 1)
     u95 = 1.96 * np.sqrt(var)
     zmin = np.full(uk.size, np.inf)
     zmax = np.full(uk.size, -np.inf)
-    np.minimum.at(zmin, inv, zz)
-    np.maximum.at(zmax, inv, zz)
+    np.minimum.at(zmin, inv, np.concatenate(pz0))
+    np.maximum.at(zmax, inv, np.concatenate(pz1))
     span = zmax - zmin
     seen = (nf >= DEFECT_FRAMES) & (span >= DEFECT_Z_SPAN_M)
     # a defect is local: an outlier among the patches (a shared offset of all of them is the
@@ -420,6 +492,14 @@ def without_patches(data: list[FrameData | None], patches: Patches) -> list[Fram
     return [fd if fd is None or fd.n == 0 else fd.take(~np.isin(fd.key, bad)) for fd in data]
 
 
+def _skews(v: F64) -> F64:
+    """skew(v_f) for every row of v: (F, 3, 3)."""
+    out = np.zeros((v.shape[0], 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    return out
+
+
 def split_registration(poses: F64, xi: F64) -> tuple[F64, dict[str, Any]]:
     """The global part of the corrections: one small similarity of the reference frame (rotation
     r, translation t, scale k about the walk's centroid) that best moves the given cameras onto the
@@ -427,26 +507,25 @@ def split_registration(poses: F64, xi: F64) -> tuple[F64, dict[str, Any]]:
     parameters. The rest is the poses' own (per-frame) error. Gauge: the registration is this
     least-squares similarity, so the per-frame part has no global rotation, translation or scale."""
     rots = poses[:, :3, :3]
-    cent = poses[:, :3, 3]
-    c0 = cent.mean(axis=0)
-    rows, rhs, wts = [], [], []
-    for r, c, x in zip(rots, cent, xi, strict=True):
-        # rotation: world rotation vector R omega = r_g
-        rows.append(np.hstack([np.eye(3), np.zeros((3, 3)), np.zeros((3, 1))]))
-        rhs.append(r @ x[:3])
-        wts.append(np.full(3, 1 / SIGMA_ROT_RAD))
-        # centre: R v = r_g x (c - c0) + t + k (c - c0)
-        rows.append(np.hstack([-skew(c - c0), np.eye(3), (c - c0)[:, None]]))
-        rhs.append(r @ x[3:])
-        wts.append(np.full(3, 1 / SIGMA_TRANS_M))
-    a = np.vstack(rows)
-    b = np.concatenate(rhs)
-    w = np.concatenate(wts)
-    sol, *_ = np.linalg.lstsq(a * w[:, None], b * w, rcond=None)
+    d = poses[:, :3, 3] - poses[:, :3, 3].mean(axis=0)
+    c0 = poses[:, :3, 3].mean(axis=0)
+    frames = poses.shape[0]
+    # per frame: rotation R omega = r_g; centre R v = r_g x (c - c0) + t + k (c - c0)
+    a = np.zeros((frames, 6, 7))
+    a[:, 0:3, 0:3] = np.eye(3)
+    a[:, 3:6, 0:3] = -_skews(d)
+    a[:, 3:6, 3:6] = np.eye(3)
+    a[:, 3:6, 6] = d
+    rhs = np.concatenate([np.einsum("fij,fj->fi", rots, xi[:, :3]),
+                          np.einsum("fij,fj->fi", rots, xi[:, 3:])], axis=1)
+    # weighted least squares by its 7 x 7 normal equations (lstsq of the 6F x 7 system went
+    # through a threaded BLAS: 55 ms a call on a loaded box, 40 draws)
+    w2 = (1.0 / PRIOR_SCALE) ** 2
+    aw = a * w2[None, :, None]
+    sol = np.linalg.solve(np.einsum("fki,fkj->ij", aw, a), np.einsum("fki,fk->i", aw, rhs))
     rg, tg, kg = sol[:3], sol[3:6], float(sol[6])
     xreg = np.empty_like(xi)
-    for f, (r, c) in enumerate(zip(rots, cent, strict=True)):
-        xreg[f, :3] = r.T @ rg
-        xreg[f, 3:] = r.T @ (np.cross(rg, c - c0) + tg + kg * (c - c0))
+    xreg[:, :3] = np.einsum("fji,j->fi", rots, rg)
+    xreg[:, 3:] = np.einsum("fji,fj->fi", rots, np.cross(rg, d) + tg + kg * d)
     return xreg, {"rotation_rad": rg.tolist(), "translation_m": tg.tolist(), "scale": 1.0 + kg,
                   "about_m": c0.tolist()}

@@ -180,9 +180,6 @@ class ScanOptions:
         """Options of a batch item (the command's option names, snake_case) and its optional paths
         (similarity, pass_points, intrinsics); an unknown name is an error naming it."""
         names = {f.name for f in dataclasses.fields(cls)} - {"target", "workers", "cluster", "force"}
-        if options.get("budget"):  # batch items run prepare/write only: the budget would go missing
-            raise InputError(source, f"{where}: budget is not run for batch items; run "
-                                     "'depthstation evaluate scan ... --budget' on this item")
         unknown = sorted(set(options) - names)
         if unknown:
             raise InputError(source, f"{where}: unknown scan options {', '.join(unknown)} "
