@@ -506,6 +506,10 @@ def remaining(regions: Sequence[dict[str, Any]], attr: Attribution, lib: Sequenc
                                          else "no fit table for this quantity")
             out.append(entry)
             continue
+        if r["family"] == "frame_common" and r.get("k2_m2_per_px2"):
+            entry.update(_frame_common_remedy(r, [*chosen.get("frame", []), *(present or {})]))
+            out.append(entry)
+            continue
         if r["family"].startswith("periodic") or r["family"] == "static":
             entry.update(_fine_remedy(r))
             out.append(entry)
@@ -536,6 +540,21 @@ def remaining(regions: Sequence[dict[str, Any]], attr: Attribution, lib: Sequenc
             entry.update(best)
         out.append(entry)
     return out
+
+
+def _frame_common_remedy(r: dict[str, Any], held: Sequence[str]) -> dict[str, Any]:
+    """The frame-common variance the re-simulation lacks (or has too much of), in px^2: the smallest
+    term that removes the region is a frame-common disparity noise of that size on top of what the
+    model holds."""
+    extra = float(r["diff"]) / float(r["k2_m2_per_px2"])
+    se = float(r["se"]) / float(r["k2_m2_per_px2"])
+    term = "term_noise_frame_common"
+    had = [h for h in held if h == term or h.endswith("frame_common")]
+    why = (f"the model's {had[0]} is fitted {'short' if extra > 0 else 'over'} of the real frame-common "
+           f"variance by {extra:.3g} +- {se:.3g} px^2 in the re-simulation" if had else
+           "no frame-common term in the model")
+    return {"term": term, "why_not_selected": why,
+            "expression": f"var_d += {extra:.3g} px^2 (one draw per frame, shared by all its pixels)"}
 
 
 def _fine_remedy(r: dict[str, Any]) -> dict[str, Any]:

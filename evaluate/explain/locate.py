@@ -548,14 +548,15 @@ def _frame_common_tests(real: Samples, sim: Samples, st_r: Structure, st_s: Stru
                      fr.k_m[i] ** 2, int(fr.frames[i]), int(fs.frames[k])))
     out = []
     for name, r, s_, se, dof, k2, nr, ns in rows:
-        out.append(_test("frame_common", name, {"standpoint": name}, r * k2, s_ * k2, (r - s_) * k2, se * k2,
+        out.append(_test("frame_common", name, {"standpoint": name, "k2_m2_per_px2": k2}, r * k2, s_ * k2,
+                         (r - s_) * k2, se * k2,
                          dof, nr, ns))
     if len(rows) >= 2:
         n = len(rows)
         d = float(np.mean([r[1] - r[2] for r in rows]))
         se = float(np.sqrt(sum(r[3] ** 2 for r in rows)) / n)
         k2 = float(np.mean([r[5] for r in rows]))
-        out.append(_test("frame_common", "all standpoints", {"standpoint": "all"},
+        out.append(_test("frame_common", "all standpoints", {"standpoint": "all", "k2_m2_per_px2": k2},
                          float(np.mean([r[1] for r in rows])) * k2, float(np.mean([r[2] for r in rows])) * k2,
                          d * k2, se * k2, float(sum(r[4] for r in rows)),
                          sum(r[6] for r in rows), sum(r[7] for r in rows)))
