@@ -53,9 +53,8 @@ SMALL_BOX = 16  # triangles whose box holds at most this many pixel centres skip
 BLOCK_SIZE = 128
 if CLUSTER_SIZE % BLOCK_SIZE or CLUSTER_SIZE // BLOCK_SIZE > 32:  # the blocks kept are bits of an int64
     raise ValueError("BLOCK_SIZE must divide CLUSTER_SIZE into at most 32 blocks")
-MASK_SLOTS = 16  # pixel centres of a small box that `_bounds` checks against the triangle (>= SMALL_BOX)
-if SMALL_BOX > MASK_SLOTS:  # pragma: no cover - the constants set wrong: pixels would go untested
-    raise ImportError(f"SMALL_BOX {SMALL_BOX} exceeds the {MASK_SLOTS} pixel centres the mask checks")
+if not 1 <= SMALL_BOX <= 62:  # pragma: no cover - a small box's pixel centres are bits of an int64
+    raise ImportError(f"SMALL_BOX {SMALL_BOX} must be 1-62 (`_small_mask`)")
 _X86 = platform.machine().lower() in ("x86_64", "amd64", "i386", "i686")
 
 # arithmetic variants (which Embree kernel Open3D runs on this CPU)
@@ -483,15 +482,15 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
 # cluster slots: rows of the per-cluster arrays (`_prepare`) and of the per-cluster scratch (`_bounds`)
 _F_U, _F_V, _F_M, _F_DIST = 9, 12, 15, 16  # fa: x, y, z of vertex k at rows 3k..3k+2; u, v of the
 _F_ROWS = 17                                # three vertices; the rounding bound; the vertex distance
-_I_BOX = 1  # ia: the status at row 0, then u0, u1, v0, v1, then a small box's mask
-_I_MASK = 5
+_I_BOX = 1  # ia: the status at row 0, then u0, u1, v0, v1, then the slots that need more than `_bounds`
+_I_LIST = 5
 _I_ROWS = 6
 SKIP, SMALL, TRIANGLE, GENERAL = 0, 1, 2, 3  # what a triangle needs (`_bounds`)
 
 
 # slot s of a small box w pixels wide (row-major) is column u0 + _SLOT_DU[w, s], row v0 + _SLOT_DV[w, s]
-_SLOT_DU = np.array([[s % max(w, 1) for s in range(MASK_SLOTS)] for w in range(MASK_SLOTS + 1)], np.int64)
-_SLOT_DV = np.array([[s // max(w, 1) for s in range(MASK_SLOTS)] for w in range(MASK_SLOTS + 1)], np.int64)
+_SLOT_DU = np.array([[s % max(w, 1) for s in range(SMALL_BOX)] for w in range(SMALL_BOX + 1)], np.int64)
+_SLOT_DV = np.array([[s // max(w, 1) for s in range(SMALL_BOX)] for w in range(SMALL_BOX + 1)], np.int64)
 
 
 @numba.njit(inline="always")
@@ -501,19 +500,6 @@ def _edge(uk: float, vk: float, ul: float, vl: float, sigma: float, m: float) ->
     dx = ul - uk
     dy = vl - vk
     return -sigma * dy, sigma * dx, sigma * (dy * uk - dx * vk) + m * (abs(dx) + abs(dy))
-
-
-@numba.njit(inline="always")
-def _slot(s: int, e: Any) -> Any:
-    """Bit s of a small box's mask: whether its slot s (column s - r w, row r of a box w pixels
-    wide) holds a pixel centre within the three half-planes a u + b v + c >= 0, given as
-    e = (1 / w, rows - 1, a0, B0, E0, a1, B1, E1, a2, B2, E2) with E = a u0 + b v0 + c (the box's
-    first centre) and B = b - a w: at the slot's centre a u + b v + c = E + a s + B r, two
-    products per half-plane and no coordinates (float64 rounding ~1e-12 px, far below the margin)."""
-    inv_w, last, a0, bb0, e0, a1, bb1, e1, a2, bb2, e2 = e
-    r = np.floor((s + 0.5) * inv_w)  # (2s + 1) / 2w is never an integer: exact after rounding
-    d = min(e0 + a0 * s + bb0 * r, min(e1 + a1 * s + bb1 * r, e2 + a2 * s + bb2 * r))
-    return np.int64((d >= 0.0) & (r <= last)) << s
 
 
 @numba.njit(inline="always")
@@ -561,39 +547,47 @@ def _outside(planes_w: Any, lo: Any, hi: Any, ox: float, oy: float, oz: float) -
 
 
 @numba.njit(**_KERNEL_OPTIONS)
-def _bounds(tv: Any, tp: Any, cl: int, q0: int, q1: int, ox: float, oy: float, oz: float, r00: float,
+def _bounds(tv: Any, tn: Any, cl: int, q0: int, q1: int, ox: float, oy: float, oz: float, r00: float,
             r01: float, r02: float, r10: float, r11: float, r12: float, r20: float, r21: float, r22: float,
             fx: float, fy: float, ppx: float, ppy: float, margin_k: float, margin_px: float, wm1: float,
             hm1: float, fa: Any, ia: Any) -> None:
     """For the triangles in slots q0..q1-1 of cluster cl, without branches (LLVM vectorises it):
-    their vertices in the camera frame and projected, the rounding bound m and the largest vertex
-    distance, and what each needs: SKIP (behind the camera, or a box without pixel centres), SMALL
-    (a box of at most SMALL_BOX pixel centres, u0 u1 v0 v1, and which of them lie near the triangle
-    as a mask), TRIANGLE (in front, a larger box: the edge walk) or GENERAL (near its own plane or
-    reaching behind the camera: the rasteriser's general path).
+    their vertices projected, the rounding bound m and the largest vertex distance, and what each
+    needs: SKIP (behind the camera, or a box without pixel centres), SMALL (a box of at most
+    SMALL_BOX pixel centres, u0 u1 v0 v1), TRIANGLE (in front, a larger box: the edge walk) or
+    GENERAL (near its own plane or reaching behind the camera: the rasteriser's general path).
 
-    Why: per triangle this was ~70 cycles of scalar code, a quarter of a frame. The cluster's
-    vertices (tv) and planes (tp) and the scratch (fa, ia) are rows of CLUSTER_SIZE at constant
-    offsets, so LLVM can check them for overlap as four ranges and vectorise."""
+    Why: per triangle this was ~70 cycles of scalar code, a quarter of a frame. It does only what
+    every triangle needs: most triangles of a fine mesh have a box without a pixel centre and are
+    done here; which of a small box's centres lie near the triangle is asked for the others only
+    (`_small_mask`). The cluster's vertices (tv) and normals (tn) and the scratch (fa, ia) are rows
+    of CLUSTER_SIZE at constant offsets, so LLVM can check them for overlap as four ranges and
+    vectorise."""
     c = CLUSTER_SIZE
     # views from slot q0 on: their indices start at 0 (LLVM then knows them non-negative, with no
     # wraparound test per access, and vectorises); slot q0 + q is the views' q
     tv = tv[cl * (9 * c) + q0:]
-    tp = tp[cl * (4 * c) + q0:]
+    tn = tn[cl * (3 * c) + q0:]
     fa = fa[q0:]
     ia = ia[q0:]
     bv = 0
-    bp = 0
     for q in range(q1 - q0):
-        xa, ya, za, la, ua, va = _project(tv, bv, q, 0, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
-                                          r22, fx, fy, ppx, ppy)
-        xb, yb, zb, lb, ub, vb = _project(tv, bv, q, 1, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
-                                          r22, fx, fy, ppx, ppy)
-        xc, yc, zc, lc, uc, vc = _project(tv, bv, q, 2, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
-                                          r22, fx, fy, ppx, ppy)
-        # rounding bound: Embree's accepted rays lie within m pixels of the exact triangle
+        _, _, za, la, ua, va = _project(tv, bv, q, 0, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
+                                        r22, fx, fy, ppx, ppy)
+        _, _, zb, lb, ub, vb = _project(tv, bv, q, 1, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
+                                        r22, fx, fy, ppx, ppy)
+        _, _, zc, lc, uc, vc = _project(tv, bv, q, 2, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21,
+                                        r22, fx, fy, ppx, ppy)
+        # rounding bound: Embree's accepted rays lie within m pixels of the exact triangle. h, the
+        # camera's distance from the triangle's plane, from the float32 unit normal: each component
+        # within 2^-24 of the exact one, so h within 6e-8 of vertex a's |dx| + |dy| + |dz| (la);
+        # taken that much smaller (a larger m). h <= 0: m = inf, the general path bounds it
+        dxa = ox - float(tv[bv + q])
+        dya = oy - float(tv[bv + c + q])
+        dza = oz - float(tv[bv + 2 * c + q])
+        h = abs(float(tn[q]) * dxa + float(tn[c + q]) * dya + float(tn[2 * c + q]) * dza)
+        h = max(h - 1e-7 * la, 0.0)
         dist = max(la, max(lb, lc))
-        h = abs(tp[bp + q] * ox + tp[bp + c + q] * oy + tp[bp + 2 * c + q] * oz - tp[bp + 3 * c + q])
         m = margin_px + margin_k * (dist / h + 1.0)
         zclip = 1e-9 * dist
         front = (za >= zclip) & (zb >= zclip) & (zc >= zclip)
@@ -615,44 +609,11 @@ def _bounds(tv: Any, tp: Any, cl: int, q0: int, q1: int, ox: float, oy: float, o
         st = TRIANGLE if simple else st
         st = SMALL if simple & small else st
         st = SKIP if behind | (simple & empty) else st
-        # the pixel centres of a small box within the projected triangle pushed out by m (the edge
-        # walk's half-planes; a projection seen edge-on keeps its whole box), as bits: about half
-        # of a box's centres lie outside, and their reference tests cost ~45 cycles each
-        area2 = ((ua * vb - ub * va) + (ub * vc - uc * vb)) + (uc * va - ua * vc)
-        scale2 = (((abs(ua * vb) + abs(ub * va)) + (abs(ub * vc) + abs(uc * vb)))
-                  + (abs(uc * va) + abs(ua * vc)))
-        # a vertex projected far out (just in front of the camera) would make the half-planes'
-        # rounding approach the margin: such a triangle keeps its whole box, as one seen edge-on
-        far = max(max(abs(ua), abs(ub)), max(max(abs(uc), abs(va)), max(abs(vb), abs(vc)))) > 1e7
-        flat = far | (not (abs(area2) > 1e-9 * scale2))
-        sigma = 1.0 if area2 > 0 else -1.0
-        a0, b0, c0 = _edge(ua, va, ub, vb, sigma, mb)
-        a1, b1, c1 = _edge(ub, vb, uc, vc, sigma, mb)
-        a2, b2, c2 = _edge(uc, vc, ua, va, sigma, mb)
-        w = max(u1 - u0 + 1.0, 1.0)
-        e = (1.0 / w, v1 - v0, 0.0 if flat else a0, 0.0 if flat else b0 - a0 * w,
-             1.0 if flat else a0 * u0 + b0 * v0 + c0, 0.0 if flat else a1, 0.0 if flat else b1 - a1 * w,
-             1.0 if flat else a1 * u0 + b1 * v0 + c1, 0.0 if flat else a2, 0.0 if flat else b2 - a2 * w,
-             1.0 if flat else a2 * u0 + b2 * v0 + c2)
-        # written out, not a loop: LLVM vectorises innermost loops only, and this one is over q
-        ia[_I_MASK * c + q] = (_slot(0, e) | _slot(1, e) | _slot(2, e) | _slot(3, e) | _slot(4, e)
-                               | _slot(5, e) | _slot(6, e) | _slot(7, e) | _slot(8, e) | _slot(9, e)
-                               | _slot(10, e) | _slot(11, e) | _slot(12, e) | _slot(13, e) | _slot(14, e)
-                               | _slot(15, e))
         ia[q] = st
         ia[_I_BOX * c + q] = int(u0)
         ia[(_I_BOX + 1) * c + q] = int(u1)
         ia[(_I_BOX + 2) * c + q] = int(v0)
         ia[(_I_BOX + 3) * c + q] = int(v1)
-        fa[q] = xa
-        fa[c + q] = ya
-        fa[2 * c + q] = za
-        fa[3 * c + q] = xb
-        fa[4 * c + q] = yb
-        fa[5 * c + q] = zb
-        fa[6 * c + q] = xc
-        fa[7 * c + q] = yc
-        fa[8 * c + q] = zc
         fa[_F_U * c + q] = ua
         fa[(_F_U + 1) * c + q] = ub
         fa[(_F_U + 2) * c + q] = uc
@@ -663,21 +624,56 @@ def _bounds(tv: Any, tp: Any, cl: int, q0: int, q1: int, ox: float, oy: float, o
         fa[_F_DIST * c + q] = dist
 
 
+@numba.njit(inline="always")
+def _small_mask(ua: float, ub: float, uc: float, va: float, vb: float, vc: float, m: float, u0: int, u1: int,
+                v0: int, v1: int) -> int:
+    """Which pixel centres of a small box (row-major bits, at most SMALL_BOX) lie within the
+    projected triangle pushed out by m (the edge walk's half-planes; a projection seen edge-on, or
+    with a vertex projected far out, keeps its whole box). Why: about half of a small box's
+    centres lie outside, and their reference tests cost ~45 cycles each; asked only for triangles
+    whose box holds a centre (`_bounds`)."""
+    w = u1 - u0 + 1
+    n = w * (v1 - v0 + 1)
+    area2 = ((ua * vb - ub * va) + (ub * vc - uc * vb)) + (uc * va - ua * vc)
+    scale2 = (((abs(ua * vb) + abs(ub * va)) + (abs(ub * vc) + abs(uc * vb)))
+              + (abs(uc * va) + abs(ua * vc)))
+    far = max(max(abs(ua), abs(ub)), max(max(abs(uc), abs(va)), max(abs(vb), abs(vc)))) > 1e7
+    if far or not (abs(area2) > 1e-9 * scale2):
+        return (1 << n) - 1
+    sigma = 1.0 if area2 > 0 else -1.0
+    a0, b0, c0 = _edge(ua, va, ub, vb, sigma, m)
+    a1, b1, c1 = _edge(ub, vb, uc, vc, sigma, m)
+    a2, b2, c2 = _edge(uc, vc, ua, va, sigma, m)
+    mask = 0
+    s = 0
+    for v in range(v0, v1 + 1):
+        fv = float(v)
+        e0 = b0 * fv + c0
+        e1 = b1 * fv + c1
+        e2 = b2 * fv + c2
+        for u in range(u0, u1 + 1):
+            fu = float(u)
+            d = min(a0 * fu + e0, min(a1 * fu + e1, a2 * fu + e2))
+            mask |= int(d >= 0.0) << s
+            s += 1
+    return mask
+
+
 @cache
 def _render_kernel(mode: int) -> Any:
     """The rasteriser compiled for one arithmetic (a constant, so its branches fold away)."""
     fma = mode in (FMA_RCP, FMA_DIV)
 
     @numba.njit(**_KERNEL_OPTIONS)
-    def _render(tv: Any, tp: Any, cl_start: Any, cl_lo: Any, cl_hi: Any, bl_lo: Any, bl_hi: Any, xs: Any,
+    def _render(tv: Any, tn: Any, cl_start: Any, cl_lo: Any, cl_hi: Any, bl_lo: Any, bl_hi: Any, xs: Any,
                 ys: Any, origin: Any, rot: Any, fx: float, fy: float, ppx: float, ppy: float, margin_k: float,
                 margin_px: float, zbuf: Any, tid: Any, ties: Any, tie_t: Any, nrm: Any, work: Any, fa: Any,
                 ia: Any, dtab: Any, stats: Any) -> None:
         """Rasterise the clustered mesh into zbuf (float32 t, inf = miss) and tid (the triangle's
         rank, its place in the clusters' order; -1 = miss).
 
-        tv, tp: per cluster, its triangles' float32 vertices and float64 unit normals and plane
-        offsets (for the rounding bound), in rows of CLUSTER_SIZE slots (`_prepare`); cl_lo, cl_hi:
+        tv, tn: per cluster, its triangles' float32 vertices and unit normals (for the rounding
+        bound), in rows of CLUSTER_SIZE slots (`_prepare`); cl_lo, cl_hi:
         the clusters' boxes, bl_lo, bl_hi: their blocks' (BLOCK_SIZE triangles); fa, ia: a
         cluster's scratch (`_bounds`). The rays of pixel (u, v) start at origin (rounded to
         float32) with direction rot @ (xs[u], ys[v], 1)
@@ -757,12 +753,18 @@ def _render_kernel(mode: int) -> Any:
                 q0 = j0 * BLOCK_SIZE
                 q1 = min(nt, j1 * BLOCK_SIZE)
                 bounded += q1 - q0
-                _bounds(tv, tp, cl, q0, q1, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21, r22, fx,
+                _bounds(tv, tn, cl, q0, q1, ox, oy, oz, r00, r01, r02, r10, r11, r12, r20, r21, r22, fx,
                         fy, ppx, ppy, margin_k, margin_px, wm1, hm1, fa, ia)
+                # the slots that need more, listed without a branch per slot: most triangles of a
+                # fine mesh are skipped, whether one is a coin flip, and mispredictions cost more
+                todo = ia[_I_LIST * c:(_I_LIST + 1) * c]
+                nt_ = 0
                 for q in range(q0, q1):
+                    todo[nt_] = q
+                    nt_ += ia[q] != SKIP
+                for h_ in range(nt_):
+                    q = todo[h_]
                     st = ia[q]
-                    if st == SKIP:
-                        continue
                     b = _I_BOX * c + q
                     u0, u1, v0, v1 = ia[b], ia[b + c], ia[b + 2 * c], ia[b + 3 * c]
                     m = fa[_F_M * c + q]
@@ -771,8 +773,14 @@ def _render_kernel(mode: int) -> Any:
                     npoly = 3
                     clipped = False
                     if st == GENERAL:
+                        for k in range(3):  # the camera-frame vertices, for this rare path only
+                            x_, y_, z_, _l, _u, _v = _project(tv, bv, q, k, ox, oy, oz, r00, r01, r02, r10,
+                                                              r11, r12, r20, r21, r22, fx, fy, ppx, ppy)
+                            fa[3 * k * c + q] = x_
+                            fa[(3 * k + 1) * c + q] = y_
+                            fa[(3 * k + 2) * c + q] = z_
                         dist = fa[_F_DIST * c + q]
-                        if m > 0.02:  # near the triangle's plane: bound by the distances to its edge lines
+                        if not m <= 0.02:  # near the plane: bound by the distances to its edge lines
                             dmin = np.inf
                             for k in range(3):
                                 k2 = k + 1 if k < 2 else 0
@@ -824,7 +832,12 @@ def _render_kernel(mode: int) -> Any:
                     if small:  # test the few pixel centres directly: those `_bounds` found near the triangle
                         # (a general triangle's small box: all of them), in row-major order
                         w = u1 - u0 + 1
-                        mask = ia[_I_MASK * c + q] if st == SMALL else (1 << (w * (v1 - v0 + 1))) - 1
+                        if st == SMALL:
+                            ua, ub, uc = _row3(fa, _F_U, q)
+                            va, vb, vc = _row3(fa, _F_V, q)
+                            mask = _small_mask(ua, ub, uc, va, vb, vc, m, u0, u1, v0, v1)
+                        else:
+                            mask = (1 << (w * (v1 - v0 + 1))) - 1
                         if mask == 0:
                             continue
                         ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2 = _setup_at(tv, bv, q, ox32, oy32,
@@ -914,7 +927,8 @@ def _prepare(vx: Any, tri: Any) -> Any:
     """Clusters of CLUSTER_SIZE triangles (in the order given): each cluster's bounding box, those
     of its blocks of BLOCK_SIZE triangles (culled within a kept cluster; an empty block's box stays
     inf..-inf) and, in rows of CLUSTER_SIZE slots, its triangles' vertices (tv: 9 rows, float32)
-    and their unit normals and plane offsets (tp: 4 rows, float64, for the rounding bound)."""
+    and their unit normals (tn: 3 rows, float32, for the rounding bound; `_bounds` allows for their
+    rounding)."""
     c = CLUSTER_SIZE
     m = tri.shape[0]
     nc = (m + c - 1) // c
@@ -925,7 +939,7 @@ def _prepare(vx: Any, tri: Any) -> Any:
     bl_lo = np.full((nc, nb, 3), np.inf)
     bl_hi = np.full((nc, nb, 3), -np.inf)
     tv = np.zeros(nc * 9 * c, np.float32)
-    tp = np.zeros(nc * 4 * c)
+    tn = np.zeros(nc * 3 * c, np.float32)
     for cl in range(nc):
         cl_start[cl] = cl * c
         for s in range(cl * c, min(m, (cl + 1) * c)):
@@ -946,11 +960,10 @@ def _prepare(vx: Any, tri: Any) -> Any:
             nn = np.sqrt(nx * nx + ny * ny + nz * nz)
             if nn > 0.0:
                 ux, uy, uz = nx / nn, ny / nn, nz / nn
-                base = cl * 4 * c + q
-                tp[base], tp[base + c], tp[base + 2 * c] = ux, uy, uz
-                tp[base + 3 * c] = ux * vx[a, 0] + uy * vx[a, 1] + uz * vx[a, 2]
+                base = cl * 3 * c + q
+                tn[base], tn[base + c], tn[base + 2 * c] = ux, uy, uz
     cl_start[nc] = m
-    return cl_start, cl_lo, cl_hi, bl_lo, bl_hi, tv, tp
+    return cl_start, cl_lo, cl_hi, bl_lo, bl_hi, tv, tn
 
 
 class MeshRaster:
@@ -972,7 +985,7 @@ class MeshRaster:
         self.perm = np.ascontiguousarray(order.astype(np.int32))  # rank -> the caller's id
         self.rank = np.empty(m, np.int32)  # the caller's id -> rank
         self.rank[self.perm] = np.arange(m, dtype=np.int32)
-        self.cl_start, self.cl_lo, self.cl_hi, self.bl_lo, self.bl_hi, self.tv, self.tp = _prepare(
+        self.cl_start, self.cl_lo, self.cl_hi, self.bl_lo, self.bl_hi, self.tv, self.tn = _prepare(
             vx, np.ascontiguousarray(tri[order]))
         self.margin_scale = float(margin_scale)
         self._ties = _TieCaster(vx, tri)
@@ -1025,7 +1038,7 @@ class MeshRaster:
         while True:
             counts = np.zeros(5, np.int64)
             _render_kernel(arithmetic())(
-                self.tv, self.tp, self.cl_start, self.cl_lo, self.cl_hi, self.bl_lo, self.bl_hi, xs, ys,
+                self.tv, self.tn, self.cl_start, self.cl_lo, self.cl_hi, self.bl_lo, self.bl_hi, xs, ys,
                 np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(pose[:3, :3]),
                 float(intr.fx), float(intr.fy), float(intr.ppx), float(intr.ppy), margin_k, margin_px,
                 t_flat, ids_flat, self._ties_at, self._ties_t, self._nrm, self._work, self._fa, self._ia,

@@ -48,7 +48,7 @@ class MeshRasteriser(FrameRenderer):
         if raster is None:
             vertices, triangles = mesh_arrays(mesh)
             raster = MeshRaster(vertices, triangles)
-            planes = TrianglePlanes(vertices, triangles).reordered(raster.perm)  # by rank
+            planes = TrianglePlanes(vertices, triangles, raster.perm)  # by rank
         self.raster = raster
         self.planes = planes
         self._table = None if planes is None else planes.table
