@@ -196,7 +196,7 @@ def fit_triangles(vertices: NDArray[np.float64], triangles: NDArray[np.int64], p
         reason[(reason == OK) & np.asarray(unmeasured, dtype=bool)] = MESH_OFF
     fits = PointFits(normal, offset, reason, np.where(reason == OK, sigma, np.inf), count,
                      params.gap_m if params.gap_m > 0 else float("inf"),
-                     EDGE_SPACINGS * float(np.median(spacing)))
+                     max(EDGE_SPACINGS * float(np.median(spacing)), 0.05))
     info = {"noise_floor_m": floor, "rough_limit_m": limit,
             "median_spacing_m": float(np.median(spacing)), **fits.summary()}
     return fits, info
@@ -206,8 +206,9 @@ def fit_triangles(vertices: NDArray[np.float64], triangles: NDArray[np.int64], p
 def _mark_edges(t: Any, index: Any, normal: Any, offset: Any, reason: Any, dirs: Any, rot: Any, origin: Any,
                 w: int, h: int, gap: float, sentinel: int, drop: Any, reach_px: float,
                 max_px: int) -> None:  # pragma: no cover - numba
-    """Pixels near a jump of the reference (a hit more than `gap` off this pixel's plane, or no hit,
-    within reach_px / z pixels along a row or column: `reach` metres at the pixel's depth z) to the
+    """Pixels near a jump of the reference (a hit more than `gap` off this pixel's plane, no hit, or
+    the frame's border, within reach_px / z pixels along a row or column: `reach` metres at the
+    pixel's depth z, at most max_px) to the
     sentinel row: at a silhouette, a reference whose edge is a point spacing off (an unscanned
     side, Poisson's rounding) sends a grazing ray past the object to the floor behind it, or onto
     it, a decimetre of error that no fit residual shows."""
@@ -227,8 +228,9 @@ def _mark_edges(t: Any, index: Any, normal: Any, offset: Any, reason: Any, dirs:
                 k = e % 4
                 uu = u + (s if k == 0 else -s if k == 1 else 0)
                 vv = v + (s if k == 2 else -s if k == 3 else 0)
-                if uu < 0 or uu >= w or vv < 0 or vv >= h:
-                    continue
+                if uu < 0 or uu >= w or vv < 0 or vv >= h:  # beyond the frame: an edge nobody sees
+                    drop[i] = True
+                    break
                 j = vv * w + uu
                 tj = t[j]
                 if index[j] < 0 or not np.isfinite(tj):
