@@ -20,7 +20,7 @@ quantity; all p-values of a run are corrected together (Holm).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -220,7 +220,8 @@ def _frame_planes(s: Samples) -> dict[int, tuple[FloatArray, FloatArray, int]]:
     return out
 
 
-def _plane_rows(real: Samples, sim: Samples) -> tuple[list[int], FloatArray, FloatArray, list[FloatArray]]:
+def _plane_rows(real: Samples, sim: Samples
+                ) -> tuple[list[int], FloatArray, FloatArray, list[FloatArray], FloatArray]:
     """Per paired standpoint: its index, real-minus-sim plane (a, b, c), the plane's sampling variance
     and the covariate columns per component (offset: 1, disparity, temperature if it varies; the
     slopes: 1). The offset may follow distance (scale, offset) and temperature (drift): only what
@@ -228,6 +229,11 @@ def _plane_rows(real: Samples, sim: Samples) -> tuple[list[int], FloatArray, Flo
     pixel effect."""
     pr, ps = _frame_planes(real), _frame_planes(sim)
     to_sim = standpoint_map(sim, real)
+    # the reference pose's static error (estimated minus rendered plane, known on the simulated side):
+    # each side has one per standpoint that the frames' scatter cannot see; pooled over standpoints
+    # (one draw each is a poor variance) and counted twice (real and simulated)
+    ref = _frame_planes(replace(sim, err_m=sim.ref_err_m)) if len(sim) else {}
+    v_ref = 2 * np.mean([p[0] ** 2 for p in ref.values()], axis=0) if ref else np.zeros(3)
     rows = []
     for i in range(len(real.names)):
         j = int(to_sim[i])
@@ -244,7 +250,7 @@ def _plane_rows(real: Samples, sim: Samples) -> tuple[list[int], FloatArray, Flo
     temp = np.array([r[4] for r in rows])
     cov_a = [np.ones(n), disp] + ([temp] if n and np.ptp(temp) > 0.5 else [])
     designs = [np.stack(cols, axis=1) for cols in (cov_a, [np.ones(n)], [np.ones(n)])]
-    return [r[0] for r in rows], d, v, designs
+    return [r[0] for r in rows], d, v, designs, np.asarray(v_ref, dtype=np.float64)
 
 
 def _tau2(d: FloatArray, v: FloatArray, X: FloatArray) -> tuple[float, int]:
@@ -259,7 +265,7 @@ def _tau2(d: FloatArray, v: FloatArray, X: FloatArray) -> tuple[float, int]:
 
 def heterogeneity(real: Samples, sim: Samples) -> Heterogeneity:
     """Between-standpoint variance of the real-minus-sim disparity planes (moments, after covariates)."""
-    _, d, v, designs = _plane_rows(real, sim)
+    _, d, v, designs, _ = _plane_rows(real, sim)
     n = len(d)
     if n < 4:
         return Heterogeneity(np.zeros(3), float("inf"), n)
@@ -281,7 +287,8 @@ def heterogeneity_tests(real: Samples, sim: Samples) -> list[GroupTest]:
     disagrees with its board pose far beyond the scatter of the others (a board moved between the
     colour and the depth frames, a pose from a wrong corner) is flagged; in the other tests it only
     widens the heterogeneity that every standpoint's SE carries."""
-    idx, d, v, designs = _plane_rows(real, sim)
+    idx, d, v, designs, v_ref = _plane_rows(real, sim)
+    v = v + v_ref[None, :]   # a standpoint's own reference error is part of what it may deviate by
     n = len(idx)
     out: list[GroupTest] = []
     if n < 5:
