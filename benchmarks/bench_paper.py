@@ -8,17 +8,24 @@ Simulates the paper's checkerboard protocol (`checkerboard-d455`: 1 m + 0.4 m st
 checkerboard study (`evaluate_recording`, the code behind `evaluate checkerboard`), and prints
 R1-R6 with the paper's words, the measured figure, the tolerance and whether it holds.
 `--quick`: 1 m + 0.8 m steps x 0/30/60 deg, 10 frames per standpoint, 1280x720 (a few minutes).
+`--low-disk`: simulate and evaluate `--workers` standpoints at a time and delete their recordings
+after (the whole protocol at 150 frames writes ~36 GB of lz4 MCAP otherwise); prints each batch.
 `--scan`: also the scan study's statements (R8/R9, S14) on a short simulated walk, with true poses
 and with the paper's similarity registration.
+`--s14 [--scan-frames N] [--units K]`: what the similarity registration's scale reads when the
+trajectory carries the depth's own scale, as an RGB-D SLAM trajectory does (the paper's came from
+ORB-SLAM3 on that depth), against the true trajectory; and the unit population's reading.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -88,6 +95,35 @@ def evaluate_session(out: Path, proto: Protocol, frames: int, workers: int,
             continue
         kept.append({**r, "target_distance_m": sp.distance_m, "target_inclination_deg": sp.inclination_deg})
     return kept
+
+
+def low_disk_run(proto: Protocol, model: SensorModel, frames: int, seed: int, workers: int,
+                 tmp: Path) -> tuple[list[dict[str, Any]], float, float]:
+    """Simulate and evaluate `workers` standpoints at a time, deleting each batch's recordings after:
+    the rows of every standpoint, and the seconds spent simulating and evaluating."""
+    names = [s.name for s in proto.plan.standpoints()]
+    rows: list[dict[str, Any]] = []
+    t_sim = t_eval = 0.0
+    for k in range(0, len(names), max(1, workers)):
+        batch = names[k:k + max(1, workers)]
+        out = tmp / f"sim-{k}"
+        t = time.perf_counter()
+        # a seed per batch: frames are seeded by the standpoint's place in its batch
+        simulate_checkerboard(proto, model, out, frames=frames, seed=seed + 1000 * k, standpoints=batch)
+        t_sim += time.perf_counter() - t
+        t = time.perf_counter()
+        got = evaluate_session(out, proto, frames, workers, tmp / f"study-{k}")
+        t_eval += time.perf_counter() - t
+        shutil.rmtree(out)
+        rows += got
+        for r in got:
+            print(f"  {r['target_distance_m']:.1f} m / {r['target_inclination_deg']:.0f} deg: noise "
+                  f"{1e3 * r['noise_m']:.2f} mm, accuracy {1e3 * r['accuracy_m']:+.2f} mm", flush=True)
+        print(f"{k + len(batch)}/{len(names)} standpoints, simulated {t_sim:.0f} s, evaluated {t_eval:.0f} s",
+              flush=True)
+    order = {n: i for i, n in enumerate(names)}
+    rows.sort(key=lambda r: order.get(str(r.get("standpoint", r.get("name"))), 0))
+    return rows, t_sim, t_eval
 
 
 def _number(v: Any) -> Any:
@@ -241,6 +277,101 @@ def scan_findings(frames: int, model: SensorModel, root: Path, seed: int,
     return out
 
 
+SLAM_BANDS_M = ((0.5, 2.0), (0.5, 3.8))   # the registration's band; ORB-SLAM3's close points (40 b)
+
+
+def depth_error_in_bands(model: SensorModel, poses: list[Any], scene: Any, width: int, height: int,
+                         stride: int = 8) -> dict[tuple[float, float], float]:
+    """Mean relative depth error (measured / true - 1) the model's analytic bias gives over a walk's
+    pixels (every `stride`-th pixel each way), per true-depth band: the scale an RGB-D SLAM map built
+    from that depth takes on (its key points lie on these surfaces) and what a similarity fitted in
+    the band absorbs."""
+    from depthstation.simulate.effects.base import PixelContext
+    from depthstation.simulate.view_renderer import ViewRenderer
+
+    info = model.camera.stream_info(width, height, 30.0)
+    r = ViewRenderer(scene, model, info, seed=0, color=False, vectors=False)
+    zs, ctxs = [], []
+    for pose in poses:
+        r.set_pose(pose)
+        c = r.context()
+        sl = (slice(None, None, stride), slice(None, None, stride))
+        z = np.asarray(c.z_m)[sl].astype(np.float64)
+        ok = np.isfinite(z)
+        ctxs.append(PixelContext(z_m=z[ok], inclination_deg=np.asarray(c.inclination_deg)[sl][ok],
+                                 u=np.asarray(c.u)[sl][ok], v=np.asarray(c.v)[sl][ok],
+                                 albedo=np.asarray(c.albedo)[sl][ok], fx=c.fx, ppx=c.ppx, ppy=c.ppy,
+                                 baseline_m=c.baseline_m, fx_ref=c.fx_ref))
+        zs.append(z[ok])
+    z = np.concatenate(zs)
+    rel = np.concatenate([np.asarray(model.bias_m(c)) for c in ctxs]) / z
+    return {b: float(np.mean(rel[(z >= b[0]) & (z < b[1]) & np.isfinite(rel)])) for b in SLAM_BANDS_M}
+
+
+def s14_findings(frames: int, model: SensorModel, root: Path, seed: int, units: int,
+                 slam_scales: Sequence[float] = ()) -> None:
+    """S14: the paper's registration scale 0.98288 (depth 1.74 % long). The similarity is fitted to a
+    cloud posed by the trajectory: with the true trajectory a depth scale moves each frame's points
+    about its own camera centre, which no global similarity undoes; with an RGB-D SLAM trajectory the
+    translations carry the depth's scale too, and the cloud is scaled as a whole. Prints the reading
+    with the true trajectory and with the trajectory scaled by the depth's mean error in each band,
+    and the unit population's depth error in the registration band (`--units` draws); `slam_scales`:
+    trajectories scaled by these factors too (a SLAM scale error of its own, e.g. 1.0174)."""
+    from depthstation.evaluate.scan.run import ScanOptions, run_scan
+    from depthstation.simulate.poses import read_tum, write_tum
+    from depthstation.simulate.scan_sequence import simulate_scan
+    from depthstation.simulate.scene import load_scene
+
+    width, height = 640, 480
+    cap = root / "walk"
+    if not (cap / "sequence.mcap").exists():
+        simulate_scan("room", "walk", model, cap, frames=frames, seed=seed, width=width, height=height,
+                      color=False)
+    stamps, poses = read_tum(cap / "trajectory.txt")
+    scene = load_scene("room")
+    every = max(1, len(poses) // 40)
+    errors = depth_error_in_bands(model, poses[::every], scene, width, height)
+    print(f"model {model.name}: mean relative depth error of the walk's pixels (analytic bias, "
+          f"{len(poses[::every])} of {len(poses)} frames): "
+          + ", ".join(f"{lo:g}-{hi:g} m {100 * e:+.2f} %" for (lo, hi), e in errors.items()))
+
+    def reading(name: str, factor: float) -> float:
+        traj = cap / f"trajectory-{name}.txt"
+        c0 = poses[0][:3, 3]
+        scaled = []
+        for p in poses:   # translations scaled about the start, as a SLAM map of scale `factor`
+            q = np.array(p, dtype=np.float64)
+            q[:3, 3] = c0 + factor * (q[:3, 3] - c0)
+            scaled.append(q)
+        write_tum(traj, stamps, scaled)
+        out = root / f"study-{name}"
+        run_scan(cap / "sequence.mcap", traj, cap / "scene.ply", out,
+                 ScanOptions(register="similarity", frames=20, workers=1))
+        summary = json.loads((out / "summary.json").read_text())
+        reg = summary.get("registration", {})
+        scale = float(reg.get("scale", float("nan")))
+        band = reg.get("band95", {}).get("scale") if isinstance(reg.get("band95"), dict) else None
+        depth = 1.0 / scale - 1.0
+        print(f"  trajectory {name} (translations x {factor:.5f}): registration scale {scale:.5f}, depth "
+              f"{100 * depth:+.2f} % long" + (f" (scale 95 %: {band})" if band else ""))
+        return depth
+
+    print("S14, the similarity registration's reading (paper: scale 0.98288, depth +1.74 % long):")
+    reading("true", 1.0)
+    for (lo, hi), e in errors.items():
+        reading(f"slam-{lo:g}-{hi:g}m", 1.0 + e)
+    for f in slam_scales:
+        reading(f"x{f:g}", f)
+    if units > 0:
+        band = SLAM_BANDS_M[0]
+        vals = np.array([depth_error_in_bands(draw_unit(model, k), poses[::every * 4], scene, width, height,
+                                              stride=16)[band] for k in range(units)])
+        print(f"unit population ({units} draws, --unit-seed 0-{units - 1}): mean depth error in "
+              f"{band[0]:g}-{band[1]:g} m {100 * vals.mean():+.2f} % (sd {100 * vals.std():.2f} %, "
+              f"5-95 % {100 * np.percentile(vals, 5):+.2f} to {100 * np.percentile(vals, 95):+.2f} %); "
+              f">= +1.74 %: {100 * np.mean(vals >= 0.0174):.0f} % of units")
+
+
 def print_table(items: list[Finding], title: str) -> None:
     print(f"\n{title}")
     print("| finding | paper (Section 5) | measured | tolerance | holds |\n|---|---|---|---|---|")
@@ -257,16 +388,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--keep", type=Path, default=None, help="write the simulation here (kept)")
+    ap.add_argument("--low-disk", action="store_true", help="simulate and evaluate a few standpoints at a "
+                    "time, deleting their recordings after")
     ap.add_argument("--reuse", type=Path, default=None, help="evaluate this earlier --keep simulation")
     ap.add_argument("--scan", action="store_true", help="also the scan study's R8, R9, S14 on a walk")
     ap.add_argument("--scan-only", action="store_true", help="only the scan study's findings")
     ap.add_argument("--scan-frames", type=int, default=400, help="frames of the walk (the whole: 1257)")
+    ap.add_argument("--s14", action="store_true", help="only S14: the registration scale with a trajectory "
+                    "that carries the depth's scale (as RGB-D SLAM's), and the unit population")
+    ap.add_argument("--units", type=int, default=0, help="--s14: unit draws for the population's reading")
+    ap.add_argument("--slam-scale", type=float, action="append", default=[],
+                    help="--s14: also a trajectory scaled by this factor (repeatable)")
     args = ap.parse_args(argv)
     proto = quick_protocol() if args.quick else load_protocol("checkerboard-d455")
     frames = args.frames or proto.plan.frames_per_standpoint
     model: SensorModel = load_model(args.model)
     if args.unit_seed is not None:
         model = draw_unit(model, args.unit_seed)
+    if args.s14:
+        with tempfile.TemporaryDirectory() as tmp:
+            root = args.keep or Path(tmp)
+            root.mkdir(parents=True, exist_ok=True)
+            s14_findings(args.scan_frames, model, root, args.seed, args.units, args.slam_scale)
+        return 0
     if args.scan_only:
         with tempfile.TemporaryDirectory() as tmp:
             root = args.keep or Path(tmp)
@@ -277,14 +421,17 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         out = args.keep or Path(tmp) / "sim"
         t = time.perf_counter()
-        if args.reuse is not None:
-            out = args.reuse
+        if args.low_disk:
+            rows, t_sim, t_eval = low_disk_run(proto, model, frames, args.seed, args.workers, Path(tmp))
         else:
-            simulate_checkerboard(proto, model, out, frames=frames, seed=args.seed)
-        t_sim = time.perf_counter() - t
-        t = time.perf_counter()
-        rows = evaluate_session(out, proto, frames, args.workers, Path(tmp) / "study")
-        t_eval = time.perf_counter() - t
+            if args.reuse is not None:
+                out = args.reuse
+            else:
+                simulate_checkerboard(proto, model, out, frames=frames, seed=args.seed)
+            t_sim = time.perf_counter() - t
+            t = time.perf_counter()
+            rows = evaluate_session(out, proto, frames, args.workers, Path(tmp) / "study")
+            t_eval = time.perf_counter() - t
     n_sp = len(proto.plan.standpoints())
     print(f"model {model.name}{'' if args.unit_seed is None else f' (unit seed {args.unit_seed})'}, "
           f"protocol {proto.name}: {n_sp} standpoints x {frames} frames; simulated in {t_sim:.0f} s, "
