@@ -49,7 +49,8 @@ def _study(w: dict[str, Any], name: str, reference: Path, offset: np.ndarray | N
         poses[:, :3, 3] += offset
     write_tum(root / f"{name}_poses.txt", w["t"], poses)
     opt = ScanOptions(similarity=root / "identity.txt", icp=False, distance_bin_m=0.25,
-                      inclination_bin_deg=5.0, min_count_sequence=20, poisson_depth=6)
+                      inclination_bin_deg=5.0, min_count_sequence=20, poisson_depth=6,
+                      reference_mode="mesh")  # the readers' points meshed alike (a mesh is used as is)
     seq, traj = sequence or root / "seq.mcap", root / f"{name}_poses.txt"
     if write:
         summary = run_scan(seq, traj, reference, root / name, opt)

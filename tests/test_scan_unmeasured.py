@@ -146,7 +146,8 @@ def table_scanned_from_above(tmp_path_factory: pytest.TempPathFactory) -> dict[s
 def _scan(w: dict[str, Any], name: str, reference: str, **kw: Any) -> tuple[dict[str, Any], list[RunWarning]]:
     root: Path = w["root"]
     opt = ScanOptions(similarity=root / "identity.txt", distance_bin_m=0.25, inclination_bin_deg=5.0,
-                      min_count_sequence=20, poisson_depth=8, density_quantile=0.0, **kw)
+                      min_count_sequence=20, poisson_depth=8, density_quantile=0.0,
+                      reference_mode="mesh", **kw)  # the cloud's mesh itself: the rule under test
     with collecting() as caught:
         summary = run_scan(root / "seq.mcap", root / "poses.txt", root / reference, root / name, opt)
     return summary, list(caught)
