@@ -57,8 +57,10 @@ def one_walk(root: Path, seed: int, error: float, args: argparse.Namespace) -> d
     poses = walk_around(np.array([0.0, -0.75, 0.0]), radius_m=float(rng.uniform(1.7, 2.3)),
                         speed_m_s=2 * np.pi * 2.0 * 30 / n, frames=n, bob_m=0.03)
     write_poses(d / "walk.txt", np.arange(n) / 30.0, poses)
+    # the depth's noise drawn afresh for every walk: walks of one seed but another truth sharing it
+    # were not independent (a seed's two walks missed together)
     session = simulate_scan("room", d / "walk.txt", model, d / "session", width=args.width,
-                            height=args.width * 9 // 16, color=False, seed=seed)
+                            height=args.width * 9 // 16, color=False, seed=int(rng.integers(2**31)))
     truth = read_tum(session / "trajectory.txt")
     axis = rng.normal(size=3)
     turn = rodrigues(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0.0, 2.0)))
