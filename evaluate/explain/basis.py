@@ -194,6 +194,11 @@ _VAR_MAIN = {"disparity_noise": "sigma_px", "albedo_noise": "sigma_px_black", "s
              "window_noise": "sigma_px", "incidence_noise": "sigma_px"}
 
 
+# Shape parameters (not fitted) of catalogue effects whose module default is not the D455's: the
+# slanted window's offset stops growing at 65 deg in the d455 preset (simulate/models/d455.toml;
+# grazing pixels drop out), where the module's default 89 deg lets tan^2 reach ~3000
+SHAPE: dict[str, dict[str, float]] = {"slant_bias": {"max_deg": 65.0}}
+
 _VAR_REF = {"sigma_px": 0.08, "sigma_px_black": 0.05, "window_px": 2.0, "corner_sigma_px": 0.1}
 WINDOW_DEFAULT_PX = 9.0
 
@@ -234,8 +239,11 @@ def module_candidates(present: dict[str, dict[str, float]] | None = None,
     out: list[Candidate] = []
     for name, param in _BIAS_MAIN.items():
         cls = EFFECTS[name]
+        # a shape parameter the model does not set is taken from the D455's own form (written too)
+        shape = {k: v for k, v in SHAPE.get(name, {}).items() if k not in present.get(name, {})}
+        here = {**present, name: {**shape, **present.get(name, {})}} if shape else present
         out.append(Candidate(name, "bias", (param,), (cls.PARAMS[param][1],), cls.meaning,
-                             _module_column(name, param, "bias", present)))
+                             _module_column(name, param, "bias", here), fixed=shape))
     th = own["thermal_drift"]
     out.append(Candidate("thermal_drift", "bias", ("coeff_px_per_c", "offset_at_median_px"),
                          ("px/degC", "px"), EFFECTS["thermal_drift"].meaning, th.columns,
