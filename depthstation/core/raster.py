@@ -474,7 +474,7 @@ def _raster_polygon(pu: Any, pv: Any, npoly: int, m: float, full: bool, width: i
                 dx, dy, dz = _dir_sum(a0, a1, a2, b0, b1, b2, r02, r12, r22)
                 won |= _keep(cc * width + line, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2, dx, dy,
                              dz, ident, zbuf, tid, ties, tie_t, mode, fma)
-    if won:
+    if won and nrm.shape[0] != 0:
         _unit_normal(nx, ny, nz, nrm, ident)
     return 1, tests
 
@@ -678,7 +678,8 @@ def _render_kernel(mode: int) -> Any:
         cluster's scratch (`_bounds`). The rays of pixel (u, v) start at origin (rounded to
         float32) with direction rot @ (xs[u], ys[v], 1)
         (`fill_rays`), xs and ys the pinhole's pixel-centre coordinates (fx, fy, ppx, ppy); rot:
-        camera to world. nrm[rank]: the unit normal of every triangle that won a pixel;
+        camera to world. nrm[rank]: the unit normal of every triangle that won a pixel (none
+        written when nrm is empty);
         ties[1:ties[0] + 1], tie_t: the pixels where a hit equalled the nearest depth so far, and
         that depth (a tie if it is still the nearest at the end).
         stats += (clusters kept, triangles set up, pixel tests, -, triangles bounded: those of the
@@ -855,7 +856,7 @@ def _render_kernel(mode: int) -> Any:
                             won |= _keep(v * width + u, ux, uy, uz, wx, wy, wz, qx, qy, qz, nx, ny, nz, t2,
                                          dx, dy, dz, ident, zbuf, tid, ties, tie_t, mode, fma)
                             tests += 1
-                        if won:
+                        if won and nrm.shape[0] != 0:
                             _unit_normal(nx, ny, nz, nrm, ident)
                         continue
                     if not clipped:
@@ -996,7 +997,8 @@ class MeshRaster:
         self.stats = np.zeros(5, np.int64)
         self._ties_at = np.zeros(1 + TIE_ROOM, np.int64)
         self._ties_t = np.zeros(1 + TIE_ROOM, np.float32)
-        self._nrm = np.zeros((max(self.n_triangles, 1), 3), np.float32)
+        # the per-rank normals (12 B per triangle), allocated when a render asks for them
+        self._nrm = np.zeros((0, 3), np.float32)
         self._work = np.zeros((16, 16))
         self._fa = np.zeros(_F_ROWS * CLUSTER_SIZE)  # a cluster's scratch (`_bounds`)
         self._ia = np.zeros(_I_ROWS * CLUSTER_SIZE, np.int64)
@@ -1017,7 +1019,7 @@ class MeshRaster:
 
     def render(self, intr: Intrinsics, cam_to_world: NDArray[Any], t_hit: NDArray[np.float32],
                ids: NDArray[np.int32], normals: NDArray[np.float32] | None = None, *,
-               ranks: bool = False) -> None:
+               ranks: bool = False, table: bool = True) -> None:
         """Fill t_hit (inf = miss), ids (triangle id in the mesh given, -1 = miss) and, if given,
         normals (unit, float32, 0 on a miss) of the view `cam_to_world` (4x4) for the rays that
         `fill_rays(rays, pose[:3, 3], pose[:3, :3], pixel_rays(intr))` builds: what Open3D's
@@ -1025,8 +1027,16 @@ class MeshRaster:
 
         `ranks`: ids as the triangles' ranks (`perm[rank]` is the mesh's id), the index of
         `normal_table()`. Why: triangles near in space are near in rank, so a frame's lookups in a
-        per-triangle table stay in cache (the mesh's own order may scatter them over 13 MB)."""
+        per-triangle table stay in cache (the mesh's own order may scatter them over 13 MB).
+
+        `table=False` (without `normals`): `normal_table()` is not kept, for a caller with normals of
+        its own (the study's float64 planes): no normal computed per winning triangle, and no 12 B
+        per triangle held."""
         xs, ys = pinhole_axes(intr)
+        want = table or normals is not None
+        if want and self._nrm.shape[0] != max(self.n_triangles, 1):
+            self._nrm = np.zeros((max(self.n_triangles, 1), 3), np.float32)
+        nrm = self._nrm if want else self._nrm[:0]
         f = max(intr.fx, intr.fy)
         x_edge = max(abs(intr.ppx), abs(intr.width - 1 - intr.ppx)) / intr.fx
         y_edge = max(abs(intr.ppy), abs(intr.height - 1 - intr.ppy)) / intr.fy
@@ -1041,7 +1051,7 @@ class MeshRaster:
                 self.tv, self.tn, self.cl_start, self.cl_lo, self.cl_hi, self.bl_lo, self.bl_hi, xs, ys,
                 np.ascontiguousarray(pose[:3, 3]), np.ascontiguousarray(pose[:3, :3]),
                 float(intr.fx), float(intr.fy), float(intr.ppx), float(intr.ppy), margin_k, margin_px,
-                t_flat, ids_flat, self._ties_at, self._ties_t, self._nrm, self._work, self._fa, self._ia,
+                t_flat, ids_flat, self._ties_at, self._ties_t, nrm, self._work, self._fa, self._ia,
                 self._dtab(intr), counts)
             noted = int(self._ties_at[0])
             if noted < self._ties_at.shape[0]:
@@ -1078,15 +1088,16 @@ class MeshRaster:
         t_hit[ties] = t
         ids[ties] = np.where(hit, won, -1)
         n = ans["primitive_normals"].numpy()
-        self._nrm[won[hit]] = n[hit]  # so that `normal_table()[ranks]` holds for these pixels too
+        if self._nrm.shape[0]:  # so that `normal_table()[ranks]` holds for these pixels too
+            self._nrm[won[hit]] = n[hit]
         if normals is not None:
             normals[ties] = n
         self.stats[3] += ties.size
 
     def normal_table(self) -> NDArray[np.float32]:
-        """Unit normal per triangle rank, valid for every rank `render(..., ranks=True)` put in
-        `ids` in its last frame (what `normals` gathers from): for the per-pixel pass, without a
-        per-pixel copy."""
+        """Unit normal per triangle rank, valid for every rank `render(..., ranks=True)` (with
+        `table`, the default) put in `ids` in its last frame (what `normals` gathers from): for the
+        per-pixel pass, without a per-pixel copy."""
         return self._nrm
 
     def _dtab(self, intr: Intrinsics) -> NDArray[np.float64]:
@@ -1102,8 +1113,8 @@ class _TieCaster:
     """Open3D's scene of the mesh, built when the first tie needs it, shared by siblings."""
 
     def __init__(self, vx: NDArray[np.float32], tri: NDArray[np.int32]) -> None:
-        self.vx = vx
-        self.tri = tri
+        self.vx: NDArray[np.float32] | None = vx
+        self.tri: NDArray[np.int32] | None = tri
         self.scene: Any = None
         self.lock = threading.Lock()
 
@@ -1112,12 +1123,15 @@ class _TieCaster:
             if self.scene is None:
                 o3d = open3d()
                 mesh = o3d.t.geometry.TriangleMesh()
-                mesh.vertex.positions = o3d.core.Tensor(self.vx)
-                mesh.triangle.indices = o3d.core.Tensor(self.tri)
+                # the arrays themselves (no copy: 180 MB fewer while Embree builds at 10 M
+                # triangles), and let go of once the scene holds the triangles
+                mesh.vertex.positions = o3d.core.Tensor.from_numpy(self.vx)
+                mesh.triangle.indices = o3d.core.Tensor.from_numpy(self.tri)
                 scene = o3d.t.geometry.RaycastingScene()
                 scene.add_triangles(mesh)
                 scene.cast_rays(o3d.core.Tensor(rays[:1]), nthreads=1)
                 self.scene = scene
+                self.vx = self.tri = None
         return self.scene.cast_rays(open3d().core.Tensor(rays), nthreads=1)
 
 

@@ -70,7 +70,8 @@ class MeshRasteriser(FrameRenderer):
         """(t_hit, hit triangles' ranks, per-rank normals): the pass reads each pixel's normal from
         the table, so no per-pixel normal array is gathered (7 MB written and read per frame)."""
         raster = self.raster
-        raster.render(self.intr, np.asarray(pose, dtype=np.float64), self._t, self._ids, None, ranks=True)
+        raster.render(self.intr, np.asarray(pose, dtype=np.float64), self._t, self._ids, None, ranks=True,
+                      table=self._table is None)
         if self._table is not None:  # normals from float64 vertices, unmeasured rows NaN (`hit_refine`)
             return self._t, self._ids, self._table
         table = raster.normal_table()
