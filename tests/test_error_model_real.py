@@ -28,7 +28,7 @@ def _table(path: Path) -> dict[str, dict[str, float]]:
 @pytest.fixture(scope="module")
 def real(charuco_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     root = tmp_path_factory.mktemp("d435model")
-    board = ["--board", str(charuco_dir / "board.json")]
+    board = ["--board", str(charuco_dir / "board.json"), "--no-figures"]
     assert run_cli(["evaluate", "checkerboard", *[str(charuco_dir / p) for p in FIT], *board,
                     "--out", str(root / "fit")]) == 0
     assert run_cli(["model", "fit", str(root / "fit"), "--out", str(root / "model.json")]) == 0

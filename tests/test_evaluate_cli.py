@@ -23,7 +23,7 @@ def test_checkerboard_workers_equal_serial(charuco_dir: Path, tmp_path: Path) ->
     for workers in (1, 2):
         out = tmp_path / f"w{workers}"
         proc = subprocess.run([DEPTHSTATION, "evaluate", "checkerboard", *inputs, "--board", board,
-                               "--out", str(out), "--frames", "2", "--workers", str(workers)],
+                               "--out", str(out), "--frames", "2", "--workers", str(workers), "--no-figures"],
                               capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stderr
         outs.append(_rows(out / "standpoints.csv"))

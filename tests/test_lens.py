@@ -81,7 +81,7 @@ def test_aligned_depth_through_a_distorted_colour_lens(standpoint: tuple[Path, d
     src, truth = standpoint
     lens_render.write_camera_json(src, truth)
     code, _, err = _cli(["evaluate", "checkerboard", str(src / "sp"), "--board", str(src / "board.json"),
-                         "--out", str(tmp_path / "r")], capsys)
+                         "--out", str(tmp_path / "r"), "--no-figures"], capsys)
     assert code == 0, err
     _within_u95(_figures(tmp_path / "r"), truth)
 
@@ -92,7 +92,7 @@ def test_a_camera_json_distortion_without_a_model_is_opencvs(standpoint: tuple[P
     src, truth = standpoint
     lens_render.write_camera_json(src, truth, model=None)
     code, _, err = _cli(["evaluate", "checkerboard", str(src / "sp"), "--board", str(src / "board.json"),
-                         "--out", str(tmp_path / "r")], capsys)
+                         "--out", str(tmp_path / "r"), "--no-figures"], capsys)
     assert code == 0, err
     _within_u95(_figures(tmp_path / "r"), truth)
     colour = open_recording(src / "sp").info.color_intrinsics
@@ -109,7 +109,7 @@ def test_ros_bags_with_either_lens_model(standpoint: tuple[Path, dict[str, Any]]
     bag = tmp_path / "bag"
     lens_render.write_ros2_bag(src, bag, truth, distortion_model=model, d=tuple(truth["lens"]))
     code, _, err = _cli(["evaluate", "checkerboard", str(bag), "--board", str(src / "board.json"),
-                         "--out", str(tmp_path / "r")], capsys)
+                         "--out", str(tmp_path / "r"), "--no-figures"], capsys)
     assert code == 0, err
     _within_u95(_figures(tmp_path / "r"), truth)
 
@@ -120,7 +120,7 @@ def test_a_lens_the_station_cannot_invert_is_refused(standpoint: tuple[Path, dic
     bag = tmp_path / "fisheye"
     lens_render.write_ros2_bag(src, bag, truth, distortion_model="equidistant", d=(0.1, 0.01, 0.0, 0.0))
     code, _, err = _cli(["evaluate", "checkerboard", str(bag), "--board", str(src / "board.json"),
-                         "--out", str(tmp_path / "r")], capsys)
+                         "--out", str(tmp_path / "r"), "--no-figures"], capsys)
     assert code == 2
     assert str(bag) in err and "kannala_brandt4" in err and "Traceback" not in err
     assert len(err.strip().splitlines()) == 1
@@ -134,7 +134,7 @@ def test_a_lens_model_none_with_coefficients_is_said(standpoint: tuple[Path, dic
     bag = tmp_path / "nomodel"
     lens_render.write_ros2_bag(src, bag, truth, distortion_model="", d=tuple(truth["lens"]))
     code, _, err = _cli(["evaluate", "checkerboard", str(bag), "--board", str(src / "board.json"),
-                         "--out", str(tmp_path / "r")], capsys)
+                         "--out", str(tmp_path / "r"), "--no-figures"], capsys)
     assert code == 0, err
     assert "lens model 'none' with non-zero coefficients" in err and str(bag) in err
     info = json.loads((tmp_path / "r" / "result.json").read_text())
@@ -153,7 +153,7 @@ def test_rectified_topics_are_read_without_the_raw_distortion(tmp_path: Path,
                                depth_topic="/camera/depth_registered/image_rect",
                                d=lens_render.D455_COLOUR_LENS, k_info=raw_k)
     code, _, err = _cli(["evaluate", "checkerboard", str(bag), "--board", str(src / "board.json"),
-                         "--out", str(tmp_path / "r")], capsys)
+                         "--out", str(tmp_path / "r"), "--no-figures"], capsys)
     assert code == 0, err
     _within_u95(_figures(tmp_path / "r"), truth)
     assert "is rectified" in err
@@ -172,7 +172,7 @@ def test_float_depth_finer_than_a_millimetre_keeps_its_noise(tmp_path: Path,
     bag = tmp_path / "bag"
     lens_render.write_ros2_bag(src, bag, truth, encoding="32FC1", d=(0.0,) * 5)
     code, _, err = _cli(["evaluate", "checkerboard", str(bag), "--board", str(src / "board.json"),
-                         "--out", str(tmp_path / "r")], capsys)
+                         "--out", str(tmp_path / "r"), "--no-figures"], capsys)
     assert code == 0, err
     fig = _figures(tmp_path / "r")
     # 0.1 mm counts add (0.1 mm)^2 / 12 to the variance: 0.2 mm -> 0.2021 mm, inside the U95

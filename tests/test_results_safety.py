@@ -38,7 +38,8 @@ def session(small_session: Path) -> Path:
 def test_second_run_into_a_busy_folder_refuses(tmp_path: Path, session: Path) -> None:
     out = tmp_path / "res"
     board = str(session.parent / "p.toml")
-    args = ["evaluate", "checkerboard", str(session), "--board", board, "--out", str(out), "--frames", "3"]
+    args = ["evaluate", "checkerboard", str(session), "--board", board, "--out", str(out), "--frames", "3",
+            "--no-figures"]
     first = subprocess.Popen([EXE, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lock = tmp_path / ".res.lock"
 
@@ -138,7 +139,7 @@ def test_force_keeps_files_added_to_an_earlier_result(tmp_path: Path, session: P
     recording `view` adds is ours)."""
     out = tmp_path / "res"
     args = ["evaluate", "checkerboard", str(session), "--board", str(session.parent / "p.toml"),
-            "--frames", "3", "--out", str(out)]
+            "--frames", "3", "--out", str(out), "--no-figures"]
     assert run_here(capsys, *args)[0] == 0
     (out / "view.rrd").write_bytes(b"RRF2 made by view later")
     code, err = run_here(capsys, *args, "--force")

@@ -49,7 +49,7 @@ def session(small_session: Path) -> Path:
 def _strict(work: Path, board: Path, out: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str, Any]:
     capsys.readouterr()
     code = run_cli(["--strict", "evaluate", "checkerboard", str(work), "--board", str(board),
-                    "--out", str(out), "--frames", "12"])
+                    "--out", str(out), "--frames", "12", "--no-figures"])
     info = json.loads((out / "result.json").read_text()) if (out / "result.json").is_file() else {}
     return code, capsys.readouterr().err, info
 
@@ -153,7 +153,7 @@ def test_a_study_called_from_python_lists_its_warnings_in_result_json(
     board.write_text(json.dumps({"type": "checkerboard", "squares_x": 7, "squares_y": 5,
                                  "square_length_m": 0.092}))
     with caplog.at_level("WARNING", logger="depthstation.warnings"):
-        run_checkerboard([session], board, tmp_path / "o", frames=12)
+        run_checkerboard([session], board, tmp_path / "o", frames=12, figures=False)
     info = json.loads((tmp_path / "o" / "result.json").read_text())
     said = [w for w in info["warnings"] if w["code"] == "board-mismatch"]
     assert len(said) == 1 and "0.092" in said[0]["message"], info["warnings"]
@@ -198,7 +198,7 @@ def test_a_whole_copy_of_a_cut_recording_still_says_it_holds_only_part(
         capsys.readouterr()
         out = tmp_path / f"o-{copy.stem}-{copy.parent.name}"
         code = run_cli(["--strict", "evaluate", "checkerboard", str(copy), "--board", str(board), "--out",
-                        str(out), "--frames", "12"])
+                        str(out), "--frames", "12", "--no-figures"])
         err = capsys.readouterr().err
         assert code == 3 and "cut short" in err and str(cut) in err, err
         info = json.loads((out / "result.json").read_text())

@@ -323,7 +323,7 @@ def test_a_board_file_with_another_dictionary_than_the_recordings_is_said(
     given = tmp_path / "given.json"
     given.write_text(json.dumps({**board, "dictionary": "DICT_4X4_100"}))
     r = run("evaluate", "checkerboard", str(png_set), "--board", str(given), "--out", str(tmp_path / "o"),
-            "--frames", "2")
+            "--frames", "2", "--no-figures")
     assert r.returncode == 0, r.stderr
     info = json.loads((tmp_path / "o" / "result.json").read_text())
     said = [w["message"] for w in info["warnings"] if w["code"] == "board-mismatch"]
