@@ -7,8 +7,10 @@ command runs it (`run_scan`): the plain study, then the study with `--budget`, b
 `--cycles` times, alternating. Goal: the run with `--budget` at most 3 x the plain one (the
 refinement ray casts about 2500 pixels a frame per render, 4 renders; the sensor pass is a second
 study). The ratio of runs seconds apart says more than either wall time on a shared box.
+`--workers 1` (the command's default) runs everything in one process; more workers run the
+study's chunks and the refinement's frames on local processes.
 
-Run by hand:  .venv/bin/python benchmarks/bench_budget.py [--frames 1334] [--workers 2] [--cycles 1]
+Run by hand:  .venv/bin/python benchmarks/bench_budget.py [--frames 1334] [--workers 1] [--cycles 1]
 """
 
 from __future__ import annotations
@@ -63,7 +65,7 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--subdivide", type=int, default=8, help="wall subdivisions (12 * 4^n triangles)")
     ap.add_argument("--segments", type=int, default=100_000, help="table segments (3 triangles each)")
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--cycles", type=int, default=1)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench_budget_") as tmp:

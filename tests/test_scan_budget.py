@@ -293,8 +293,13 @@ def test_exact_poses_give_a_pose_part_consistent_with_zero(tmp_path: Path) -> No
 
 def test_paper_registration_scale_is_named_for_the_high_inclination_breakdown(tmp_path: Path) -> None:
     """Exact poses moved by the paper's registration scale 0.98288 (about the first camera): the
-    grid reads large errors at high inclination, and the budget puts them in the registration."""
-    case = make_case(tmp_path / "paper", perturb=False, scale=0.98288, seed=7)
+    grid reads large errors at high inclination, and the budget puts them in the registration.
+    The walk is sampled twice as densely as the other cases' (180 frames over the same path): at
+    90 frames the cell at 1.0-1.25 m and 60-65 deg (6638 samples, seen only by 11 frames at the
+    walk's two ends, where the drift prior has neighbours on one side) read 1.8 mm off, inside
+    the budget's own U95 for it (2.6 mm, of it 2.3 mm from the corrected poses' uncertainty);
+    at 180 frames every cell of >= 5000 samples is within 0.7 mm."""
+    case = make_case(tmp_path / "paper", perturb=False, scale=0.98288, seed=7, frames=2 * FRAMES)
     grid, sensor, budget = run_case(case)
     corr = budget["registration"]["correction"]["scale"]
     assert abs(corr - 1 / 0.98288) < 0.003, corr
@@ -308,9 +313,9 @@ def test_paper_registration_scale_is_named_for_the_high_inclination_breakdown(tm
     assert np.sqrt(np.mean((reg[high] + pose[high] - true) ** 2)) <= 0.25 * np.sqrt(np.mean(true ** 2))
     assert np.mean(np.abs(reg[high])) > 2 * np.mean(np.abs(pose[high]))  # named: registration
     # not the sensor: where the grid breaks down the sensor grid stays on the camera's own error
-    # (within 2.5 mm: a cell at 1 m and 60 deg reads 1.9 mm high after the 40 mm correction)
     big = (sensor.count.ravel() >= MIN_SAMPLES) & (case["bias_n"] >= MIN_SAMPLES)
+    assert big.sum() >= 10
     off_sensor = np.abs(sensor.mean_m.ravel()[big] - case["bias"][big])
     off_grid = np.abs(grid.mean_m.ravel()[big] - case["bias"][big])
-    assert off_sensor.max() < 0.0025 and np.median(off_sensor) < 0.0005
+    assert off_sensor.max() < 0.0015 and np.median(off_sensor) < 0.0005, off_sensor
     assert np.median(off_grid) > 10 * np.median(off_sensor)

@@ -22,7 +22,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from depthstation.core.frames import FrameSource
 from depthstation.core.grid import Grid
 from depthstation.core.lazy_open3d import open3d
 from depthstation.core.parallel import ChunkRunner
@@ -85,11 +84,11 @@ def refine_chunks(job: ScanJob, used: list[int], runner: ChunkRunner, step: int)
     opt = job.options
     size = max(1, opt.chunk_frames)
     unmeasured = None if job.config.unmeasured is None else str(job.config.unmeasured)
-    sequence: str | FrameSource = job.source if runner.in_process else str(job.sequence)
-    return [bf.RefineChunk(sequence, str(job.mesh_path), unmeasured,
+    return [bf.RefineChunk(str(job.sequence), str(job.mesh_path), unmeasured,
                            None if opt.intrinsics is None else str(opt.intrinsics), opt.topics,
                            tuple(used[s:s + size]), s, step, opt.distance_max_m, None, job.posed,
-                           opt.tolerance_s, job.config.nthreads)
+                           opt.tolerance_s, job.config.nthreads,
+                           job.source if runner.in_process else None)
             for s in range(0, len(used), size)]
 
 

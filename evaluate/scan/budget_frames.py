@@ -70,7 +70,7 @@ class RefineChunk:
     refinement's frames from `first` on) and where to render them: the poses of this step, or
     (first step) the trajectory to match them from by time stamp."""
 
-    sequence: str | FrameSource   # a path (workers open it), or the open source (this process)
+    sequence: str                 # the recording's path (workers open it; its file key names the cache)
     mesh: str
     unmeasured: str | None
     intrinsics: str | None
@@ -83,6 +83,7 @@ class RefineChunk:
     trajectory: Trajectory | None = None
     tolerance_s: float = 0.01
     nthreads: int = 0
+    source: FrameSource | None = None  # the recording already open (in the command's process)
 
 
 @dataclass
@@ -134,7 +135,7 @@ class _Cache:
     caster_key: object = None
     caster: SampledCaster | None = None
     depth_key: object = None
-    depths: dict[int, tuple[float, NDArray[Any]]] | None = None
+    depths: dict[tuple[int, tuple[int, int]], tuple[float, NDArray[Any]]] | None = None
 
 
 _CACHE = _Cache()
@@ -146,9 +147,9 @@ def clear_cache() -> None:
 
 
 def _source(chunk: RefineChunk) -> tuple[FrameSource, object]:
-    if not isinstance(chunk.sequence, str):
-        return chunk.sequence, ("open", id(chunk.sequence))
     key: object = (_file_key(chunk.sequence), chunk.intrinsics, chunk.topics)
+    if chunk.source is not None:
+        return chunk.source, key
     if _CACHE.source is None or _CACHE.source_key != key:
         intr = Path(chunk.intrinsics) if chunk.intrinsics else None
         _CACHE.source = open_recording(Path(chunk.sequence), intrinsics=intr, topics=chunk.topics)
@@ -167,24 +168,27 @@ def _caster(chunk: RefineChunk, intr: Intrinsics) -> SampledCaster:
 
 
 def _depths(chunk: RefineChunk, source: FrameSource, source_key: object) -> list[tuple[float, NDArray[Any]]]:
-    """(time stamp s, subsampled depth) of the chunk's frames: kept from an earlier step, or read."""
+    """(time stamp s, subsampled depth) of the chunk's frames: kept from an earlier step, or read.
+    Kept by position and subsample offset (a frame's offset follows its index in the refinement)."""
     key = (source_key, chunk.step)
     if _CACHE.depths is None or _CACHE.depth_key != key or len(_CACHE.depths) > CACHE_FRAMES:
         _CACHE.depths, _CACHE.depth_key = {}, key
     kept = _CACHE.depths
-    missing = [p for p in chunk.positions if p not in kept]
+    want = {(p, pixel_offset(chunk.first + k, chunk.step)) for k, p in enumerate(chunk.positions)}
+    missing = sorted(w for w in want if w not in kept)
     if missing:
-        want = set(missing)
-        for k, fs in enumerate(source.frames(limit=missing[-1] - missing[0] + 1, start=missing[0])):
-            pos = missing[0] + k
-            if pos not in want:
+        first, last = missing[0][0], missing[-1][0]
+        offsets = dict(missing)
+        for k, fs in enumerate(source.frames(limit=last - first + 1, start=first)):
+            pos = first + k
+            if pos not in offsets:
                 continue
             if fs.depth is None:
                 raise EvaluationError(f"frame {pos} of {source.name} has no depth image on a second reading")
-            ox, oy = pixel_offset(chunk.first + chunk.positions.index(pos), chunk.step)
+            ox, oy = offsets[pos]
             sub = np.ascontiguousarray(fs.depth[oy::chunk.step, ox::chunk.step])
-            kept[pos] = (fs.timestamp_ns * 1e-9, sub)
-    return [kept[p] for p in chunk.positions]
+            kept[(pos, (ox, oy))] = (fs.timestamp_ns * 1e-9, sub)
+    return [kept[(p, pixel_offset(chunk.first + k, chunk.step))] for k, p in enumerate(chunk.positions)]
 
 
 def refine_frames(chunk: RefineChunk) -> RefineFrames:
