@@ -48,8 +48,8 @@ F64 = NDArray[np.float64]
 REGISTER_MODES = ("none", "rigid", "similarity", "pass-points")
 # Blocks of consecutive frames taken as the band's clusters (fewer with fewer frames; a fit from one
 # frame has no band): a block holds what its frames share (a SLAM trajectory's drift over a few
-# frames); t with blocks - 1 degrees of freedom keeps few blocks honest
-# (benchmarks/bench_registration_coverage.py)
+# frames); t with Bell and McCaffrey's degrees of freedom (at most blocks - 1) keeps few blocks
+# honest (benchmarks/bench_registration_coverage.py)
 BAND_BLOCKS = 10
 
 
@@ -115,8 +115,9 @@ class Registration:
     def bands(self) -> dict[str, Any] | None:
         """U95 of the fitted rotation (deg, about each axis of the reference frame) and translation
         (m, each axis), frames as given, and the scale's 95 % band, from the fit's cluster-robust
-        covariance (`cluster_covariance`) and t with blocks - 1 degrees of freedom. None when no
-        covariance was found (given, pass points, or fewer than 2 frames)."""
+        covariance (`cluster_covariance`) and t with each quantity's degrees of freedom
+        (`StepCovariance.dof`). None when no covariance was found (given, pass points, or fewer
+        than 2 frames)."""
         sc = self.step_covariance
         if sc is None:
             return None
@@ -253,8 +254,8 @@ class BandFrame:
 # depth lies in the band are all there whatever their noise (at 2 m the D455's noise is 0.5-1.3 %
 # of the depth at 640-256 px wide)
 BAND_MARGIN = 0.25
-# Pixels the mesh refinement fits at most (every k-th of each frame beyond): each step casts them
-# all, and the band's refits repeat that per block
+# Pixels the mesh refinement fits at most (every k-th of each frame beyond): each step casts a ray
+# through every one
 MAX_FIT_POINTS = 200_000
 # A refinement step below this (rad, m, relative scale) is the float32 surface query's own noise
 # (5e-8 at a few metres): the fit has converged
