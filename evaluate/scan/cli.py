@@ -93,8 +93,8 @@ def scan(
                                        help="A cloud reference: 'points' (each pixel's reference depth "
                                             "from a plane fitted to the scanned points around the surface "
                                             "its ray meets; pixels the points do not support are left out "
-                                            "and counted) or 'mesh' (the cloud's Poisson mesh itself). A mesh "
-                                            "reference is always used as it is."),
+                                            "and counted) or 'mesh' (the cloud's Poisson mesh itself). A "
+                                            "mesh reference is always used as it is."),
     depth_topic: DepthTopic = None,
     color_topic: ColorTopic = None,
     infrared_topic: InfraredTopic = None,
