@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import typer
 
-from depthstation.evaluate.batch_cli import batch_command
-from depthstation.evaluate.checkerboard.cli import checkerboard
-from depthstation.evaluate.scan.cli import scan
+from depthstation.core.lazy_commands import lazy_group
 
-app = typer.Typer(no_args_is_help=True)
-app.command("checkerboard")(checkerboard)
-app.command("scan")(scan)
-app.command("batch")(batch_command)
+if TYPE_CHECKING:  # the modules COMMANDS loads, named here so that the import graph shows them
+    import depthstation.evaluate.batch_cli
+    import depthstation.evaluate.checkerboard.cli
+    import depthstation.evaluate.scan.cli  # noqa: F401
+
+# each command's module is imported when the command runs: `evaluate checkerboard` does not load
+# the scan study (its rasteriser and registration) nor batch
+COMMANDS = {"checkerboard": "depthstation.evaluate.checkerboard.cli:checkerboard",
+            "scan": "depthstation.evaluate.scan.cli:scan",
+            "batch": "depthstation.evaluate.batch_cli:batch_command"}
+app = typer.Typer(cls=lazy_group(COMMANDS), no_args_is_help=True)

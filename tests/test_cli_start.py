@@ -13,6 +13,7 @@ import pytest
 
 from depthstation.app import cli
 from depthstation.app.cli import COMMANDS
+from depthstation.evaluate import cli as evaluate_cli
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -47,18 +48,21 @@ def test_help_lists_every_command_in_order(capsys: pytest.CaptureFixture[str]) -
     assert "The checkerboard and reference-scan studies." in out and "A camera's depth error model" in out
 
 
-def test_every_module_a_command_loads_is_imported_for_the_type_checkers() -> None:
-    """The modules COMMANDS names are imported at the top of cli.py (under TYPE_CHECKING), so that
-    the layer and cycle checks and mypy see the graph the running program has."""
-    tree = ast.parse((ROOT / "depthstation" / "app" / "cli.py").read_text())
+@pytest.mark.parametrize(("path", "commands"), [("depthstation/app/cli.py", COMMANDS),
+                                                ("evaluate/cli.py", evaluate_cli.COMMANDS)])
+def test_every_module_a_command_loads_is_imported_for_the_type_checkers(path: str,
+                                                                        commands: dict[str, str]) -> None:
+    """The modules a lazy group's commands name are imported at the top of its file (under
+    TYPE_CHECKING), so that the layer and cycle checks and mypy see the graph the program has."""
+    tree = ast.parse((ROOT / path).read_text())
     guarded = {alias.name for node in ast.walk(tree) if isinstance(node, ast.If)
                and ast.unparse(node.test) == "TYPE_CHECKING"
                for imp in node.body if isinstance(imp, ast.Import) for alias in imp.names}
-    assert guarded == set(COMMANDS.values())
+    assert guarded == {target.partition(":")[0] for target in commands.values()}
 
 
 def test_each_command_runs_from_its_module(capsys: pytest.CaptureFixture[str]) -> None:
-    """Every root command answers --help (its module found and its commands registered)."""
-    for name in COMMANDS:
-        assert cli.run_cli([name, "--help"]) == 0, name
-        assert "Usage: depthstation " + name in capsys.readouterr().out
+    """Every command of the lazy groups answers --help (its module found, its commands registered)."""
+    for words in [[name] for name in COMMANDS] + [["evaluate", name] for name in evaluate_cli.COMMANDS]:
+        assert cli.run_cli([*words, "--help"]) == 0, words
+        assert "Usage: depthstation " + " ".join(words) in capsys.readouterr().out

@@ -3,21 +3,19 @@
 from __future__ import annotations
 
 import gc
-import importlib
 import sys
 from pathlib import Path
-from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import click
 import typer
-from typer.core import TyperGroup
 
 from depthstation.core.errors import DepthstationError
+from depthstation.core.lazy_commands import lazy_group
 from depthstation.core.results import COMMAND_LINE, disk_error
 from depthstation.core.run_warnings import RunWarning, collecting
 
-if TYPE_CHECKING:  # the modules COMMANDS loads, named here so that the import graph (layers, mypy) shows them
+if TYPE_CHECKING:  # the modules COMMANDS loads, named so that the import graph (layers, mypy) holds them
     import depthstation.acquire.cli
     import depthstation.app.capture_cli
     import depthstation.app.station_cli
@@ -26,22 +24,21 @@ if TYPE_CHECKING:  # the modules COMMANDS loads, named here so that the import g
     import depthstation.evaluate.explain.cli
     import depthstation.simulate.cli  # noqa: F401
 
-# The root's commands, in the order `--help` lists them, each from the module that defines it: a
-# stage's sub-app (`app`, with its help here) or a module whose `register(app)` adds commands. A
-# command's module is imported when the command runs, so `evaluate checkerboard` no longer loads
-# the camera, the simulator's CLI, explain and the exports (1.8 -> 1.0 s of CPU per start; `--help`
-# loads them all to list them).
+# The root's commands, in the order `--help` lists them, each from the module that defines it
+# ("module:attribute", `lazy_commands.lazy_group`): a command's module is imported when the command
+# runs, so `evaluate checkerboard` no longer loads the camera, the simulator's command line,
+# explain and the exports (docs/checkerboard-study.md, "What the command's speed rests on").
 COMMANDS: dict[str, str] = {
-    "explain": "depthstation.evaluate.explain.cli",
-    "correct": "depthstation.evaluate.errormodel.cli",
-    "demo": "depthstation.app.station_cli",
-    "view": "depthstation.app.station_cli",
-    "compare": "depthstation.app.station_cli",
-    "capture": "depthstation.app.capture_cli",
-    "simulate": "depthstation.simulate.cli",
-    "evaluate": "depthstation.evaluate.cli",
-    "acquire": "depthstation.acquire.cli",
-    "model": "depthstation.evaluate.errormodel.cli",
+    "explain": "depthstation.evaluate.explain.cli:register",
+    "correct": "depthstation.evaluate.errormodel.cli:register",
+    "demo": "depthstation.app.station_cli:register",
+    "view": "depthstation.app.station_cli:register",
+    "compare": "depthstation.app.station_cli:register",
+    "capture": "depthstation.app.capture_cli:app",
+    "simulate": "depthstation.simulate.cli:app",
+    "evaluate": "depthstation.evaluate.cli:app",
+    "acquire": "depthstation.acquire.cli:app",
+    "model": "depthstation.evaluate.errormodel.cli:register",
 }
 SUB_APP_HELP = {
     "capture": "Import, inspect and convert captures.",
@@ -50,37 +47,9 @@ SUB_APP_HELP = {
     "acquire": "Warm-up, on-device calibration and guided capture.",
 }
 
-
-def _commands_of(module: ModuleType) -> TyperGroup:
-    """The commands a module gives the root app, as a group of their own."""
-    part = typer.Typer()
-    register = getattr(module, "register", None)
-    if callable(register):
-        register(part)
-    else:
-        name = next(n for n, m in COMMANDS.items() if m == module.__name__)
-        part.add_typer(module.app, name=name, help=SUB_APP_HELP[name])
-    return typer.main.get_group(part)
-
-
-class LazyRoot(TyperGroup):
-    """The root group: each command is built from its module the first time it is asked for."""
-
-    # typer >= 0.22 types these with its own copy of click, older typer with click: Any serves both
-    def list_commands(self, ctx: Any) -> list[str]:
-        return [*COMMANDS, *(n for n in super().list_commands(ctx) if n not in COMMANDS)]
-
-    def get_command(self, ctx: Any, cmd_name: str) -> Any:
-        if cmd_name not in self.commands and cmd_name in COMMANDS:
-            group = _commands_of(importlib.import_module(COMMANDS[cmd_name]))
-            for name, command in group.commands.items():
-                self.commands.setdefault(name, command)
-        return super().get_command(ctx, cmd_name)
-
-
 app = typer.Typer(
     name="depthstation",
-    cls=LazyRoot,
+    cls=lazy_group(COMMANDS, SUB_APP_HELP),
     help="Measure how well a depth camera measures depth over distance x inclination.",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
