@@ -5,6 +5,9 @@ Run: .venv/bin/python benchmarks/bench_simulate.py [--frames 150] [--standpoint 
 Prints the time of each stage, the frame rate, and the ratio to the 10 s budget, for
 (a) rendering the frames only and (b) the whole `simulate_checkerboard` call writing the MCAP.
 
+`--ab [--blocks 6]`: d455-ideal against d455 in one process, alternating blocks of 25 frames of the
+same standpoint: CPU per frame (depth + colour, one thread), the comparison the load cannot skew.
+
 `--scan [--frames 1257]`: `simulate scan` of the walk round the room's table (640x480 depth +
 colour as YUYV 4:2:2, the rasteriser, zstd chunks) as a whole call: frames/s (target >= 30 on 2
 cores) and the file size (target: at most half of 1.65 GB), against the same frames written as
@@ -33,7 +36,12 @@ def main() -> None:
     ap.add_argument("--render-only", action="store_true", help="(a) only: no MCAP written")
     ap.add_argument("--scan", action="store_true", help="simulate scan of the walk instead")
     ap.add_argument("--baseline-frames", type=int, default=200, help="--scan: frames written with lz4")
+    ap.add_argument("--ab", action="store_true", help="d455-ideal against d455, alternating, one process")
+    ap.add_argument("--blocks", type=int, default=6, help="--ab: blocks of 25 frames per model")
     args = ap.parse_args()
+    if args.ab:
+        alternate(args.standpoint, args.blocks)
+        return
     if args.scan:
         scan(args.frames if args.frames != 150 else 1257, args.baseline_frames)
         return
@@ -107,6 +115,42 @@ def main() -> None:
           f"fully serial: (a) {cpu_a:.2f} s, (b) {cpu_b:.2f} s")
     print(f"machine load average (1 min): {__import__('os').getloadavg()[0]:.1f} on "
           f"{__import__('os').cpu_count()} cores (other work slows every figure)")
+
+
+def alternate(standpoint: str, blocks: int, per_block: int = 25) -> None:
+    """CPU per frame of d455-ideal and d455 (depth + colour, one thread) in alternating blocks."""
+    import numpy as np
+
+    from depthstation.core.protocol import load_protocol
+    from depthstation.simulate.checkerboard_session import stream_info_for
+    from depthstation.simulate.model import load_model
+    from depthstation.simulate.poses import standpoint_pose
+    from depthstation.simulate.scene import board_scene
+    from depthstation.simulate.view_renderer import ViewRenderer
+
+    proto = load_protocol("checkerboard-d455")
+    sp = next(s for s in proto.plan.standpoints() if s.name == standpoint)
+    renderers = {}
+    for name in ("d455-ideal", "d455"):
+        model = load_model(name)
+        r = ViewRenderer(board_scene(proto.board), model, stream_info_for(proto, model), seed=0)
+        r.set_pose(standpoint_pose(proto.board, sp.distance_m, sp.inclination_deg, sp.side))
+        r.frame(0, 0, rng=np.random.default_rng(0))   # compiled and the fused sampler built
+        renderers[name] = r
+    ms: dict[str, list[float]] = {n: [] for n in renderers}
+    for b in range(blocks):
+        for name, r in renderers.items():
+            c = time.process_time()
+            for k in range(per_block):
+                r.frame(k, 0, rng=np.random.default_rng([b, k]))
+            ms[name].append((time.process_time() - c) / per_block * 1e3)
+    print(f"standpoint {sp.name} ({sp.distance_m} m, {sp.inclination_deg} deg), 1280x720 depth + colour, "
+          f"{blocks} alternating blocks of {per_block} frames, CPU ms per frame (one thread):")
+    for name, v in ms.items():
+        print(f"  {name:11s} " + " ".join(f"{x:.1f}" for x in v) + f"   median {np.median(v):.1f} ms "
+              f"({1e3 / np.median(v):.1f} frames/s per core)")
+    ratio = float(np.median(ms["d455"]) / np.median(ms["d455-ideal"]))
+    print(f"d455 / d455-ideal: {ratio:.3f} x the CPU per frame")
 
 
 def colour_cost(renderer: Any, frames: int) -> None:
