@@ -60,7 +60,10 @@ class Unit:
         return self.color_psf_px > 0
 
 
-# The d455 preset's unit, as docs/simulator.md states it, in this module's terms
+# The d455 preset's unit in this module's terms. Offsets and the field are written in px of the mode
+# rendered (the simulator states the unit's offset and pattern in px of the 1280-wide mode, scaled by
+# fx / fx_ref): at 640x360 these are twice the preset's angle, and explain reports offset_px in px of
+# the 1280-wide mode, so -0.10 px written here reads -0.20 px there
 PAPER_UNIT = Unit(scale=0.006, offset_px=-0.10, slant_k=0.02, slant_c_px=-0.05, incidence_px=0.08,
                   pattern_px=0.03, pattern_length=0.12, pattern_seed=7, color_psf_px=0.8)
 

@@ -120,7 +120,8 @@ def test_the_paper_unit_has_each_effect_named(tmp_path_factory: pytest.TempPathF
     assert {"depth_scale", "slant_scale", "disparity_offset", "incidence_noise"} <= set(data["selected"])
     assert _param(data, "depth_scale", "scale_error") == pytest.approx(0.006, abs=0.001)
     assert _param(data, "slant_scale", "k") == pytest.approx(0.02, rel=0.1)
-    assert _param(data, "disparity_offset", "offset_px") < 0
+    # written -0.10 px at 640x360 (fx 337.2): explain states it in px of the 1280-wide mode (fx 674.4)
+    assert _param(data, "disparity_offset", "offset_px") == pytest.approx(-0.20, rel=0.2)
     assert "slant_bias" in data["selected"]
     assert _param(data, "slant_bias", "offset_px_at_45") == pytest.approx(-0.05, rel=0.2)
     assert _param(data, "incidence_noise", "sigma_px") == pytest.approx(0.08, rel=0.15)
