@@ -330,3 +330,35 @@ def test_bad_scan_options_are_one_line_input_errors_before_any_file_is_read(
     # our own checks say one line; option types are click's (usage line, then the error)
     assert err[-1] == (message if message.startswith("Error:") else f"depthstation: error: {message}")
 
+
+
+def test_without_a_normal_table_the_hits_are_the_same_and_no_table_is_held() -> None:
+    """The study's renderer asks for no per-rank normal table (`render(table=False)`, its normals
+    come from the float64 planes): the same depths and triangles as with the table, no table
+    kept; and its planes, built straight in rank order, are the mesh-order planes reordered."""
+    from depthstation.evaluate.scan.hit_refine import TrianglePlanes
+
+    rng = np.random.default_rng(5)
+    g = np.linspace(-1.5, 1.5, 121)
+    gx, gy = np.meshgrid(g, g)
+    pts = np.c_[gx.ravel(), gy.ravel(), rng.normal(0, 0.003, gx.size)]
+    w = g.size
+    k = np.arange(gx.size).reshape(gx.shape)[:-1, :-1].ravel()
+    tris = np.vstack([np.c_[k, k + 1, k + w + 1], np.c_[k, k + w + 1, k + w]])
+    pose = look_at(np.array([0.3, -0.2, 1.2]), np.array([0.2, 0.3, 0.0]), up=(0.3, 1.0, 0.0))
+    n = INTR.width * INTR.height
+    bare, full = MeshRaster(pts, tris), MeshRaster(pts, tris)
+    t0, i0 = np.empty(n, np.float32), np.empty(n, np.int32)
+    t1, i1 = np.empty(n, np.float32), np.empty(n, np.int32)
+    bare.render(INTR, pose, t0, i0, ranks=True, table=False)
+    full.render(INTR, pose, t1, i1, ranks=True)
+    assert (i0 >= 0).sum() > n // 2
+    assert np.array_equal(t0, t1) and np.array_equal(i0, i1)
+    assert bare.normal_table().size == 0 and full.normal_table().shape == (len(tris), 3)
+    ref = _cast(pts, tris, INTR, pose)
+    hit = i1 >= 0
+    assert np.array_equal(full.normal_table()[i1[hit]], ref["normals"][hit])
+    ranked = TrianglePlanes(pts, tris, bare.perm)
+    reordered = TrianglePlanes(pts, tris).reordered(bare.perm)
+    for a in ("normal", "offset", "table"):
+        assert np.array_equal(getattr(ranked, a), getattr(reordered, a)), a
