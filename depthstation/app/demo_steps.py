@@ -283,7 +283,9 @@ def _explain_step(ctx: DemoContext) -> tuple[Path, str]:
     ctx.facts["explain"] = {"hidden": {HIDDEN_EFFECT: {"offset_px": HIDDEN_OFFSET_PX}},
                             "significant": data["mismatch"]["significant"], "selected": data["selected"],
                             "top": top}
-    text = (f"concealed {HIDDEN_EFFECT} {HIDDEN_OFFSET_PX} px at 1280 wide; mismatch "
+    total = (own.params["offset_px"] if own else 0.0) + HIDDEN_OFFSET_PX   # what explain refits: all of it
+    text = (f"concealed {HIDDEN_EFFECT} {HIDDEN_OFFSET_PX} px at 1280 wide on top of the unit's "
+            f"{total - HIDDEN_OFFSET_PX:+.2f} px (true offset_px {total:+.2f}); mismatch "
             f"{'significant' if data['mismatch']['significant'] else 'not significant'}")
     if top is not None:
         params = ", ".join(f"{k} {v['value']:.4g} {v.get('unit', '')}" if isinstance(v, dict) else f"{k} {v}"
