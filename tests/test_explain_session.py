@@ -70,9 +70,12 @@ def _assert_null(data: dict[str, Any], *, edge_noise_ok: bool = False) -> None:
     assert not data["mismatch_after"]["significant"], data["mismatch_after"]["regions"]
 
 
-def _assert_catalogue(data: dict[str, Any], effect: str, fx: float) -> None:
+def _assert_catalogue(data: dict[str, Any], effect: str, fx: float, *, edge_noise_ok: bool = False) -> None:
+    """The effect alone selected and recovered, clean after; `edge_noise_ok` as in `_assert_null`."""
     assert data["mismatch"]["significant"]
-    assert data["selected"] == [effect] and data["discovered"] == [], (data["selected"], data["discovered"])
+    assert data["selected"] == [effect], data["selected"]
+    found = [(d["quantity"], d["axes"]) for d in data["discovered"]]
+    assert found in ([], [("noise", ["edge"])] if edge_noise_ok else []), found
     top = next(c for c in data["candidates"] if c["effect"] == effect)
     assert top["heldout_rmse_after_m"] < top["heldout_rmse_before_m"]
     value = {"disparity_offset": ("offset_px", OFFSET_PX * PRESETS["d455"].reference_fx / fx),
@@ -103,7 +106,7 @@ OFFSET_AT_SIZE = pytest.mark.xfail(strict=True, reason="at 18 x 15 depth_scale i
                                   for c in sorted(CASES)])
 def test_a_catalogue_effect_at_the_session_size_is_selected_alone(case: str, tmp_path: Path) -> None:
     hidden, effect = CASES[case]
-    _assert_catalogue(_explain(tmp_path, hidden, small=False), effect, _fx(small=False))
+    _assert_catalogue(_explain(tmp_path, hidden, small=False), effect, _fx(small=False), edge_noise_ok=True)
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
