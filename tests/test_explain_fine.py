@@ -13,12 +13,15 @@ Each must come out with a p that survives Holm over a run's ~200 tests; the null
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import cv2
 import numpy as np
 import pytest
 
-from depthstation.evaluate.explain.fine import fine_tests, gradients, ripple
+from depthstation.evaluate.explain.fine import fine_terms, fine_tests, gradients, ripple
 from depthstation.evaluate.explain.samples import Samples, concat
+from depthstation.simulate.effects.base import PixelContext
 
 W, H, FX, B = 320, 240, 200.0, 0.095
 N_SP, N_FR = 18, 15
@@ -103,3 +106,18 @@ def test_a_roll_zero_mean_over_the_rows_is_found_and_the_detectable_size_said(si
     assert abs(g.slope_px_per_px + roll) < 3 * g.se_px_per_px
     assert 2.8 * g.se_px_per_px < roll    # the session's detectable slope, as explain.json says it
     assert gradients(real, sim, "u").p > HOLM_FLOOR   # not along u
+
+
+def test_the_static_excess_is_written_in_px_of_the_1280_wide_mode() -> None:
+    """The static pattern is an angle (the simulator renders sigma_px x fx / fx_ref): an excess
+    measured at 640 wide (fx half the reference's) is written as 2x the px, so that re-simulating
+    at 640 wide renders the variance that was measured."""
+    fx_ref = PixelContext(z_m=0.0).fx_ref
+    pooled = SimpleNamespace(significant=True, family="static", label="pooled", p=1e-9,
+                             coords={"diff_px2": 0.0009, "correlation_px": 16.0})
+    for fx, want in ((fx_ref, 0.03), (fx_ref / 2.0, 0.06)):
+        (term,) = fine_terms([pooled], {}, fx)
+        assert term["effect"] == "static_pattern"
+        assert term["params"]["sigma_px"] == pytest.approx(want, rel=1e-12)
+        rendered = term["params"]["sigma_px"] * PixelContext(z_m=0.0, fx=fx).reference_scale
+        assert rendered**2 == pytest.approx(0.0009, rel=1e-12)

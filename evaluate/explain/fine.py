@@ -33,6 +33,7 @@ import numpy as np
 from scipy.special import fdtrc, stdtr
 
 from depthstation.evaluate.explain.samples import FloatArray, Samples, standpoint_map
+from depthstation.simulate.effects.base import PixelContext
 
 MIN_PERIOD_PX = 6.0  # shortest trial period (px of the stereo imager)
 MIN_LINES = 12  # columns (rows) a standpoint's profile needs
@@ -521,7 +522,8 @@ def fine_terms(tests: list[Any], present: dict[str, dict[str, float]], fx: float
     validated on held-out standpoints where it can be: a ripple (`periodic_bias`, the stronger axis
     when both differ; kept only if it lowers the held-out RMS of the profiles) and the static
     pattern (`static_pattern` calibrated: sigma^2 + the pooled real-minus-sim variance of the part
-    repeating over frames, its correlation length in normalised units)."""
+    repeating over frames, in px of the 1280-wide mode as the effect states it, its correlation
+    length in normalised units)."""
     out: list[dict[str, Any]] = []
     ripples = sorted(
         (t for t in tests if t.significant and t.family.startswith("periodic")), key=lambda t: t.p
@@ -548,7 +550,10 @@ def fine_terms(tests: list[Any], present: dict[str, dict[str, float]], fx: float
     if pooled and pooled[0].coords["diff_px2"] > 0:
         c = pooled[0].coords
         old = present.get("static_pattern", {})
-        sigma2 = old.get("sigma_px", 0.0) ** 2 + c["diff_px2"]
+        # the pattern is an angle, stated in px of the camera's 1280-wide mode (the samples' fx_ref,
+        # the D455's); the excess is measured in px of these images: / (fx / fx_ref)^2
+        scale = PixelContext(z_m=0.0, fx=fx).reference_scale
+        sigma2 = old.get("sigma_px", 0.0) ** 2 + c["diff_px2"] / scale**2
         length = c["correlation_px"] / fx if np.isfinite(c["correlation_px"]) else old.get("length", 0.05)
         out.append(
             {

@@ -6,7 +6,6 @@ from typing import ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.interpolate import CubicSpline
 
 from depthstation.simulate.effects.base import Array, DisparityShift, PixelContext
 
@@ -18,6 +17,8 @@ def spline_basis(x: Array, lo: float, hi: float, knots: int) -> NDArray[np.float
     """(len(x), knots): the natural cubic spline through the unit vector of each knot, equally
     spaced on [lo, hi], held at its end value outside. The spline is linear in the knot values, so
     a fit is a least-squares problem in these columns."""
+    from scipy.interpolate import CubicSpline  # scipy.interpolate costs 0.3 s at every start
+
     x = np.clip(np.asarray(x, dtype=np.float64).ravel(), lo, hi)
     grid = np.linspace(lo, hi, knots)
     return np.asarray(CubicSpline(grid, np.eye(knots), bc_type="natural")(x), dtype=np.float64)
