@@ -517,16 +517,21 @@ def _test(*values: Any, axes: list[str]) -> dict[str, Any]:
     return {**dict(zip(FIELDS, values, strict=True)), "axes": axes}
 
 
-def fine_terms(tests: list[Any], present: dict[str, dict[str, float]], fx: float) -> list[dict[str, Any]]:
+def fine_terms(tests: list[Any], present: dict[str, dict[str, float]], fx: float,
+               kinds: tuple[str, ...] = ("periodic", "static")) -> list[dict[str, Any]]:
     """The model terms the significant fine tests call for (effect name and parameters), each
     validated on held-out standpoints where it can be: a ripple (`periodic_bias`, the stronger axis
     when both differ; kept only if it lowers the held-out RMS of the profiles) and the static
     pattern (`static_pattern` calibrated: sigma^2 + the pooled real-minus-sim variance of the part
     repeating over frames, in px of the 1280-wide mode as the effect states it, its correlation
-    length in normalised units)."""
+    length in normalised units). `kinds`: which of the two to look for. The static pattern is
+    calibrated on the tests after the catalogue's refit: before it, the static excess also holds
+    what a selected bias renders the same in every frame (black squares read farther), which the
+    pattern would then render twice."""
     out: list[dict[str, Any]] = []
     ripples = sorted(
-        (t for t in tests if t.significant and t.family.startswith("periodic")), key=lambda t: t.p
+        (t for t in tests if t.significant and t.family.startswith("periodic") and "periodic" in kinds),
+        key=lambda t: t.p,
     )
     for t in ripples[:1]:
         c = t.coords
@@ -546,7 +551,8 @@ def fine_terms(tests: list[Any], present: dict[str, dict[str, float]], fx: float
                 "heldout_rmse_after_px": c["heldout_rmse_after_px"],
             }
         )
-    pooled = [t for t in tests if t.significant and t.family == "static" and t.label == "pooled"]
+    pooled = [t for t in tests if t.significant and t.family == "static" and t.label == "pooled"
+              and "static" in kinds]
     if pooled and pooled[0].coords["diff_px2"] > 0:
         c = pooled[0].coords
         old = present.get("static_pattern", {})

@@ -417,7 +417,7 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     for look in reference_lookalikes(attr.selected):
         warn(f"{look['effect']} selected (scale_error {look['scale_error']:+.4f}): {look['also']}", None,
              "reference-lookalike")
-    fine = fine_terms(before.tests, present, real.samples.fx)
+    fine = fine_terms(before.tests, present, real.samples.fx, kinds=("periodic",))
     fx_depth, size = real.info.depth_intrinsics.fx, pose_spread.board_size(board)
     spread = pose_spread.spread_tests(real.figures, sim.figures, _frame_counts(real), _frame_counts(sim),
                                       pose_spread.added_variance(present.get(pose_spread.TERM), sim.figures,
@@ -434,6 +434,17 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
         if tick:
             tick("locate after")
         after = locate(real.samples, resim.samples)
+        # a static excess left after the refit (real repeating more over frames than the re-simulation):
+        # the unit's static pattern calibrated on it, rendered and located once more
+        static = fine_terms(after.tests, present_effects(new_model), real.samples.fx, kinds=("static",))
+        for term in static:
+            new_model = new_model.with_effect(term["effect"], **term["params"])
+            fine = [*fine, term]
+            resim = simulate_like(real, board, new_model, seed=seed + 3, tick=tick)
+            warn_unpaired(real.samples, resim.samples, "re-simulation")
+            if tick:
+                tick("locate after the static pattern")
+            after = locate(real.samples, resim.samples)
         # a bias still located along u, v, distance or inclination: the spline along that axis (kept
         # only where it predicts held-out standpoints better), rendered and checked once more
         spline = spline_term(after.significant, real.samples, resim.samples)
