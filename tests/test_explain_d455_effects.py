@@ -5,7 +5,8 @@ re-simulation is clean; the null stays clean.
 
 The session: 12 standpoints (1-4 m x 0/30/60 deg, 640x360) of 6 frames, simulated with
 d455-ideal; the effects are written onto its frames. The paper's unit (all effects together) is
-checked at 18 standpoints x 15 frames (slow).
+checked at 18 standpoints x 15 frames (marked session_size, deselected by default: run with
+`-m session_size`).
 """
 
 from __future__ import annotations
@@ -108,6 +109,7 @@ def test_catalogue_shapes_are_the_d455_presets() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.session_size
 def test_the_paper_unit_has_each_effect_named(tmp_path_factory: pytest.TempPathFactory) -> None:
     """All the d455 preset's effects at once (this module's PAPER_UNIT), at the session size a user
     captures: 18 standpoints (1-3.5 m x 0/30/60 deg) x 15 frames. Each effect is named with its
