@@ -437,25 +437,17 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
         # a static excess left after the refit (real repeating more over frames than the re-simulation):
         # the unit's static pattern calibrated on it, rendered and located once more
         static = fine_terms(after.tests, present_effects(new_model), real.samples.fx, kinds=("static",))
-        for term in static:
-            new_model = new_model.with_effect(term["effect"], **term["params"])
-            fine = [*fine, term]
-            resim = simulate_like(real, board, new_model, seed=seed + 3, tick=tick)
-            warn_unpaired(real.samples, resim.samples, "re-simulation")
-            if tick:
-                tick("locate after the static pattern")
-            after = locate(real.samples, resim.samples)
+        if static:
+            new_model, resim, after = _rendered_with(real, board, new_model, static, seed + 3, tick,
+                                                     "the static pattern")
+            fine = [*fine, *static]
         # a bias still located along u, v, distance or inclination: the spline along that axis (kept
         # only where it predicts held-out standpoints better), rendered and checked once more
         spline = spline_term(after.significant, real.samples, resim.samples)
         if spline is not None:
-            new_model = new_model.with_effect(spline["effect"], **spline["params"])
+            new_model, resim, after = _rendered_with(real, board, new_model, [spline], seed + 2, tick,
+                                                     "the spline")
             fine = [*fine, spline]
-            resim = simulate_like(real, board, new_model, seed=seed + 2, tick=tick)
-            warn_unpaired(real.samples, resim.samples, "re-simulation")
-            if tick:
-                tick("locate after the spline")
-            after = locate(real.samples, resim.samples)
         spread_after = pose_spread.spread_tests(
             real.figures, resim.figures, _frame_counts(real), _frame_counts(resim),
             pose_spread.added_variance(present_effects(new_model).get(pose_spread.TERM), resim.figures,
@@ -467,6 +459,18 @@ def explain_sides(real: Side, sim: Side, model: SensorModel, board: Board, *, se
     return Explanation(real, sim, before, attr, model, new_model, resim, after, cands, disc, lib, rest, fills,
                        fine, pose_spread.summary(spread, spread_fit, pose_term),
                        pose_spread.summary(spread_after, None, None) if resimulate else None)
+
+
+def _rendered_with(real: Side, board: Board, model: SensorModel, terms: list[dict[str, Any]], seed: int,
+                   tick: Progress | None, label: str) -> tuple[SensorModel, Side, LocateResult]:
+    """The model with `terms` added, the real standpoints re-simulated with it and located again."""
+    for term in terms:
+        model = model.with_effect(term["effect"], **term["params"])
+    resim = simulate_like(real, board, model, seed=seed, tick=tick)
+    warn_unpaired(real.samples, resim.samples, "re-simulation")
+    if tick:
+        tick(f"locate after {label}")
+    return model, resim, locate(real.samples, resim.samples)
 
 
 def _frame_counts(side: Side) -> dict[str, int]:
