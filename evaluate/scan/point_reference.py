@@ -27,7 +27,7 @@ rms / sqrt(n) * sqrt(1 + rho^2 / r^2): the fit residual over the points' count, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -63,9 +63,7 @@ class PointParams:
     gap_m: float = 0.01
 
     def to_dict(self) -> dict[str, Any]:
-        return {"k": self.k, "min_points": self.min_points, "radius_spacings": self.radius_spacings,
-                "centre_spacings": self.centre_spacings, "rough_factor": self.rough_factor,
-                "gap_m": self.gap_m}
+        return asdict(self)
 
 
 @dataclass
